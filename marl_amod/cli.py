@@ -1,0 +1,127 @@
+"""The ``marl-amod`` command line: scenarios, evaluate (and train, compare, collect as they land)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from marl_amod.data import ENV_VAR
+from marl_amod.errors import MarlAmodError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, help="Robo-taxi fleet coordination as a multi-agent RL benchmark.")
+console = Console()
+
+DataDir = Annotated[
+    Optional[Path], typer.Option("--data-dir", help=f"data root (macro/, lux/); default: ${ENV_VAR}", show_default=False)
+]
+
+
+def _use_data_dir(data_dir: Path | None) -> None:
+    if data_dir is not None:
+        os.environ[ENV_VAR] = str(data_dir)
+
+
+def progress_bar() -> Progress:
+    """The progress bar every long-running command shows."""
+    return Progress(
+        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=console
+    )
+
+
+@app.command()
+def scenarios(data_dir: DataDir = None) -> None:
+    """List scenarios with their regions, fleet and horizon."""
+    from marl_amod.scenario import available, load_city, load_spec
+
+    _use_data_dir(data_dir)
+    table = Table(title="marl_amod scenarios")
+    for col in ("name", "regions", "fleet", "horizon", "step (min)", "requests/episode", "description"):
+        table.add_column(col, justify="left" if col in ("name", "description") else "right")
+    for name in available():
+        spec = load_spec(name)
+        try:
+            s = load_city(name).summary()
+            row = [str(s["regions"]), str(s["fleet"]), str(s["horizon"]), f"{s['tstep_min']:g}", f"{s['expected_requests']:.0f}"]
+        except MarlAmodError as exc:
+            row = ["-", "-", str(spec.horizon), "-", "-"]
+            spec_desc = f"[dim]unavailable: {exc}[/dim]"
+            table.add_row(name, *row, spec_desc)
+            continue
+        table.add_row(name, *row, spec.description)
+    console.print(table)
+
+
+def metrics_table(results: list[dict], title: str) -> Table:
+    """Policies as rows, metrics as 'mean ± std' columns."""
+    from marl_amod.metrics import METRICS
+
+    table = Table(title=title)
+    table.add_column("policy")
+    for key in METRICS:
+        table.add_column(key, justify="right")
+    for r in results:
+        cells = []
+        for key in METRICS:
+            m = r["metrics"][key]
+            digits = 2 if key in ("utilization", "wait_time") else 1
+            cells.append(f"{m['mean']:,.{digits}f} ± {m['std']:,.{digits}f}")
+        table.add_row(r["policy"], *cells)
+    return table
+
+
+@app.command()
+def evaluate(
+    scenario: Annotated[str, typer.Option(help="scenario name or YAML path")] = "synthetic",
+    policy: Annotated[list[str], typer.Option(help="policy name or checkpoint; repeat to compare")] = ["equal-distribution"],  # noqa: B006
+    episodes: Annotated[int, typer.Option(min=1)] = 10,
+    seed: int = 0,
+    output: Annotated[Optional[Path], typer.Option(help="write the results JSON here")] = None,
+    max_wait: Annotated[int, typer.Option(min=0, help="steps a request waits before leaving")] = 0,
+    objective: Annotated[str, typer.Option(help="dispatch objective: profit or revenue")] = "profit",
+    solver: Annotated[str, typer.Option(help="fast (greedy + OR-Tools) or cvxpy")] = "fast",
+    data_dir: DataDir = None,
+) -> None:
+    """Run policies for whole episodes and print (and save) their metrics."""
+    from marl_amod.evaluation import evaluate as run_eval
+    from marl_amod.evaluation import make_policy
+    from marl_amod.scenario import load_city
+
+    _use_data_dir(data_dir)
+    city = load_city(scenario)
+    results = []
+    with progress_bar() as bar:
+        for name in policy:
+            pol = make_policy(name, city)
+            task = bar.add_task(f"{name} on {city.name}", total=episodes)
+            results.append(
+                run_eval(
+                    city, pol, episodes=episodes, seed=seed, max_wait=max_wait, objective=objective, solver=solver,
+                    progress=lambda _k, task=task: bar.advance(task),
+                )
+            )
+    console.print(metrics_table(results, f"{city.name}: {episodes} episodes, seed {seed}"))
+    if output is not None:
+        payload = results[0] if len(results) == 1 else {"scenario": city.name, "results": results}
+        output.parent.mkdir(parents=True, exist_ok=True)
+        output.write_text(json.dumps(payload, indent=2))
+        console.print(f"wrote {output}")
+
+
+def main() -> None:
+    """Entry point: user errors print one clear line and exit 2, never a traceback."""
+    try:
+        app()
+    except MarlAmodError as exc:
+        console.print(f"[red]error:[/red] {exc}")
+        raise SystemExit(2) from None
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,54 @@
+"""Where real-city data lives.
+
+One setting finds it: the ``MARL_AMOD_DATA`` environment variable (or ``--data-dir`` on the CLI,
+which sets it). The folder holds ``macro/`` (RL4AMOD city JSON files and
+``calibrated_parameters.json``) and ``lux/`` (the LuST OpenStreetMap network). Nothing here is
+ever copied into the repository; the synthetic default scenario needs no data at all.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+from marl_amod.errors import DataError
+
+ENV_VAR = "MARL_AMOD_DATA"
+
+
+def data_dir() -> Path:
+    """The data root, or a clear error saying how to set it."""
+    value = os.environ.get(ENV_VAR)
+    if not value:
+        raise DataError(
+            f"real-city scenarios need the data directory: set {ENV_VAR}=/path/to/data "
+            "(the folder holding macro/ and lux/) or pass --data-dir. "
+            "The synthetic scenarios need no data."
+        )
+    root = Path(value).expanduser()
+    if not root.is_dir():
+        raise DataError(f"{ENV_VAR}={value!r} is not a directory")
+    return root
+
+
+def resolve(relative: str | Path) -> Path:
+    """Absolute path of a data file named relative to the data root; errors name the file."""
+    path = Path(relative)
+    if not path.is_absolute():
+        path = data_dir() / path
+    if not path.is_file():
+        raise DataError(f"data file not found: {path}")
+    return path
+
+
+def read_json(path: Path) -> Any:
+    """Parse a JSON file; a syntax error names the file, line and column."""
+    try:
+        with path.open("r", encoding="utf-8") as fh:
+            return json.load(fh)
+    except json.JSONDecodeError as exc:
+        raise DataError(f"malformed JSON in {path}: {exc.msg} at line {exc.lineno}, column {exc.colno}") from exc
+    except OSError as exc:
+        raise DataError(f"cannot read {path}: {exc}") from exc

@@ -1,0 +1,138 @@
+"""Scenario names -> cities, through one small YAML file per scenario.
+
+The bundled scenarios live in the repository's ``envs/`` folder (shipped inside the wheel as
+``marl_amod/_scenarios``). A user's own scenario is any YAML path with the same keys. Keys are
+validated strictly: a typo is an error naming the key, never a silent default.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Literal, Union
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from marl_amod.data import resolve
+from marl_amod.errors import ConfigError, DataError
+from marl_amod.scenario.json_city import load_json_city
+from marl_amod.scenario.synthetic import grid_city
+from marl_amod.scenario.types import City
+
+DEFAULT_SCENARIO = "synthetic"
+
+
+class _Spec(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    name: str
+    description: str = ""
+    horizon: int = Field(20, ge=1, description="control steps (dispatch rounds) per episode")
+
+
+class JsonScenario(_Spec):
+    """A real city from an RL4AMOD JSON file under the data directory."""
+
+    source: Literal["json"]
+    data_file: str = Field(description="path relative to MARL_AMOD_DATA")
+    tstep: float = Field(3.0, gt=0, description="minutes per step")
+    start_hour: int = Field(ge=0, le=23, description="json_hr: clock hour of step 0")
+    demand_ratio: float = Field(gt=0, description="multiplier on the data's demand")
+    beta: float = Field(ge=0, description="operating cost per minute of driving")
+    fleet: int | None = Field(None, gt=0, description="total vehicles; default from totalAcc")
+
+
+class SyntheticScenario(_Spec):
+    """A generated grid city; needs no data."""
+
+    source: Literal["synthetic"]
+    rows: int = Field(4, ge=1)
+    cols: int = Field(4, ge=1)
+    seed: int = 0
+    tstep: float = Field(3.0, gt=0)
+    beta: float = Field(0.5, ge=0)
+    step_time: int = Field(1, ge=1)
+    requests_per_region: float = Field(3.0, gt=0)
+    imbalance: float = Field(0.8, ge=0, lt=1)
+    trip_length_preference: float = 0.5
+    fare_per_step: float = Field(4.0, gt=0)
+    vehicles_per_region: int = Field(12, ge=0)
+
+
+ScenarioSpec = Union[JsonScenario, SyntheticScenario]
+
+
+def scenario_dirs() -> list[Path]:
+    """Folders searched for bundled scenario YAML files (repo checkout, then installed wheel)."""
+    here = Path(__file__).resolve().parent.parent
+    return [p for p in (here.parent / "envs", here / "_scenarios") if p.is_dir()]
+
+
+def available() -> list[str]:
+    """Names of the bundled scenarios."""
+    names = {p.stem for d in scenario_dirs() for p in d.glob("*.yaml")}
+    return sorted(names)
+
+
+def _find(name_or_path: str) -> Path:
+    path = Path(name_or_path)
+    if path.suffix in (".yaml", ".yml"):
+        if not path.is_file():
+            raise ConfigError(f"scenario file not found: {path}")
+        return path
+    for d in scenario_dirs():
+        candidate = d / f"{name_or_path}.yaml"
+        if candidate.is_file():
+            return candidate
+    raise ConfigError(f"unknown scenario {name_or_path!r}; known: {', '.join(available())} (or give a .yaml path)")
+
+
+def load_spec(name_or_path: str, **overrides: Any) -> ScenarioSpec:
+    """Read and validate a scenario YAML; keyword overrides replace its keys."""
+    path = _find(name_or_path)
+    try:
+        raw = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"malformed YAML in {path}: {exc}") from exc
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: expected a mapping of keys")
+    raw.update({k: v for k, v in overrides.items() if v is not None})
+    source = raw.get("source")
+    model = {"json": JsonScenario, "synthetic": SyntheticScenario}.get(source)
+    if model is None:
+        raise ConfigError(f"{path}: 'source' must be 'json' or 'synthetic', got {source!r}")
+    try:
+        return model(**raw)
+    except ValidationError as exc:
+        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'scenario'}: {e['msg']}" for e in exc.errors())
+        raise ConfigError(f"invalid scenario {path}: {problems}") from exc
+
+
+def build_city(spec: ScenarioSpec) -> City:
+    """Turn a validated spec into a :class:`City`."""
+    if isinstance(spec, SyntheticScenario):
+        params = spec.model_dump(exclude={"source", "description", "name"})
+        return grid_city(name=spec.name, **params)
+    return load_json_city(
+        resolve(spec.data_file),
+        name=spec.name,
+        tstep=spec.tstep,
+        start_hour=spec.start_hour,
+        demand_ratio=spec.demand_ratio,
+        beta=spec.beta,
+        horizon=spec.horizon,
+        fleet=spec.fleet,
+    )
+
+
+@lru_cache(maxsize=32)
+def _cached(name_or_path: str, frozen_overrides: tuple) -> City:
+    return build_city(load_spec(name_or_path, **dict(frozen_overrides)))
+
+
+def load_city(name_or_path: str = DEFAULT_SCENARIO, **overrides: Any) -> City:
+    """The city for a scenario name (see :func:`available`) or YAML path, cached per arguments."""
+    try:
+        return _cached(str(name_or_path), tuple(sorted(overrides.items())))
+    except DataError:
+        raise

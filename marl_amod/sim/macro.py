@@ -1,0 +1,186 @@
+"""The macroscopic simulator: vectorised fleet bookkeeping over regions and steps.
+
+Pure numpy; it knows no RL API and never solves anything. Callers (the env, the rollout
+loop) decide flows through the coordinator and apply them here in the paper's order:
+
+    reset -> apply_dispatch -> [apply_rebalance -> advance -> apply_dispatch] * (horizon - 1)
+
+Semantics follow the reference implementation: a vehicle that departs in step t on a trip of
+tau steps arrives in step t + tau and is idle from step t + tau + 1. Vehicles in transit are
+counted per arrival step, so no vehicle is ever created or lost. Requests not served within
+``max_wait`` steps leave.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from marl_amod.scenario.types import City
+
+_TOL = 1e-9
+
+
+@dataclass
+class EpisodeTotals:
+    """Per-region accumulators over an episode; (N,) arrays, money in the data's units."""
+
+    revenue: np.ndarray
+    trip_cost: np.ndarray
+    rebalancing_cost: np.ndarray
+    served: np.ndarray
+    demand: np.ndarray
+    lost: np.ndarray
+    wait_minutes: np.ndarray  # summed over served passengers
+    busy_vehicle_steps: np.ndarray  # vehicle-steps spent driving, by departure region
+    rebalanced: np.ndarray  # vehicles sent away for rebalancing
+
+    @classmethod
+    def zeros(cls, n: int) -> EpisodeTotals:
+        return cls(**{name: np.zeros(n) for name in cls.__dataclass_fields__})
+
+    @property
+    def profit(self) -> np.ndarray:
+        return self.revenue - self.trip_cost - self.rebalancing_cost
+
+
+class MacroSim:
+    """State of one episode on one city; reset with a seed, then apply flows step by step."""
+
+    def __init__(self, city: City, *, max_wait: int = 0) -> None:
+        if max_wait < 0:
+            raise ValueError(f"max_wait must be >= 0 steps, got {max_wait}")
+        self.city = city
+        self.max_wait = max_wait
+        n = city.n_regions
+        longest = int(max(city.trip_time.max(), city.reb_time.max()))
+        self._arrival_len = city.n_steps + longest + 2
+        self.t = 0
+        self.idle = city.initial_vehicles.astype(np.int64).copy()
+        self.arrivals = np.zeros((self._arrival_len, n), dtype=np.int64)
+        self.demand = np.zeros((city.n_steps, n, n), dtype=np.int64)
+        self.backlog = np.zeros((max_wait + 1, n, n), dtype=np.int64)
+        self.totals = EpisodeTotals.zeros(n)
+        self.last_dispatch = np.zeros((n, n), dtype=np.int64)
+        self.last_rebalance = np.zeros((n, n), dtype=np.int64)
+
+    # ------------------------------------------------------------------ lifecycle
+    def reset(self, rng: np.random.Generator) -> None:
+        """Start an episode: draw every step's OD demand (one Poisson draw per pair and step)."""
+        n = self.city.n_regions
+        self.t = 0
+        self.idle = self.city.initial_vehicles.astype(np.int64).copy()
+        self.arrivals[:] = 0
+        self.demand = rng.poisson(self.city.demand_rate).astype(np.int64)
+        self.backlog[:] = 0
+        self.backlog[0] = self.demand[0]
+        self.totals = EpisodeTotals.zeros(n)
+        self.totals.demand += self.demand[0].sum(axis=1)
+        self.last_dispatch = np.zeros((n, n), dtype=np.int64)
+        self.last_rebalance = np.zeros((n, n), dtype=np.int64)
+
+    @property
+    def done(self) -> bool:
+        """True once the last control step's dispatch has been applied."""
+        return self.t >= self.city.horizon - 1
+
+    def requests(self) -> np.ndarray:
+        """(N, N) open requests right now: new ones plus those still willing to wait."""
+        return self.backlog.sum(axis=0)
+
+    def vehicles(self) -> int:
+        """Idle plus in-transit vehicles; constant over an episode (conservation)."""
+        return int(self.idle.sum() + self.arrivals[self.t :].sum())
+
+    # ------------------------------------------------------------------ transitions
+    def apply_dispatch(self, x: np.ndarray) -> float:
+        """Serve requests with passenger flows x (N, N); returns the step's dispatch profit."""
+        x = self._check_flows(x, "dispatch")
+        open_requests = self.requests()
+        if np.any(x > open_requests):
+            i, j = np.argwhere(x > open_requests)[0]
+            raise ValueError(f"dispatch serves {x[i, j]} requests {i}->{j} but only {open_requests[i, j]} are open")
+        out = x.sum(axis=1)
+        if np.any(out > self.idle):
+            i = int(np.argmax(out - self.idle))
+            raise ValueError(f"dispatch sends {out[i]} vehicles from region {i} which has {self.idle[i]} idle")
+        c, t = self.city, self.t
+        duration = c.trip_time[t]
+        self._depart(x, duration)
+        # serve the oldest requests first: they are the closest to leaving
+        remaining = x.copy()
+        wait = np.zeros(c.n_regions)
+        for age in range(self.max_wait, -1, -1):
+            take = np.minimum(remaining, self.backlog[age])
+            self.backlog[age] -= take
+            remaining -= take
+            wait += age * c.tstep * take.sum(axis=1)
+        revenue = (x * c.price[t]).sum(axis=1)
+        cost = (x * c.trip_cost[t]).sum(axis=1)
+        tot = self.totals
+        tot.revenue += revenue
+        tot.trip_cost += cost
+        tot.served += out
+        tot.wait_minutes += wait
+        self.last_dispatch = x
+        return float(revenue.sum() - cost.sum())
+
+    def apply_rebalance(self, y: np.ndarray) -> float:
+        """Move idle vehicles with flows y (N, N); returns the step's rebalancing cost."""
+        y = self._check_flows(y, "rebalancing")
+        if np.any(np.diag(y) != 0):
+            raise ValueError("rebalancing flows must be zero on the diagonal (staying is implicit)")
+        out = y.sum(axis=1)
+        if np.any(out > self.idle):
+            i = int(np.argmax(out - self.idle))
+            raise ValueError(f"rebalancing sends {out[i]} vehicles from region {i} which has {self.idle[i]} idle")
+        self._depart(y, self.city.reb_time)
+        cost = (y * self.city.reb_cost).sum(axis=1)
+        self.totals.rebalancing_cost += cost
+        self.totals.rebalanced += out
+        self.last_rebalance = y
+        return float(cost.sum())
+
+    def advance(self) -> None:
+        """Close the step: arrivals become idle, unserved requests age or leave, new ones appear."""
+        if self.done:
+            raise RuntimeError("the episode is over; call reset()")
+        self.idle += self.arrivals[self.t]
+        self.totals.lost += self.backlog[self.max_wait].sum(axis=1)
+        self.backlog[1:] = self.backlog[:-1].copy()
+        self.t += 1
+        self.backlog[0] = self.demand[self.t]
+        self.totals.demand += self.demand[self.t].sum(axis=1)
+        self.last_dispatch = np.zeros_like(self.last_dispatch)
+        self.last_rebalance = np.zeros_like(self.last_rebalance)
+
+    def finish(self) -> None:
+        """Count requests still open when the episode ends as lost (call after the last dispatch)."""
+        self.totals.lost += self.backlog.sum(axis=(0, 2))
+        self.backlog[:] = 0
+
+    # ------------------------------------------------------------------ helpers
+    def _depart(self, flows: np.ndarray, duration: np.ndarray) -> None:
+        """Vehicles leave now and arrive after ``duration`` steps (per pair)."""
+        self.idle -= flows.sum(axis=1)
+        moving = flows > 0
+        if not moving.any():
+            return
+        i, j = np.nonzero(moving)
+        arrive = self.t + duration[i, j]
+        np.add.at(self.arrivals, (arrive, j), flows[i, j])
+        steps_left = self.city.horizon - self.t
+        np.add.at(self.totals.busy_vehicle_steps, i, flows[i, j] * np.minimum(duration[i, j], steps_left))
+
+    def _check_flows(self, flows: np.ndarray, what: str) -> np.ndarray:
+        n = self.city.n_regions
+        flows = np.asarray(flows)
+        if flows.shape != (n, n):
+            raise ValueError(f"{what} flows must have shape {(n, n)}, got {flows.shape}")
+        if not np.all(np.isfinite(flows)):
+            raise ValueError(f"{what} flows contain NaN or inf")
+        rounded = np.rint(flows)
+        if np.any(np.abs(flows - rounded) > 1e-6) or np.any(rounded < 0):
+            raise ValueError(f"{what} flows must be non-negative integers")
+        return rounded.astype(np.int64)
