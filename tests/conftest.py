@@ -1,0 +1,39 @@
+"""Shared fixtures: small cities, and real-city data when MARL_AMOD_DATA points at it."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+os.environ.setdefault("MPLBACKEND", "Agg")
+
+from marl_amod.data import ENV_VAR  # noqa: E402
+from marl_amod.scenario import City, grid_city  # noqa: E402
+
+REAL_CITIES = [
+    "chicago", "nyc_brooklyn", "nyc_man_middle", "nyc_man_north", "nyc_man_south", "porto", "rome",
+    "san_francisco", "shenzhen_baoan", "shenzhen_downtown_east", "shenzhen_downtown_west", "shenzhen_north",
+    "washington_dc",
+]
+
+
+def has_data() -> bool:
+    value = os.environ.get(ENV_VAR)
+    return bool(value) and (Path(value) / "macro").is_dir()
+
+
+needs_data = pytest.mark.skipif(not has_data(), reason=f"set {ENV_VAR} to the data folder to run real-city tests")
+
+
+@pytest.fixture
+def tiny_city() -> City:
+    """A 3x3 grid with a 6-step horizon: fast enough for per-step property tests."""
+    return grid_city(3, 3, seed=1, horizon=6, vehicles_per_region=5, requests_per_region=3.0)
+
+
+@pytest.fixture
+def small_city() -> City:
+    """The default synthetic city (4x4, 20 steps)."""
+    return grid_city(4, 4, seed=0)
