@@ -1,0 +1,74 @@
+"""The command line a new user runs first: scenarios, evaluate, clear errors."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+from marl_amod.cli import app
+from marl_amod.metrics import METRICS
+
+runner = CliRunner()
+
+
+def run_eval(tmp_path, *args):
+    out = tmp_path / "r.json"
+    result = runner.invoke(app, ["evaluate", "--episodes", "2", "--output", str(out), *args])
+    assert result.exit_code == 0, result.output
+    return json.loads(out.read_text()), result.output
+
+
+def test_scenarios_lists_the_default_city():
+    result = runner.invoke(app, ["scenarios"])
+    assert result.exit_code == 0, result.output
+    assert "synthetic" in result.output and "16" in result.output
+
+
+def test_evaluate_writes_the_documented_json(tmp_path):
+    data, output = run_eval(tmp_path, "--policy", "equal-distribution", "--seed", "3")
+    assert data["scenario"] == "synthetic" and data["policy"] == "equal-distribution"
+    assert data["episodes"] == 2 and data["seed"] == 3
+    assert set(data["metrics"]) == set(METRICS)
+    for value in data["metrics"].values():
+        assert set(value) == {"mean", "std"}
+    assert data["metrics"]["served_demand"]["mean"] <= data["metrics"]["demand"]["mean"]
+    assert "equal-distribution" in output and "profit" in output
+
+
+def test_same_seed_identical_numbers_different_seed_different(tmp_path):
+    a, _ = run_eval(tmp_path, "--policy", "random", "--seed", "1")
+    b, _ = run_eval(tmp_path, "--policy", "random", "--seed", "1")
+    c, _ = run_eval(tmp_path, "--policy", "random", "--seed", "2")
+    assert a["metrics"] == b["metrics"]
+    assert a["metrics"]["demand"] != c["metrics"]["demand"]
+
+
+def test_several_policies_give_one_comparison(tmp_path):
+    data, output = run_eval(tmp_path, "--policy", "no-rebalancing", "--policy", "plus-one")
+    assert [r["policy"] for r in data["results"]] == ["no-rebalancing", "plus-one"]
+    assert data["results"][0]["metrics"]["rebalancing_cost"]["mean"] == 0
+
+
+@pytest.mark.parametrize(
+    "args, message",
+    [
+        (["--policy", "teleport"], "unknown policy"),
+        (["--scenario", "atlantis"], "unknown scenario"),
+        (["--objective", "fun"], "objective"),
+    ],
+)
+def test_user_errors_exit_2_with_one_clear_line(args, message, capsys):
+    from marl_amod.cli import main
+
+    with pytest.raises(SystemExit) as exc:
+        import sys
+
+        argv, sys.argv = sys.argv, ["marl-amod", "evaluate", "--episodes", "1", *args]
+        try:
+            main()
+        finally:
+            sys.argv = argv
+    assert exc.value.code == 2
+    assert message in capsys.readouterr().out
