@@ -8,6 +8,7 @@ and MPC can look ahead past the last control step.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -65,15 +66,15 @@ class City:
     def fleet_size(self) -> int:
         return int(self.initial_vehicles.sum())
 
-    @property
+    @cached_property
     def trip_cost(self) -> np.ndarray:
-        """(S, N, N) operating cost of a passenger trip: beta * tstep * duration."""
-        return self.beta * self.tstep * self.trip_time
+        """(S, N, N) operating cost of a passenger trip: beta * tstep * duration (computed once)."""
+        return _frozen(self.beta * self.tstep * self.trip_time)
 
-    @property
+    @cached_property
     def reb_cost(self) -> np.ndarray:
-        """(N, N) cost of one rebalancing move: beta * tstep * duration."""
-        return self.beta * self.tstep * self.reb_time
+        """(N, N) cost of one rebalancing move: beta * tstep * duration (computed once)."""
+        return _frozen(self.beta * self.tstep * self.reb_time)
 
     def summary(self) -> dict:
         """One row for `marl-amod scenarios`."""
@@ -85,3 +86,8 @@ class City:
             "tstep_min": self.tstep,
             "expected_requests": float(self.demand_rate[: self.horizon].sum()),
         }
+
+
+def _frozen(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a
