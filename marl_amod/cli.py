@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -16,7 +17,8 @@ from marl_amod.data import ENV_VAR
 from marl_amod.errors import MarlAmodError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Robo-taxi fleet coordination as a multi-agent RL benchmark.")
-console = Console()
+# wide enough for the metrics table when output is piped (rich would assume 80 columns)
+console = Console(width=shutil.get_terminal_size((150, 24)).columns)
 
 DataDir = Annotated[
     Optional[Path], typer.Option("--data-dir", help=f"data root (macro/, lux/); default: ${ENV_VAR}", show_default=False)
