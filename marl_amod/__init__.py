@@ -1,0 +1,45 @@
+"""marl_amod: robo-taxi fleet coordination as a multi-agent RL benchmark.
+
+``parallel_env(...)`` makes the PettingZoo ParallelEnv (every region an agent), ``env(...)`` its
+AEC version; see :mod:`marl_amod.env.parallel` for the documentation. Importing the package
+loads numpy-level code only (no torch); the env's modules load on first use.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+__version__ = "0.1.0"
+__all__ = ["amod_v0", "env", "parallel_env"]
+
+if TYPE_CHECKING:
+    from pettingzoo.utils.env import AECEnv
+
+    from marl_amod.env.parallel import AmodParallelEnv
+    from marl_amod.scenario.types import City
+
+
+def parallel_env(scenario: str | City = "synthetic", **kwargs: Any) -> AmodParallelEnv:
+    """The PettingZoo ParallelEnv: every region an agent (arguments: :mod:`marl_amod.env.parallel`).
+
+    Keywords: reward_mode="team"|"local", action_mode="weight"|"logit", lookahead=6, max_wait=0,
+    objective="profit", render_mode=None, and scenario overrides such as horizon=10.
+    """
+    from marl_amod.amod_v0 import parallel_env as make
+
+    return make(scenario, **kwargs)
+
+
+def env(scenario: str | City = "synthetic", **kwargs: Any) -> AECEnv:
+    """The AEC version of :func:`parallel_env`, through ``pettingzoo.utils.parallel_to_aec``."""
+    from marl_amod.amod_v0 import raw_env
+
+    return raw_env(scenario, **kwargs)
+
+
+def __getattr__(name: str) -> Any:
+    if name == "amod_v0":
+        from importlib import import_module
+
+        return import_module("marl_amod.amod_v0")
+    raise AttributeError(f"module 'marl_amod' has no attribute {name!r}")

@@ -1,0 +1,74 @@
+"""From per-agent actions to the coordinator's target: validation, clipping, weights.
+
+Each agent acts with one number ``a`` in ``Box(0, 1, (1,))``. The rule for values outside:
+
+* a value that is not finite, or below ``-NEGATIVE_TOLERANCE``, or of a shape other than ``()``
+  or ``(1,)``, raises :class:`~marl_amod.errors.ActionError` naming the agent (a bug upstream);
+* any other value is clipped into [0, 1] (small negative noise and values above 1, as a
+  Gaussian policy without clipping produces, are tolerated).
+
+``weight`` mode: the clipped values are the weights w; the coordinator's target is
+floor(w_i / sum(w) * M) (independent Gamma(alpha_i) samples normalised this way are exactly a
+Dirichlet(alpha) sample). An all-zero joint action means "stay": no rebalancing this step.
+
+``logit`` mode: a -> logit ``LOGIT_RANGE * (2a - 1)`` in [-10, 10], then a softmax across agents
+gives the weights (so an all-zero joint action asks for a uniform distribution, not "stay").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any, Literal
+
+import numpy as np
+
+from marl_amod.errors import ActionError
+
+ActionMode = Literal["weight", "logit"]
+ACTION_MODES: tuple[str, ...] = ("weight", "logit")
+LOGIT_RANGE = 10.0
+NEGATIVE_TOLERANCE = 1e-6
+
+
+def joint_action(actions: Mapping[str, Any], agents: Sequence[str]) -> np.ndarray:
+    """(N,) float64 clipped actions in the order of ``agents``; raises ActionError on bad input."""
+    if not isinstance(actions, Mapping):
+        raise ActionError(f"actions must be a dict {{agent: action}}, got {type(actions).__name__}")
+    missing = [a for a in agents if a not in actions]
+    if missing:
+        shown = ", ".join(missing[:5]) + (" ..." if len(missing) > 5 else "")
+        raise ActionError(f"actions are missing for {len(missing)} agent(s): {shown}; every live agent must act")
+    unknown = [a for a in actions if a not in set(agents)]
+    if unknown:
+        raise ActionError(f"actions given for unknown or finished agent(s): {', '.join(map(str, unknown[:5]))}")
+    out = np.empty(len(agents))
+    for k, agent in enumerate(agents):
+        value = np.asarray(actions[agent], dtype=np.float64) if _numeric(actions[agent]) else None
+        if value is None:
+            raise ActionError(f"action of {agent} must be a number or an array of shape (1,), got {actions[agent]!r}")
+        if value.shape not in ((), (1,)):
+            raise ActionError(f"action of {agent} must have shape (1,), got shape {value.shape}")
+        v = float(value.reshape(()))
+        if not np.isfinite(v):
+            raise ActionError(f"action of {agent} is not finite: {v}")
+        if v < -NEGATIVE_TOLERANCE:
+            raise ActionError(f"action of {agent} is negative ({v}); weights must be >= 0")
+        out[k] = v
+    return np.clip(out, 0.0, 1.0)
+
+
+def weights(action: np.ndarray, mode: ActionMode) -> np.ndarray:
+    """(N,) non-negative weights from clipped actions in [0, 1]."""
+    if mode == "weight":
+        return action
+    logits = LOGIT_RANGE * (2.0 * action - 1.0)
+    z = np.exp(logits - logits.max())
+    return z / z.sum()
+
+
+def _numeric(value: Any) -> bool:
+    try:
+        np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return False
+    return True

@@ -1,0 +1,147 @@
+"""Local and global observations of the multi-agent env: one fixed layout for every region.
+
+Every agent (region i) sees a float32 vector of length ``D = F + 3 + K * (F + 1)`` where
+``F = 1 + 2T`` node features (T = ``lookahead``, 13 by default) and ``K = max_degree`` neighbour
+slots (the largest in-degree of the city graph unless given). In order:
+
+===================  =========  =====================================================================
+block                size       meaning and scaling
+===================  =========  =====================================================================
+own features         F          :func:`marl_amod.env.features.node_features` row of region i, times 0.01:
+                                ``idle`` (idle vehicles after this step's dispatch), ``supply_t+k``
+                                (idle now plus vehicles arriving at i in step t+k, k = 1..T),
+                                ``value_t+k`` (expected requests out of i in step t+k times their
+                                fare, summed over destinations); all >= 0
+time of day          2          ``sin`` and ``cos`` of 2*pi*h/24, h = ``city.start_hour`` + t*tstep/60
+step fraction        1          t / horizon, in [0, 1)
+neighbour features   K * F      the F features of each in-neighbour j (edges j -> i of
+                                ``city.edge_index``), sorted by j; empty slots are zeros
+neighbour mask       K          1.0 for a real neighbour slot, 0.0 for padding
+===================  =========  =====================================================================
+
+:func:`split_local` cuts such a vector (or a batch of them, numpy or torch) back into the blocks,
+so a shared-parameter message-passing layer runs from one agent's observation alone. The global
+state (:func:`global_state`) is the N x F feature matrix, flattened, followed by the 3 time values.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from marl_amod.env.features import node_features
+from marl_amod.scenario.types import City
+from marl_amod.system import FleetSystem
+
+N_CONTEXT = 3  # sin(time of day), cos(time of day), step fraction
+
+
+def n_features(lookahead: int) -> int:
+    """F: columns of :func:`node_features` for a look-ahead of T steps."""
+    return 1 + 2 * lookahead
+
+
+def max_in_degree(city: City) -> int:
+    """Largest number of in-neighbours of any region (at least 1, so the layout is never empty)."""
+    if city.edge_index.size == 0:
+        return 1
+    return max(1, int(np.bincount(city.edge_index[1], minlength=city.n_regions).max()))
+
+
+def neighbour_table(city: City, max_degree: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(N, K) int64 indices of in-neighbours j of each region i (edges j -> i, sorted by j) and (N, K) mask.
+
+    Padding slots hold index 0 and mask 0, so a gather followed by a multiply by the mask is exact.
+    """
+    n = city.n_regions
+    k = max_in_degree(city) if max_degree is None else int(max_degree)
+    src, dst = np.asarray(city.edge_index, dtype=np.int64)
+    idx = np.zeros((n, k), dtype=np.int64)
+    mask = np.zeros((n, k), dtype=np.float32)
+    if src.size == 0:
+        return idx, mask
+    order = np.lexsort((src, dst))  # group by target, then by source
+    src, dst = src[order], dst[order]
+    counts = np.bincount(dst, minlength=n)
+    if counts.max() > k:
+        raise ValueError(f"max_degree={k} is smaller than the largest in-degree {counts.max()} of {city.name}")
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    slot = np.arange(src.size) - starts[dst]
+    idx[dst, slot] = src
+    mask[dst, slot] = 1.0
+    return idx, mask
+
+
+def time_features(city: City, t: int) -> np.ndarray:
+    """(3,) float32: sin and cos of the clock time of step t, and t / horizon."""
+    hour = city.start_hour + t * city.tstep / 60.0
+    angle = 2.0 * np.pi * hour / 24.0
+    return np.array([np.sin(angle), np.cos(angle), t / city.horizon], dtype=np.float32)
+
+
+def local_observations(
+    system: FleetSystem,
+    lookahead: int = 6,
+    max_degree: int | None = None,
+    *,
+    table: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
+    """(N, D) float32 local observations of every region (layout in the module docstring).
+
+    ``table`` is a cached :func:`neighbour_table`; the env passes it to skip recomputing it.
+    """
+    idx, mask = table if table is not None else neighbour_table(system.city, max_degree)
+    feats = node_features(system, lookahead)  # (N, F)
+    n, f = feats.shape
+    k = idx.shape[1]
+    neigh = feats[idx] * mask[:, :, None]  # (N, K, F)
+    context = np.broadcast_to(time_features(system.city, system.t), (n, N_CONTEXT))
+    obs = np.concatenate([feats, context, neigh.reshape(n, k * f), mask], axis=1)
+    return obs.astype(np.float32, copy=False)
+
+
+def local_bounds(lookahead: int, max_degree: int) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper bounds of one local observation (features >= 0, time in [-1, 1], mask in [0, 1])."""
+    f = n_features(lookahead)
+    low = np.concatenate([np.zeros(f), [-1.0, -1.0, 0.0], np.zeros(max_degree * f), np.zeros(max_degree)])
+    high = np.concatenate([np.full(f, np.inf), [1.0, 1.0, 1.0], np.full(max_degree * f, np.inf), np.ones(max_degree)])
+    return low.astype(np.float32), high.astype(np.float32)
+
+
+def split_local(obs: Any, n_features: int = 13) -> tuple[Any, Any, Any, Any]:
+    """Cut local observations (..., D) into own (..., F), context (..., 3), neighbours (..., K, F), mask (..., K).
+
+    Works on numpy arrays and torch tensors alike (slicing and reshape only; no torch import).
+    """
+    f = n_features
+    d = obs.shape[-1]
+    k, rest = divmod(d - f - N_CONTEXT, f + 1)
+    if rest or k < 0:
+        raise ValueError(f"an observation of length {d} does not fit the layout F + 3 + K*(F+1) with F={f}")
+    lead = tuple(obs.shape[:-1])
+    own = obs[..., :f]
+    context = obs[..., f : f + N_CONTEXT]
+    start = f + N_CONTEXT
+    neighbours = obs[..., start : start + k * f].reshape(lead + (k, f))
+    mask = obs[..., start + k * f :]
+    return own, context, neighbours, mask
+
+
+def global_state(system: FleetSystem, lookahead: int = 6) -> np.ndarray:
+    """(N*F + 3,) float32: every region's features, row by row, then the time features."""
+    feats = node_features(system, lookahead)
+    return np.concatenate([feats.ravel(), time_features(system.city, system.t)]).astype(np.float32)
+
+
+def graph(system: FleetSystem, lookahead: int = 6) -> dict[str, np.ndarray]:
+    """The city as a torch-geometric style graph of numpy arrays (``torch.from_numpy`` each one).
+
+    ``x`` (N, F) float32 node features, ``edge_index`` (2, E) int64 source -> target,
+    ``edge_attr`` (E, 2) float32: rebalancing time in steps and rebalancing cost of the edge.
+    """
+    city = system.city
+    edge_index = np.asarray(city.edge_index, dtype=np.int64)
+    src, dst = edge_index
+    edge_attr = np.stack([city.reb_time[src, dst], city.reb_cost[src, dst]], axis=1).astype(np.float32)
+    return {"x": node_features(system, lookahead), "edge_index": edge_index.copy(), "edge_attr": edge_attr}

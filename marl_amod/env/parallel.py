@@ -1,0 +1,256 @@
+"""AMoD fleet coordination: a PettingZoo ``ParallelEnv`` in which every region is an agent.
+
+A city is a graph of N regions with a fleet of robo-taxis. Each control step, every region
+(agent) emits one number; a central coordinator turns the joint action into a desired
+distribution of idle vehicles, moves vehicles there at least cost (exact min-cost flow), the
+simulator advances one step, and the coordinator dispatches the new requests (exact, greedy by
+margin). Flows are always feasible whatever the agents do.
+
+==================  ===================================================================================
+Import              ``from marl_amod import parallel_env, env`` (or ``marl_amod.amod_v0``)
+Agents              ``region_0`` ... ``region_{N-1}``, all alive for the whole episode
+Parallel API        yes (``env()`` is the AEC version through ``parallel_to_aec``)
+Action space        ``Box(0, 1, (1,), float32)``, identical for every agent
+Observation space   ``Box(float32, (F + 3 + K(F + 1),))``, F = 1 + 2 * lookahead (13), K = max in-degree
+State space         ``Box(float32, (N * F + 3,))``
+Episode             ``horizon - 1`` steps (reset dispatches step 0), then every agent is truncated
+==================  ===================================================================================
+
+Actions (see :mod:`marl_amod.env.actions`): ``action_mode="weight"`` (default) reads the
+actions as non-negative weights w; region i's target is floor(w_i / sum(w) * M) idle vehicles
+(M idle vehicles in total); all zeros means "stay" (no rebalancing). ``action_mode="logit"``
+maps a in [0, 1] to a logit 10 * (2a - 1) and takes a softmax across agents. Values outside
+[0, 1] are clipped; NaN/inf, shapes other than (1,), values below -1e-6 and missing agents
+raise :class:`~marl_amod.errors.ActionError`.
+
+Observations (see :mod:`marl_amod.env.observations`): own 13 features (idle vehicles, supply
+over the next 6 steps, expected request value over the next 6 steps, all x 0.01), sin/cos of the
+clock time, t / horizon, then the 13 features of each in-neighbour in K padded slots and a mask
+of K slots. :func:`~marl_amod.env.observations.split_local` cuts it back into blocks.
+
+Rewards (see :mod:`marl_amod.env.rewards`): ``reward_mode="team"`` gives every agent the
+system's step profit (dispatch profit of the new step minus the rebalancing cost);
+``"local"`` gives a region its own dispatch profit minus the cost of the vehicles it sent away.
+Local rewards sum to the team reward.
+
+Infos (per agent, small): ``served`` (trips that left the region this step), ``demand``
+(requests that appeared there this step),
+``rebalancing_cost`` (of the vehicles the region sent away), ``idle`` (after dispatch), and
+``system``: the episode so far (``profit``, ``served_demand``, ``demand``, ``rebalancing_cost``,
+``wait_time``, ``utilization``), one dict shared by every agent.
+
+Global view: ``state()`` / ``state_space``, ``graph()`` -> ``{"x": (N, F) float32,
+"edge_index": (2, E) int64, "edge_attr": (E, 2) float32 [rebalancing steps, cost]}`` and
+``system`` (the underlying :class:`~marl_amod.system.FleetSystem`).
+
+Arguments: ``scenario`` (a name from ``marl-amod scenarios``, a YAML path or a ``City``),
+``reward_mode``, ``action_mode``, ``lookahead`` (T), ``max_wait`` (steps a request waits),
+``objective`` (dispatch objective, ``"profit"`` or ``"revenue"``), ``render_mode``
+(``"human"`` or ``"rgb_array"``), and scenario overrides (e.g. ``horizon=10``; unknown keys raise).
+
+Seeding: ``reset(seed=s)`` draws demand exactly as ``FleetSystem.reset(s)``; a later
+``reset()`` without a seed draws the next episode from a seed sequence started by the last
+seeded reset (from fresh entropy if there was none). The env is picklable and writes no files.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from gymnasium import logger, spaces
+from pettingzoo import ParallelEnv
+
+from marl_amod.coordinator.coordinator import Coordinator, Objective
+from marl_amod.env import actions as act
+from marl_amod.env import observations as ob
+from marl_amod.env.rewards import REWARD_MODES, RewardMode, rewards
+from marl_amod.errors import ConfigError
+from marl_amod.metrics import episode_metrics
+from marl_amod.scenario import City, load_city
+from marl_amod.system import FleetSystem
+
+RENDER_MODES = ["human", "rgb_array"]
+
+
+class _RecordingCoordinator(Coordinator):
+    """The exact coordinator, remembering its last rebalancing flows (the simulator clears them on advance)."""
+
+    last_flows: np.ndarray | None = None
+
+    def rebalance(self, idle: np.ndarray, target: np.ndarray) -> np.ndarray:
+        flows = super().rebalance(idle, target)
+        self.last_flows = np.asarray(flows)
+        return flows
+
+
+class AmodParallelEnv(ParallelEnv):
+    """Every region an agent; a thin adapter over :class:`~marl_amod.system.FleetSystem` (see module doc)."""
+
+    metadata = {"name": "amod_v0", "render_modes": RENDER_MODES, "is_parallelizable": True, "render_fps": 4}
+
+    def __init__(
+        self,
+        scenario: str | City = "synthetic",
+        *,
+        reward_mode: RewardMode = "team",
+        action_mode: act.ActionMode = "weight",
+        lookahead: int = 6,
+        max_wait: int = 0,
+        objective: Objective = "profit",
+        render_mode: str | None = None,
+        **scenario_overrides: Any,
+    ) -> None:
+        if reward_mode not in REWARD_MODES:
+            raise ConfigError(f"reward_mode must be one of {REWARD_MODES}, got {reward_mode!r}")
+        if action_mode not in act.ACTION_MODES:
+            raise ConfigError(f"action_mode must be one of {act.ACTION_MODES}, got {action_mode!r}")
+        if render_mode is not None and render_mode not in RENDER_MODES:
+            raise ConfigError(f"render_mode must be None or one of {RENDER_MODES}, got {render_mode!r}")
+        if not isinstance(lookahead, (int, np.integer)) or lookahead < 1:
+            raise ConfigError(f"lookahead must be a positive number of steps, got {lookahead!r}")
+        if isinstance(scenario, City):
+            if scenario_overrides:
+                raise ConfigError(f"scenario overrides {sorted(scenario_overrides)} need a scenario name, not a City")
+            city = scenario
+        else:
+            city = load_city(scenario, **scenario_overrides)
+        if city.horizon < 2:
+            raise ConfigError(f"{city.name}: the env needs a horizon of at least 2 steps, got {city.horizon}")
+        self.city = city
+        self.reward_mode = reward_mode
+        self.action_mode = action_mode
+        self.lookahead = int(lookahead)
+        self.render_mode = render_mode
+        self.system = FleetSystem(city, max_wait=max_wait, objective=objective)
+        self.system.coordinator = _RecordingCoordinator(city, objective=objective)
+
+        n = city.n_regions
+        self.possible_agents = [f"region_{i}" for i in range(n)]
+        self.agents: list[str] = []
+        self.max_degree = ob.max_in_degree(city)
+        self._table = ob.neighbour_table(city, self.max_degree)
+        low, high = ob.local_bounds(self.lookahead, self.max_degree)
+        self._observation_space = spaces.Box(low, high, dtype=np.float32)
+        self._action_space = spaces.Box(0.0, 1.0, shape=(1,), dtype=np.float32)
+        self.observation_spaces = {a: self._observation_space for a in self.possible_agents}
+        self.action_spaces = {a: self._action_space for a in self.possible_agents}
+        f = ob.n_features(self.lookahead)
+        self.state_space = spaces.Box(
+            np.concatenate([np.zeros(n * f), [-1.0, -1.0, 0.0]]).astype(np.float32),
+            np.concatenate([np.full(n * f, np.inf), [1.0, 1.0, 1.0]]).astype(np.float32),
+            dtype=np.float32,
+        )
+        self._seeds: np.random.SeedSequence | None = None
+        self._last_rebalance = np.zeros((n, n), dtype=np.int64)
+        self._last_reward: float | None = None
+        self._viewer: Any = None
+
+    # ------------------------------------------------------------------ spaces
+    def observation_space(self, agent: str) -> spaces.Box:
+        return self._observation_space
+
+    def action_space(self, agent: str) -> spaces.Box:
+        return self._action_space
+
+    # ------------------------------------------------------------------ episode
+    def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
+        if seed is not None:
+            self._seeds = np.random.SeedSequence(seed)
+            demand_seed: int | np.random.SeedSequence = seed
+            self._action_space.seed(seed)
+        else:
+            if self._seeds is None:
+                self._seeds = np.random.SeedSequence()
+            demand_seed = self._seeds.spawn(1)[0]
+        outcome = self.system.reset(demand_seed)
+        self.agents = list(self.possible_agents)
+        n = self.city.n_regions
+        self._last_rebalance = np.zeros((n, n), dtype=np.int64)
+        self._last_reward = outcome.reward
+        infos = self._infos(np.zeros(n))
+        if self.render_mode == "human":
+            self.render()
+        return self._observations(), infos
+
+    def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
+        if not self.agents:
+            raise RuntimeError("the episode is over (all agents truncated); call reset()")
+        joint = act.joint_action(actions, self.agents)
+        target = self.system.targets_from_weights(act.weights(joint, self.action_mode))
+        coordinator = self.system.coordinator
+        coordinator.last_flows = None
+        outcome = self.system.step(target)
+        n = self.city.n_regions
+        flows = coordinator.last_flows if coordinator.last_flows is not None else np.zeros((n, n), dtype=np.int64)
+        self._last_rebalance = np.rint(flows).astype(np.int64)
+        self._last_reward = outcome.reward
+        sim = self.system.sim
+        r = rewards(self.reward_mode, self.city, sim.t, sim.last_dispatch, self._last_rebalance, outcome.reward)
+        agents = self.agents
+        obs = self._observations()
+        rew = {a: float(r[i]) for i, a in enumerate(agents)}
+        infos = self._infos((self._last_rebalance * self.city.reb_cost).sum(axis=1))
+        done = self.system.done
+        terminations = {a: False for a in agents}
+        truncations = {a: done for a in agents}
+        if done:
+            self.agents = []
+        if self.render_mode == "human":
+            self.render()
+        return obs, rew, terminations, truncations, infos
+
+    # ------------------------------------------------------------------ global view
+    def state(self) -> np.ndarray:
+        """(N * F + 3,) float32: every region's features, then time of day and step fraction."""
+        return ob.global_state(self.system, self.lookahead)
+
+    def graph(self) -> dict[str, np.ndarray]:
+        """Node features, edge_index (2, E) and edge_attr (E, 2) for a torch-geometric model."""
+        return ob.graph(self.system, self.lookahead)
+
+    # ------------------------------------------------------------------ rendering
+    def render(self) -> np.ndarray | None:
+        if self.render_mode is None:
+            logger.warn("render() called without a render_mode; make the env with render_mode='rgb_array' or 'human'")
+            return None
+        from marl_amod.env import render as rd
+
+        if self.render_mode == "rgb_array":
+            return rd.render_rgb(self.system, self._last_rebalance, self._last_reward)
+        if self._viewer is None:
+            self._viewer = rd.HumanViewer()
+        self._viewer.show(self.system, self._last_rebalance, self._last_reward)
+        return None
+
+    def close(self) -> None:
+        if self._viewer is not None:
+            self._viewer.close()
+            self._viewer = None
+
+    # ------------------------------------------------------------------ helpers
+    def _observations(self) -> dict[str, np.ndarray]:
+        obs = ob.local_observations(self.system, self.lookahead, table=self._table)
+        return {a: obs[i] for i, a in enumerate(self.possible_agents)}
+
+    def _infos(self, reb_cost: np.ndarray) -> dict[str, dict]:
+        sim, city = self.system.sim, self.city
+        served = sim.last_dispatch.sum(axis=1)
+        new = sim.demand[sim.t].sum(axis=1)
+        system = episode_metrics(sim.totals, city.fleet_size, city.horizon)
+        system.pop("revenue", None)
+        return {
+            a: {
+                "served": int(served[i]),
+                "demand": int(new[i]),
+                "rebalancing_cost": float(reb_cost[i]),
+                "idle": int(sim.idle[i]),
+                "system": system,
+            }
+            for i, a in enumerate(self.possible_agents)
+        }
+
+    def __getstate__(self) -> dict:
+        state = self.__dict__.copy()
+        state["_viewer"] = None  # a window cannot travel; a copy opens its own
+        return state
