@@ -1,0 +1,305 @@
+"""Model-predictive control on the paper's time-expanded network-flow problem (eq. global_obj..c5).
+
+At control step t the system has already dispatched, so the plan starts from the idle vehicles
+left after dispatch. Over a receding horizon of H steps (relative k = 0..H-1, absolute t + k)
+the LP chooses
+
+* rebalancing flows y[k, i, j] >= 0 for k = 0..H-1 (y[k, i, i] = vehicles that stay idle),
+* passenger flows 0 <= x[k, i, j] <= d[k, i, j] for k = 1..H-1 (step-t dispatch is fixed),
+
+maximising sum (p - c) x - c_reb y, subject to conservation with the simulator's timing: a
+vehicle leaving in step s on a trip of tau steps is idle (dispatchable) from step s + tau + 1,
+staying counts as tau = 0, and vehicles already on the road join the idle pool the step after
+``sim.arrivals`` says they arrive:
+
+    k = 0:   sum_j y[0, i, j]                 = idle_i
+    k >= 1:  sum_j (x[k, i, j] + y[k, i, j])  = arrivals[t + k - 1, i]
+                                               + sum_{s + tau_s(j, i) + 1 = k} (x[s, j, i] + y[s, j, i])
+
+Steps past the episode's last dispatch carry no demand. Only y[0] is applied: it is turned into
+per-region targets idle_i + inflow_i - outflow_i that the coordinator's min-cost flow meets.
+The constraint matrix is a network matrix (every flow leaves one node and enters at most one),
+so a HiGHS vertex is integral for integral demand (the oracle); fractional plans (forecasts)
+are rounded by largest remainder, which keeps the fleet size.
+
+Two solver paths build the same LP: ``"scipy"`` assembles the sparse matrix from index arrays
+and calls ``linprog(method="highs")``; ``"cvxpy"`` builds a DPP-parameterised problem once per
+policy (demand, margins, idle, arrivals and the time-varying trip-time arrival masks are
+parameters) and re-solves it with HiGHS.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Literal
+
+import numpy as np
+
+from marl_amod.errors import ConfigError, SolverError
+from marl_amod.scenario.types import City
+from marl_amod.system import FleetSystem
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
+
+MPCBackend = Literal["scipy", "cvxpy"]
+DEFAULT_HORIZON = 20  # RL4AMOD's MPC default T; a whole 20-step episode on the bundled cities
+
+
+@dataclass
+class FlowPlan:
+    """An LP solution over the horizon; arrays (H, N, N), relative step first."""
+
+    x: np.ndarray  # passenger flows (x[0] is the fixed, already applied dispatch: zeros)
+    y: np.ndarray  # rebalancing flows, diagonal = vehicles that stay
+    objective: float  # planned profit over the horizon (money)
+
+
+@dataclass
+class PlanData:
+    """Everything one MPC solve reads, in relative steps k = 0..H-1."""
+
+    idle: np.ndarray  # (N,) idle vehicles now (after dispatch when dispatch is fixed)
+    arrivals: np.ndarray  # (H, N) vehicles arriving in step t + k (idle from t + k + 1)
+    demand: np.ndarray  # (H, N, N) requests; demand[0] only used when dispatch is planned too
+    margin: np.ndarray  # (H, N, N) price - trip cost
+    trip_time: np.ndarray  # (H, N, N) int trip durations in steps
+    reb_time: np.ndarray  # (N, N) int
+    reb_cost: np.ndarray  # (N, N)
+    plan_dispatch_now: bool = False  # True: idle is before dispatch and x[0] is a decision
+
+
+def plan_data(
+    city: City, t: int, idle: np.ndarray, arrivals: np.ndarray, demand: np.ndarray, horizon: int,
+    *, plan_dispatch_now: bool = False,
+) -> PlanData:
+    """Slice the city's tables for steps t..t+H-1; ``demand`` is (H, N, N) already aligned.
+
+    Steps past the last control step (city.horizon - 1) or the tabulated steps get no demand.
+    """
+    h = horizon
+    steps = t + np.arange(h)
+    live = steps <= city.horizon - 1
+    idx = np.minimum(steps, city.n_steps - 1)
+    arr_idx = np.minimum(steps, arrivals.shape[0] - 1)
+    arr = np.where((steps < arrivals.shape[0])[:, None], arrivals[arr_idx], 0)
+    return PlanData(
+        idle=np.asarray(idle, dtype=float),
+        arrivals=arr.astype(float),
+        demand=np.asarray(demand, dtype=float) * live[:, None, None],
+        margin=city.price[idx] - city.trip_cost[idx],
+        trip_time=city.trip_time[idx].astype(np.int64),
+        reb_time=city.reb_time.astype(np.int64),
+        reb_cost=np.asarray(city.reb_cost, dtype=float),
+        plan_dispatch_now=plan_dispatch_now,
+    )
+
+
+# ---------------------------------------------------------------------------------- sparse LP
+def lp_matrices(data: PlanData) -> tuple[np.ndarray, sp.csr_matrix, np.ndarray, np.ndarray]:
+    """(cost c, equality matrix A, rhs b, upper bounds) of the min-form LP over z = [x, y].
+
+    Columns: x[k, i, j] at k*N*N + i*N + j, y at H*N*N + the same. Rows: (k, i) at k*N + i.
+    """
+    import scipy.sparse as sp
+
+    h, n = data.demand.shape[0], data.idle.shape[0]
+    nn = n * n
+    k, i, j = np.meshgrid(np.arange(h), np.arange(n), np.arange(n), indexing="ij")
+    k, i, j = k.ravel(), i.ravel(), j.ravel()
+    col = k * nn + i * n + j
+    tau_x = data.trip_time.reshape(-1)  # (H*N*N,) in the same (k, i, j) order
+    tau_y = np.broadcast_to(data.reb_time, (h, n, n)).reshape(-1)
+    rows, cols, vals = [], [], []
+    for offset, tau in ((0, tau_x), (h * nn, tau_y)):
+        rows += [k * n + i]  # leaves i in step k
+        cols += [offset + col]
+        vals += [np.ones(col.size)]
+        arrive = k + tau + 1  # idle again at j in relative step k + tau + 1
+        inside = arrive < h
+        rows += [arrive[inside] * n + j[inside]]
+        cols += [offset + col[inside]]
+        vals += [-np.ones(inside.sum())]
+    a = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(h * n, 2 * h * nn))
+    b = np.empty((h, n))
+    b[0] = data.idle
+    b[1:] = data.arrivals[:-1]
+    cost = np.concatenate([-data.margin.reshape(-1), np.broadcast_to(data.reb_cost, (h, n, n)).reshape(-1)])
+    ub_x = data.demand.copy()
+    if not data.plan_dispatch_now:
+        ub_x[0] = 0.0
+    ub = np.concatenate([ub_x.reshape(-1), np.full(h * nn, np.inf)])
+    return cost, a, b.reshape(-1), ub
+
+
+def solve_scipy(data: PlanData) -> FlowPlan:
+    """The LP through scipy's HiGHS interface (dual simplex: a vertex, hence integral for integral data)."""
+    from scipy.optimize import linprog
+
+    h, n = data.demand.shape[0], data.idle.shape[0]
+    cost, a, b, ub = lp_matrices(data)
+    res = linprog(cost, A_eq=a, b_eq=b, bounds=np.column_stack([np.zeros_like(ub), ub]), method="highs-ds")
+    if res.status != 0 or res.x is None:
+        raise SolverError(f"MPC LP (scipy/HiGHS) failed: status {res.status}: {res.message}")
+    z = res.x.reshape(2, h, n, n)
+    return FlowPlan(x=z[0], y=z[1], objective=float(-res.fun))
+
+
+class CvxpyMPC:
+    """The same LP as a DPP-parameterised cvxpy problem, compiled once and re-solved with HiGHS.
+
+    Only dispatch-fixed plans (the policy's case). Trip times vary with the time of day, so the
+    arrival pattern of passenger flows is a parameter: mask[s, k][j, i] = 1 when a trip j->i
+    starting in relative step s is idle again in step k.
+    """
+
+    def __init__(self, city: City, horizon: int) -> None:
+        import cvxpy as cp
+
+        if horizon < 2:
+            raise ConfigError("the cvxpy MPC path needs a horizon of at least 2 steps")
+        n, h = city.n_regions, horizon
+        self.n, self.h = n, h
+        self.reb_time = city.reb_time.astype(np.int64)
+        self.x = [cp.Variable((n, n), nonneg=True) for _ in range(h)]  # x[0] unused (fixed dispatch)
+        self.y = [cp.Variable((n, n), nonneg=True) for _ in range(h)]
+        self.d = [cp.Parameter((n, n), nonneg=True) for _ in range(h)]
+        self.m = [cp.Parameter((n, n)) for _ in range(h)]
+        self.idle = cp.Parameter(n, nonneg=True)
+        self.arr = cp.Parameter((h, n), nonneg=True)
+        self.mask = {(s, k): cp.Parameter((n, n), nonneg=True) for s in range(1, h) for k in range(s + 2, h)}
+        reb_cost = np.asarray(city.reb_cost, dtype=float)
+        objective = sum(cp.sum(cp.multiply(self.m[k], self.x[k])) for k in range(1, h))
+        objective -= sum(cp.sum(cp.multiply(reb_cost, self.y[k])) for k in range(h))
+        cons = [cp.sum(self.y[0], axis=1) == self.idle]
+        for k in range(1, h):
+            cons.append(self.x[k] <= self.d[k])
+            inflow = self.arr[k - 1]
+            for s in range(k):
+                y_mask = (s + self.reb_time + 1 == k).astype(float)
+                if y_mask.any():
+                    inflow = inflow + cp.sum(cp.multiply(y_mask, self.y[s]), axis=0)
+                if (s, k) in self.mask:
+                    inflow = inflow + cp.sum(cp.multiply(self.mask[s, k], self.x[s]), axis=0)
+            cons.append(cp.sum(self.x[k], axis=1) + cp.sum(self.y[k], axis=1) == inflow)
+        self.problem = cp.Problem(cp.Maximize(objective), cons)
+
+    def solve(self, data: PlanData) -> FlowPlan:
+        import cvxpy as cp
+
+        if data.plan_dispatch_now or data.demand.shape[0] != self.h:
+            raise ConfigError("the cvxpy MPC path solves dispatch-fixed plans of its own horizon only")
+        self.idle.value = data.idle
+        self.arr.value = data.arrivals
+        for k in range(self.h):
+            self.d[k].value = data.demand[k]
+            self.m[k].value = data.margin[k]
+        for (s, k), p in self.mask.items():
+            p.value = (s + data.trip_time[s] + 1 == k).astype(float)
+        self.problem.solve(solver=cp.HIGHS)
+        if self.problem.status not in ("optimal", "optimal_inaccurate"):
+            raise SolverError(f"MPC LP (cvxpy/HiGHS) failed: status {self.problem.status}")
+        x = np.stack([np.zeros((self.n, self.n))] + [v.value for v in self.x[1:]])
+        y = np.stack([v.value for v in self.y])
+        return FlowPlan(x=x, y=y, objective=float(self.problem.value))
+
+
+# ---------------------------------------------------------------------------------- plan -> target
+def round_preserving_sum(values: np.ndarray, total: int) -> np.ndarray:
+    """Non-negative integers close to ``values`` that sum to ``total`` (largest remainder)."""
+    values = np.maximum(values, 0.0)
+    base = np.floor(values + 1e-9).astype(np.int64)
+    short = int(total - base.sum())
+    if short > 0:
+        base[np.argsort(-(values - base), kind="stable")[:short]] += 1
+    elif short < 0:  # only from float noise: take from the largest entries
+        for idx in np.argsort(-values, kind="stable")[: -short]:
+            base[idx] -= 1 if base[idx] > 0 else 0
+    return base
+
+
+def target_from_flows(idle: np.ndarray, y0: np.ndarray) -> np.ndarray:
+    """Per-region targets that make the coordinator's min-cost flow move vehicles as ``y0`` plans."""
+    off = y0 * (1.0 - np.eye(y0.shape[0]))
+    dist = idle + off.sum(axis=0) - off.sum(axis=1)
+    return round_preserving_sum(dist, int(np.asarray(idle).sum()))
+
+
+# ---------------------------------------------------------------------------------- policies
+class MPCPolicy:
+    """Receding-horizon MPC: solve the fleet LP after each dispatch and apply its first rebalancing."""
+
+    name = "mpc"
+
+    def __init__(self, horizon: int = DEFAULT_HORIZON, backend: MPCBackend = "scipy") -> None:
+        if horizon < 1:
+            raise ConfigError(f"MPC horizon must be >= 1 step, got {horizon}")
+        if backend not in ("scipy", "cvxpy"):
+            raise ConfigError(f"MPC backend must be 'scipy' or 'cvxpy', got {backend!r}")
+        self.horizon = horizon
+        self.backend = backend
+        self._cvx: CvxpyMPC | None = None
+        self._cvx_city: City | None = None
+        self.solve_seconds: list[float] = []
+        self.last_plan: FlowPlan | None = None
+
+    def reset(self, system: FleetSystem, rng: np.random.Generator) -> None:
+        self.rng = rng
+        self.solve_seconds = []
+        if self.backend == "cvxpy" and self._cvx_city is not system.city:
+            self._cvx = CvxpyMPC(system.city, self.horizon)  # compiled once, reused every episode
+            self._cvx_city = system.city
+
+    def forecast(self, system: FleetSystem, steps: np.ndarray) -> np.ndarray:
+        """(H, N, N) demand believed for absolute ``steps`` (clipped to the tabulated range)."""
+        raise NotImplementedError
+
+    def plan(self, system: FleetSystem) -> FlowPlan:
+        sim, city = system.sim, system.city
+        steps = sim.t + np.arange(self.horizon)
+        data = plan_data(city, sim.t, sim.idle, sim.arrivals, self.forecast(system, steps), self.horizon)
+        start = time.perf_counter()
+        plan = self._cvx.solve(data) if self._cvx is not None else solve_scipy(data)
+        self.solve_seconds.append(time.perf_counter() - start)
+        self.last_plan = plan
+        return plan
+
+    def target(self, system: FleetSystem) -> np.ndarray:
+        return target_from_flows(system.sim.idle, self.plan(system).y[0])
+
+
+class MPCOracle(MPCPolicy):
+    """MPC with perfect knowledge of the demand the episode will actually draw (an upper bound)."""
+
+    name = "mpc-oracle"
+
+    def forecast(self, system: FleetSystem, steps: np.ndarray) -> np.ndarray:
+        demand = system.sim.demand
+        idx = np.minimum(steps, demand.shape[0] - 1)
+        return demand[idx] * (steps < demand.shape[0])[:, None, None]
+
+
+class MPCForecast(MPCPolicy):
+    """MPC fed the scenario's expected demand, optionally with unbiased multiplicative noise.
+
+    ``noise`` is the standard deviation of a mean-one log-normal factor per OD pair and step,
+    drawn from the policy rng (so runs are reproducible); 0 gives the expected rates.
+    """
+
+    name = "mpc-forecast"
+
+    def __init__(self, horizon: int = DEFAULT_HORIZON, backend: MPCBackend = "scipy", noise: float = 0.0) -> None:
+        super().__init__(horizon, backend)
+        if noise < 0:
+            raise ConfigError(f"forecast noise must be >= 0, got {noise}")
+        self.noise = noise
+
+    def forecast(self, system: FleetSystem, steps: np.ndarray) -> np.ndarray:
+        rate = system.city.demand_rate
+        idx = np.minimum(steps, rate.shape[0] - 1)
+        d = rate[idx] * (steps < rate.shape[0])[:, None, None]
+        if self.noise > 0:
+            sigma2 = np.log1p(self.noise**2)
+            d = d * self.rng.lognormal(-sigma2 / 2, np.sqrt(sigma2), size=d.shape)
+        return d

@@ -1,0 +1,174 @@
+"""MPC: the LP's solution obeys the simulator's flow model, reduces to the coordinator, and pays off."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from marl_amod.baselines import EqualDistribution
+from marl_amod.baselines.mpc import (
+    CvxpyMPC,
+    MPCForecast,
+    MPCOracle,
+    lp_matrices,
+    plan_data,
+    round_preserving_sum,
+    solve_scipy,
+    target_from_flows,
+)
+from marl_amod.errors import SolverError
+from marl_amod.evaluation import evaluate, make_policy
+from marl_amod.scenario import City
+from marl_amod.system import FleetSystem
+
+
+def _mid_episode(city: City, steps: int = 2, seed: int = 3) -> FleetSystem:
+    """A system a few steps in, so that vehicles are on the road."""
+    system = FleetSystem(city)
+    system.reset(seed)
+    policy = EqualDistribution()
+    policy.reset(system, np.random.default_rng(0))
+    for _ in range(steps):
+        system.step(policy.target(system))
+    return system
+
+
+def _oracle_data(system: FleetSystem, horizon: int):
+    sim = system.sim
+    steps = sim.t + np.arange(horizon)
+    demand = sim.demand[np.minimum(steps, sim.demand.shape[0] - 1)] * (steps < sim.demand.shape[0])[:, None, None]
+    return plan_data(system.city, sim.t, sim.idle, sim.arrivals, demand, horizon)
+
+
+def _replay(data, plan) -> np.ndarray:
+    """Idle vehicles per relative step implied by the plan, recomputed with explicit loops."""
+    h, n = data.demand.shape[0], data.idle.shape[0]
+    avail = np.zeros((h, n))
+    avail[0] = data.idle
+    for k in range(1, h):
+        avail[k] = data.arrivals[k - 1]
+    for s in range(h):
+        for i in range(n):
+            for j in range(n):
+                for flows, tau in ((plan.x, data.trip_time[s, i, j]), (plan.y, data.reb_time[i, j])):
+                    if s + tau + 1 < h:
+                        avail[s + tau + 1, j] += flows[s, i, j]
+    return avail
+
+
+@pytest.mark.parametrize("horizon", [1, 3, 6])
+def test_mpc_lp_solution_satisfies_conservation_demand_and_signs(tiny_city, horizon):
+    system = _mid_episode(tiny_city)
+    data = _oracle_data(system, horizon)
+    plan = solve_scipy(data)
+    assert np.all(plan.x >= -1e-9) and np.all(plan.y >= -1e-9)
+    assert np.all(plan.x <= data.demand + 1e-9)
+    assert np.allclose(plan.x[0], 0)  # dispatch at t is already applied
+    used = plan.x.sum(axis=2) + plan.y.sum(axis=2)  # every available vehicle is dispatched, moved or stays
+    assert np.allclose(used, _replay(data, plan))
+    assert np.allclose(plan.y, np.rint(plan.y)) and np.allclose(plan.x, np.rint(plan.x))  # vertex of a network LP
+    cost, a, b, _ = lp_matrices(data)
+    z = np.concatenate([plan.x.ravel(), plan.y.ravel()])
+    assert np.allclose(a @ z, b)
+    assert plan.objective == pytest.approx(-cost @ z)
+
+
+def test_mpc_with_one_step_and_no_future_is_dispatch_plus_min_cost_rebalancing(tiny_city):
+    system = FleetSystem(tiny_city)
+    sim = system.sim
+    sim.reset(np.random.default_rng(5))
+    idle_before = sim.idle.copy()
+    data = plan_data(tiny_city, 0, idle_before, sim.arrivals, sim.requests()[None], 1, plan_dispatch_now=True)
+    plan = solve_scipy(data)
+    x = system.coordinator.dispatch(idle_before, sim.requests(), 0)
+    margin = system.coordinator.margin(0)
+    assert plan.objective == pytest.approx(float((x * margin).sum()))
+    # with nothing to gain ahead, the planned rebalancing is the coordinator's for 'no wish': none
+    idle_after = idle_before - x.sum(axis=1)
+    off = plan.y[0] * (1 - np.eye(tiny_city.n_regions))
+    assert np.allclose(off, system.coordinator.rebalance(idle_after, np.full(tiny_city.n_regions, -1)))
+    # and the policy's target then makes the coordinator move nothing either
+    system.reset(5)
+    policy = MPCOracle(horizon=1)
+    policy.reset(system, np.random.default_rng(0))
+    target = policy.target(system)
+    assert np.array_equal(target, system.sim.idle)
+    assert not system.coordinator.rebalance(system.sim.idle, target).any()
+
+
+def test_target_makes_the_coordinator_reproduce_the_planned_distribution(tiny_city):
+    system = _mid_episode(tiny_city)
+    plan = solve_scipy(_oracle_data(system, 6))
+    idle = system.sim.idle
+    target = target_from_flows(idle, plan.y[0])
+    assert target.sum() == idle.sum() and np.all(target >= 0)
+    flows = system.coordinator.rebalance(idle, target)
+    assert np.array_equal(idle - flows.sum(axis=1) + flows.sum(axis=0), target)
+    planned_cost = float((plan.y[0] * tiny_city.reb_cost).sum())
+    assert float((flows * tiny_city.reb_cost).sum()) <= planned_cost + 1e-6
+
+
+def test_round_preserving_sum_keeps_total_and_stays_close():
+    values = np.array([0.4, 1.6, 2.5, 0.5, 0.0])
+    r = round_preserving_sum(values, 5)
+    assert r.sum() == 5 and np.all(r >= 0) and np.all(np.abs(r - values) < 1)
+
+
+def test_cvxpy_parameterised_path_matches_scipy(tiny_city):
+    system = _mid_episode(tiny_city)
+    data = _oracle_data(system, 4)
+    cvx = CvxpyMPC(tiny_city, 4)
+    assert cvx.solve(data).objective == pytest.approx(solve_scipy(data).objective, rel=1e-6)
+    system.step(np.full(tiny_city.n_regions, -1))
+    data2 = _oracle_data(system, 4)  # re-solve the same compiled problem with new data
+    assert cvx.solve(data2).objective == pytest.approx(solve_scipy(data2).objective, rel=1e-6)
+
+
+def test_infeasible_lp_raises_solver_error(tiny_city):
+    system = _mid_episode(tiny_city)
+    data = _oracle_data(system, 3)
+    data.idle = data.idle.copy()
+    data.idle[0] = -5.0  # no flows can be negative: infeasible
+    with pytest.raises(SolverError):
+        solve_scipy(data)
+
+
+def _one_hub_city() -> City:
+    """All vehicles start in region 0; every request starts in region 3 and ends in region 0.
+
+    Without rebalancing a vehicle serves one trip and is stranded; equal distribution sends only
+    a quarter of the idle fleet to the one region with demand. Rebalancing clearly pays.
+    """
+    n, steps, horizon = 4, 24, 12
+    pos = np.column_stack([np.arange(n), np.zeros(n)]).astype(float)
+    reb = np.abs(np.arange(n)[:, None] - np.arange(n)[None, :]).astype(np.int64)
+    rate = np.zeros((steps, n, n))
+    rate[:, 3, 0] = 8.0
+    trip = np.broadcast_to(np.maximum(reb, 1), (steps, n, n)).copy()
+    price = 10.0 * trip
+    edges = np.array([[0, 1, 1, 2, 2, 3], [1, 0, 2, 1, 3, 2]])
+    return City(
+        name="one_hub", tstep=3.0, horizon=horizon, beta=0.5, demand_rate=rate, price=price, trip_time=trip,
+        reb_time=reb, initial_vehicles=np.array([40, 0, 0, 0]), edge_index=edges, positions=pos,
+    )
+
+
+def test_mpc_oracle_beats_equal_distribution_where_rebalancing_pays():
+    city = _one_hub_city()
+    ed = evaluate(city, "equal-distribution", episodes=3)["metrics"]["profit"]["mean"]
+    oracle = evaluate(city, MPCOracle(horizon=8), episodes=3)["metrics"]["profit"]["mean"]
+    none = evaluate(city, "no-rebalancing", episodes=3)["metrics"]["profit"]["mean"]
+    assert oracle > 1.2 * ed and ed > none
+
+
+def test_mpc_forecast_noise_is_seeded_and_targets_are_feasible(tiny_city):
+    results = [evaluate(tiny_city, MPCForecast(horizon=4, noise=0.3), episodes=2, seed=1) for _ in range(2)]
+    assert results[0]["per_episode"] == results[1]["per_episode"]
+    system = FleetSystem(tiny_city)
+    system.reset(0)
+    policy = make_policy("mpc-forecast", tiny_city)
+    policy.reset(system, np.random.default_rng(0))
+    while not system.done:
+        target = policy.target(system)
+        assert target.dtype.kind == "i" and target.sum() == system.sim.idle.sum() and np.all(target >= 0)
+        system.step(target)
