@@ -116,6 +116,33 @@ def evaluate(
         console.print(f"wrote {output}")
 
 
+@app.command()
+def collect(
+    scenario: Annotated[str, typer.Option(help="scenario name or YAML path")] = "synthetic",
+    policy: Annotated[str, typer.Option(help="behaviour policy: inf, dtv, prop, mpc-oracle, ... or a checkpoint")] = "inf",
+    episodes: Annotated[int, typer.Option(min=1)] = 10,
+    seed: int = 0,
+    output: Annotated[Path, typer.Option(help="dataset file to write (.npz, format in marl_amod.datasets)")] = Path("data.npz"),
+    max_wait: Annotated[int, typer.Option(min=0, help="steps a request waits before leaving")] = 0,
+    data_dir: DataDir = None,
+) -> None:
+    """Roll a behaviour policy and write an offline dataset (observation, action, reward, next observation, done)."""
+    from marl_amod.datasets import collect as collect_dataset
+    from marl_amod.evaluation import make_policy
+    from marl_amod.scenario import load_city
+
+    _use_data_dir(data_dir)
+    city = load_city(scenario)
+    pol = make_policy(policy, city)
+    with progress_bar() as bar:
+        task = bar.add_task(f"{policy} on {city.name}", total=episodes)
+        data = collect_dataset(
+            city, pol, episodes=episodes, seed=seed, max_wait=max_wait, progress=lambda _k: bar.advance(task)
+        )
+    path = data.save(output)
+    console.print(f"wrote {len(data)} transitions ({city.n_regions} agents) to {path}")
+
+
 def main() -> None:
     """Entry point: user errors print one clear line and exit 2, never a traceback."""
     try:
