@@ -9,12 +9,13 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
+# ``marl_amod.env`` is the env subpackage, made callable: ``marl_amod.env(...)`` builds the AEC env.
+from marl_amod import env
+
 __version__ = "0.1.0"
 __all__ = ["amod_v0", "env", "parallel_env"]
 
 if TYPE_CHECKING:
-    from pettingzoo.utils.env import AECEnv
-
     from marl_amod.env.parallel import AmodParallelEnv
     from marl_amod.scenario.types import City
 
@@ -28,13 +29,6 @@ def parallel_env(scenario: str | City = "synthetic", **kwargs: Any) -> AmodParal
     from marl_amod.amod_v0 import parallel_env as make
 
     return make(scenario, **kwargs)
-
-
-def env(scenario: str | City = "synthetic", **kwargs: Any) -> AECEnv:
-    """The AEC version of :func:`parallel_env`, through ``pettingzoo.utils.parallel_to_aec``."""
-    from marl_amod.amod_v0 import raw_env
-
-    return raw_env(scenario, **kwargs)
 
 
 def __getattr__(name: str) -> Any:

@@ -1,11 +1,17 @@
 """The multi-agent environment: every region an agent of a PettingZoo ParallelEnv (see :mod:`.parallel`).
 
 Names load on first use, so ``marl_amod.env.features`` stays importable without PettingZoo.
+
+The package is also callable: ``marl_amod.env(...)`` is the AEC env (PettingZoo names its AEC
+constructor ``env``, and a function of that name could not coexist with this subpackage, which
+Python binds to the attribute ``marl_amod.env`` as soon as any of its modules is imported).
 """
 
 from __future__ import annotations
 
+import sys
 from importlib import import_module
+from types import ModuleType
 from typing import Any
 
 _LAZY = {
@@ -22,3 +28,14 @@ def __getattr__(name: str) -> Any:
     if name in _LAZY:
         return getattr(import_module(_LAZY[name]), name)
     raise AttributeError(f"module 'marl_amod.env' has no attribute {name!r}")
+
+
+class _CallableEnvPackage(ModuleType):
+    def __call__(self, scenario: Any = "synthetic", **kwargs: Any) -> Any:
+        """The AEC env: ``parallel_to_aec(parallel_env(scenario, **kwargs))``."""
+        from marl_amod.amod_v0 import raw_env
+
+        return raw_env(scenario, **kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableEnvPackage

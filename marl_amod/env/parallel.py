@@ -35,9 +35,10 @@ Local rewards sum to the team reward.
 
 Infos (per agent, small): ``served`` (trips that left the region this step), ``demand``
 (requests that appeared there this step),
-``rebalancing_cost`` (of the vehicles the region sent away), ``idle`` (after dispatch), and
-``system``: the episode so far (``profit``, ``served_demand``, ``demand``, ``rebalancing_cost``,
-``wait_time``, ``utilization``), one dict shared by every agent.
+``rebalancing_cost`` (of the vehicles the region sent away), ``idle`` (after dispatch), and the
+episode so far, the same for every agent: ``system_profit``, ``system_served_demand``,
+``system_demand``, ``system_rebalancing_cost``, ``system_wait_time``, ``system_utilization``
+(flat scalars, so TorchRL and vector wrappers can stack them).
 
 Global view: ``state()`` / ``state_space``, ``graph()`` -> ``{"x": (N, F) float32,
 "edge_index": (2, E) int64, "edge_attr": (E, 2) float32 [rebalancing steps, cost]}`` and
@@ -237,15 +238,15 @@ class AmodParallelEnv(ParallelEnv):
         sim, city = self.system.sim, self.city
         served = sim.last_dispatch.sum(axis=1)
         new = sim.demand[sim.t].sum(axis=1)
-        system = episode_metrics(sim.totals, city.fleet_size, city.horizon)
-        system.pop("revenue", None)
+        metrics = episode_metrics(sim.totals, city.fleet_size, city.horizon)
+        system = {f"system_{k}": v for k, v in metrics.items() if k != "revenue"}
         return {
             a: {
                 "served": int(served[i]),
                 "demand": int(new[i]),
                 "rebalancing_cost": float(reb_cost[i]),
                 "idle": int(sim.idle[i]),
-                "system": system,
+                **system,
             }
             for i, a in enumerate(self.possible_agents)
         }

@@ -1,0 +1,187 @@
+"""The env against PettingZoo's own conformance tests and the trainers it must plug into."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+from pettingzoo.test import api_test, parallel_api_test, parallel_seed_test, render_test
+
+import marl_amod
+from marl_amod.env.parallel import AmodParallelEnv
+from tests.conftest import needs_data
+
+SCENARIOS = [
+    pytest.param({"scenario": "synthetic", "horizon": 8}, id="synthetic"),
+    pytest.param({"scenario": "nyc_brooklyn", "horizon": 6}, id="nyc_brooklyn", marks=needs_data),
+]
+
+
+@pytest.mark.parametrize("kwargs", SCENARIOS)
+def test_parallel_api_conformance(kwargs: dict) -> None:
+    parallel_api_test(marl_amod.parallel_env(**kwargs), num_cycles=50)
+
+
+@pytest.mark.parametrize("kwargs", SCENARIOS)
+def test_parallel_seed_conformance(kwargs: dict) -> None:
+    parallel_seed_test(lambda: marl_amod.parallel_env(**kwargs), num_cycles=20)
+
+
+@pytest.mark.parametrize("kwargs", SCENARIOS)
+def test_aec_api_conformance(kwargs: dict) -> None:
+    api_test(marl_amod.env(**kwargs), num_cycles=20)
+
+
+@pytest.mark.parametrize("kwargs", SCENARIOS)
+def test_render_conformance(kwargs: dict) -> None:
+    render_test(lambda render_mode=None: marl_amod.env(render_mode=render_mode, **kwargs))
+
+
+def test_rgb_array_frames_show_the_state(tiny_city) -> None:
+    env = marl_amod.parallel_env(tiny_city, render_mode="rgb_array")
+    env.reset(seed=0)
+    first = env.render()
+    env.step({a: np.array([1.0 if a == "region_0" else 0.0], dtype=np.float32) for a in env.agents})
+    assert env._last_rebalance.sum() > 0  # everything was asked into region 0: arrows to draw
+    second = env.render()
+    assert first.dtype == np.uint8 and first.ndim == 3 and first.shape[2] == 3
+    assert first.shape == second.shape and not np.array_equal(first, second)
+    assert first.std() > 10  # not a blank canvas
+
+
+def test_env_metadata_and_spaces_are_shared(tiny_city) -> None:
+    env = marl_amod.parallel_env(tiny_city)
+    assert env.metadata["name"] == "amod_v0" and env.metadata["is_parallelizable"] is True
+    assert env.possible_agents == [f"region_{i}" for i in range(tiny_city.n_regions)]
+    spaces = {id(env.observation_space(a)) for a in env.possible_agents}
+    assert len(spaces) == 1 and env.observation_space("region_0") is env.observation_space("region_0")
+    assert env.action_space("region_1") is env.action_space("region_2")
+    box = env.action_space("region_0")
+    assert box.shape == (1,) and box.dtype == np.float32 and box.low[0] == 0.0 and box.high[0] == 1.0
+    f = 13
+    assert env.observation_space("region_0").shape == (f + 3 + env.max_degree * (f + 1),)
+    assert env.render_mode is None
+
+
+def test_versioned_module_and_registry() -> None:
+    from marl_amod import amod_v0
+
+    assert isinstance(amod_v0.parallel_env(horizon=4), AmodParallelEnv)
+    import pettingzoo
+
+    if hasattr(pettingzoo, "make"):
+        made = pettingzoo.make("parallel", amod_v0.ENV_ID, horizon=4)
+        assert made.unwrapped.metadata["name"] == "amod_v0"
+
+
+def test_import_marl_amod_loads_neither_torch_nor_the_env() -> None:
+    import subprocess
+    import sys
+
+    code = "import sys, marl_amod; print('torch' in sys.modules, 'marl_amod.env.parallel' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["False", "False"]
+
+
+def test_env_pickles_mid_episode_and_continues_identically(tiny_city) -> None:
+    env = marl_amod.parallel_env(tiny_city, render_mode="rgb_array")
+    env.reset(seed=3)
+    env.render()
+    act = {a: np.array([0.5 + 0.05 * i], dtype=np.float32) for i, a in enumerate(env.agents)}
+    env.step(act)
+    clone = pickle.loads(pickle.dumps(env))
+    o1, r1, *_ = env.step(act)
+    o2, r2, *_ = clone.step(act)
+    assert r1 == r2
+    assert all(np.array_equal(o1[a], o2[a]) for a in o1)
+
+
+def _sb3_vec_env(n_envs: int = 2):
+    import supersuit as ss
+    from stable_baselines3.common.vec_env import VecEnvWrapper
+
+    class SeedForwarding(VecEnvWrapper):
+        """SB3 seeds with ``venv.seed(s)``; ConcatVecEnv has no ``seed`` and SuperSuit's SB3 wrapper drops it."""
+
+        def __init__(self, venv):
+            super().__init__(venv)
+            self._seed: int | None = None
+
+        def seed(self, seed: int | None = None):
+            self._seed = seed
+            return [seed]
+
+        def reset(self):
+            seed, self._seed = self._seed, None
+            if seed is None:
+                return self.venv.reset()
+            obs, self.venv.reset_infos = self.venv.venv.reset(seed=seed)  # the ConcatVecEnv under SB3's wrapper
+            return obs
+
+        def step_wait(self):
+            return self.venv.step_wait()
+
+    env = marl_amod.parallel_env(horizon=6)
+    vec = ss.pettingzoo_env_to_vec_env_v1(env)
+    vec = ss.concat_vec_envs_v1(vec, n_envs, num_cpus=0, base_class="stable_baselines3")
+    return SeedForwarding(vec)
+
+
+def test_supersuit_sb3_ppo_trains_one_shared_policy() -> None:
+    pytest.importorskip("stable_baselines3")
+    import torch
+    from stable_baselines3 import PPO
+
+    torch.set_num_threads(1)
+    vec = _sb3_vec_env()
+    n_agents = 16
+    assert vec.num_envs == 2 * n_agents  # every region of every copy is one row of one shared policy
+    model = PPO("MlpPolicy", vec, n_steps=8, batch_size=64, n_epochs=1, seed=0, verbose=0)
+    before = [p.detach().clone() for p in model.policy.parameters()]
+    model.learn(total_timesteps=3 * 8 * vec.num_envs)
+    assert model.num_timesteps >= 3 * 8 * vec.num_envs
+    changed = any(not torch.equal(a, b) for a, b in zip(before, model.policy.parameters()))
+    assert changed
+    obs = vec.reset()
+    action, _ = model.predict(obs, deterministic=True)
+    assert action.shape == (vec.num_envs, 1)
+    vec.close()
+
+
+def test_supersuit_seed_forwarding_makes_resets_reproducible() -> None:
+    vec = _sb3_vec_env()
+    vec.seed(7)
+    a = vec.reset()
+    vec.seed(7)
+    b = vec.reset()
+    c = vec.reset()  # unseeded: a new episode
+    vec.seed(8)
+    d = vec.reset()
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a, d)
+    assert a.shape == c.shape
+    vec.close()
+
+
+def test_torchrl_pettingzoo_wrapper_rollout() -> None:
+    pytest.importorskip("torchrl")
+    import torch
+    from torchrl.envs.libs.pettingzoo import PettingZooWrapper
+
+    torch.set_num_threads(1)
+    env = PettingZooWrapper(marl_amod.parallel_env(horizon=5), return_state=True)
+    assert list(env.group_map) == ["region"] and len(env.group_map["region"]) == 16
+    td = env.rollout(10, break_when_any_done=True)
+    obs = td["region", "observation"]
+    assert obs.shape[0] == 4 and obs.shape[1] == 16  # horizon - 1 steps, 16 agents
+    assert td["state"].shape[-1] == 16 * 13 + 3
+    assert bool(td["next", "done"][-1].all())
+
+
+def test_marl_amod_env_builds_the_aec_env_even_after_submodules_are_imported() -> None:
+    import marl_amod.env.features  # noqa: F401  binds the subpackage to marl_amod.env
+    from pettingzoo import AECEnv
+
+    aec = marl_amod.env(horizon=3)
+    assert isinstance(aec, AECEnv) and aec.possible_agents[0] == "region_0"
