@@ -1,0 +1,278 @@
+"""What the env does: determinism, action rules, feasible flows, rewards, observations."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import marl_amod
+from marl_amod.env import actions as act
+from marl_amod.env.observations import local_observations, neighbour_table, split_local
+from marl_amod.env.rewards import local_rewards
+from marl_amod.errors import ActionError, ConfigError
+from marl_amod.scenario import grid_city
+from marl_amod.system import FleetSystem
+from tests.conftest import needs_data
+
+
+def _const(env, value: float) -> dict:
+    return {a: np.array([value], dtype=np.float32) for a in env.agents}
+
+
+def _run(env, seed: int, policy_seed: int = 0) -> list:
+    rng = np.random.default_rng(policy_seed)
+    obs, _ = env.reset(seed=seed)
+    trace = [obs]
+    while env.agents:
+        a = {k: rng.random(1).astype(np.float32) for k in env.agents}
+        trace.append(env.step(a))
+    return trace
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, (tuple, list)):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, np.ndarray):
+        return np.array_equal(a, b)
+    return a == b
+
+
+def test_two_envs_with_the_same_seed_and_actions_stay_identical_for_a_whole_episode() -> None:
+    t1 = _run(marl_amod.parallel_env(), seed=11)
+    t2 = _run(marl_amod.parallel_env(), seed=11)
+    assert len(t1) == 20  # reset + horizon - 1 steps
+    assert _same(t1, t2)
+    t3 = _run(marl_amod.parallel_env(), seed=12)
+    assert not _same(t1, t3)
+
+
+def test_reset_seed_draws_the_same_demand_as_the_fleet_system(small_city) -> None:
+    env = marl_amod.parallel_env(small_city)
+    env.reset(seed=5)
+    system = FleetSystem(small_city)
+    system.reset(5)
+    assert np.array_equal(env.system.sim.demand, system.sim.demand)
+
+
+def test_unseeded_resets_continue_the_first_seed(tiny_city) -> None:
+    def demands(env):
+        env.reset(seed=3)
+        return [env.system.sim.demand.copy() for _ in range(3) if env.reset() is not None]
+
+    a, b = demands(marl_amod.parallel_env(tiny_city)), demands(marl_amod.parallel_env(tiny_city))
+    assert all(np.array_equal(x, y) for x, y in zip(a, b))
+    assert not np.array_equal(a[0], a[1])
+
+
+def test_episode_truncates_every_agent_at_the_horizon(tiny_city) -> None:
+    env = marl_amod.parallel_env(tiny_city)
+    env.reset(seed=0)
+    for _ in range(tiny_city.horizon - 2):
+        _, _, term, trunc, _ = env.step(_const(env, 0.5))
+        assert not any(trunc.values()) and not any(term.values())
+    _, _, term, trunc, _ = env.step(_const(env, 0.5))
+    assert all(trunc.values()) and not any(term.values()) and env.agents == []
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step({})
+
+
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        (np.array([np.nan], dtype=np.float32), "not finite"),
+        (np.array([np.inf], dtype=np.float32), "not finite"),
+        (np.array([-0.5], dtype=np.float32), "negative"),
+        (np.array([0.2, 0.3], dtype=np.float32), "shape"),
+        (np.zeros((1, 1), dtype=np.float32), "shape"),
+        ("lots", "number"),
+    ],
+)
+def test_invalid_action_raises_action_error_naming_the_agent(tiny_city, bad, match) -> None:
+    env = marl_amod.parallel_env(tiny_city)
+    env.reset(seed=0)
+    actions = _const(env, 0.5)
+    actions["region_4"] = bad
+    with pytest.raises(ActionError, match=match) as err:
+        env.step(actions)
+    assert "region_4" in str(err.value)
+
+
+def test_missing_and_unknown_agents_raise(tiny_city) -> None:
+    env = marl_amod.parallel_env(tiny_city)
+    env.reset(seed=0)
+    actions = _const(env, 0.5)
+    del actions["region_2"]
+    with pytest.raises(ActionError, match="region_2"):
+        env.step(actions)
+    with pytest.raises(ActionError, match="unknown"):
+        env.step({**_const(env, 0.5), "region_99": np.array([0.1])})
+
+
+def test_out_of_range_actions_are_clipped_into_the_unit_interval() -> None:
+    agents = ["a", "b", "c"]
+    got = act.joint_action({"a": np.array([3.0]), "b": -1e-8, "c": np.array([0.25])}, agents)
+    assert np.array_equal(got, [1.0, 0.0, 0.25])
+
+
+def test_all_zero_weights_mean_no_rebalancing(small_city) -> None:
+    env = marl_amod.parallel_env(small_city)
+    env.reset(seed=0)
+    for _ in range(4):
+        _, _, _, _, infos = env.step(_const(env, 0.0))
+        assert env._last_rebalance.sum() == 0
+        assert infos["region_0"]["system_rebalancing_cost"] == 0.0
+
+
+def test_logit_mode_all_zero_is_uniform_and_a_high_action_attracts_vehicles(small_city) -> None:
+    w = act.weights(np.zeros(4), "logit")
+    assert np.allclose(w, 0.25)
+    w = act.weights(np.array([1.0, 0.0, 0.0, 0.0]), "logit")
+    assert w[0] > 0.999 and np.isclose(w.sum(), 1.0)
+    env = marl_amod.parallel_env(small_city, action_mode="logit")
+    env.reset(seed=0)
+    idle = env.system.sim.idle.sum()
+    env.step({a: np.array([1.0 if a == "region_5" else 0.0], dtype=np.float32) for a in env.agents})
+    assert env._last_rebalance[:, 5].sum() > 0.5 * idle - env.system.sim.idle[5]
+
+
+def test_local_rewards_sum_to_the_team_reward_and_match_region_profit(small_city) -> None:
+    team = marl_amod.parallel_env(small_city, reward_mode="team")
+    local = marl_amod.parallel_env(small_city, reward_mode="local")
+    team.reset(seed=2)
+    local.reset(seed=2)
+    rng = np.random.default_rng(0)
+    while team.agents:
+        actions = {a: rng.random(1).astype(np.float32) for a in team.agents}
+        before = local.system.sim.totals.profit.copy()
+        _, rt, *_ = team.step(actions)
+        _, rl, *_ = local.step(actions)
+        delta = local.system.sim.totals.profit - before  # profit booked to each departure region
+        r_local = np.array([rl[a] for a in local.possible_agents])
+        assert np.allclose(r_local, delta)
+        assert np.isclose(r_local.sum(), rt["region_0"])
+        assert len(set(rt.values())) == 1
+    assert local_rewards(small_city, 0, np.zeros((16, 16)), np.zeros((16, 16))).sum() == 0
+
+
+def test_local_observation_layout_matches_features_and_neighbours(small_city) -> None:
+    env = marl_amod.parallel_env(small_city)
+    obs, _ = env.reset(seed=0)
+    env.step(_const(env, 0.3))
+    obs, *_ = env.step(_const(env, 0.7))
+    x = env.graph()["x"]
+    stacked = np.stack([obs[a] for a in env.possible_agents])
+    assert np.array_equal(stacked, local_observations(env.system, 6, env.max_degree))
+    own, context, neigh, mask = split_local(stacked)
+    assert np.array_equal(own, x)
+    idx, m = neighbour_table(small_city)
+    assert np.array_equal(mask, m)
+    src, dst = small_city.edge_index
+    for i in (0, 5):  # a corner (2 neighbours) and an inner region (4 neighbours)
+        expected = np.sort(src[dst == i])
+        k = len(expected)
+        assert mask[i].sum() == k and np.array_equal(neigh[i, :k], x[expected])
+        assert not neigh[i, k:].any()
+    hour = small_city.start_hour + 2 * small_city.tstep / 60
+    assert np.allclose(context[0], [np.sin(2 * np.pi * hour / 24), np.cos(2 * np.pi * hour / 24), 2 / small_city.horizon])
+    assert all(env.observation_space(a).contains(obs[a]) for a in obs)
+
+
+def test_split_local_works_on_torch_batches() -> None:
+    torch = pytest.importorskip("torch")
+    env = marl_amod.parallel_env()
+    obs, _ = env.reset(seed=0)
+    batch = torch.from_numpy(np.stack([obs[a] for a in env.agents]))[None]  # (1, N, D)
+    own, context, neigh, mask = split_local(batch)
+    assert own.shape == (1, 16, 13) and context.shape == (1, 16, 3)
+    assert neigh.shape == (1, 16, env.max_degree, 13) and mask.shape == (1, 16, env.max_degree)
+    with pytest.raises(ValueError, match="layout"):
+        split_local(np.zeros(20))
+
+
+def test_state_and_graph_describe_the_whole_city(small_city) -> None:
+    env = marl_amod.parallel_env(small_city)
+    env.reset(seed=0)
+    state = env.state()
+    g = env.graph()
+    assert state.dtype == np.float32 and state.shape == env.state_space.shape
+    assert np.array_equal(state[:-3], g["x"].ravel())
+    assert g["x"].shape == (16, 13) and g["x"].dtype == np.float32
+    assert g["edge_index"].dtype == np.int64 and g["edge_index"].shape == small_city.edge_index.shape
+    src, dst = g["edge_index"]
+    assert g["edge_attr"].shape == (src.size, 2) and g["edge_attr"].dtype == np.float32
+    assert np.allclose(g["edge_attr"][:, 0], small_city.reb_time[src, dst])
+    assert np.allclose(g["edge_attr"][:, 1], small_city.reb_cost[src, dst])
+
+
+def test_bad_configuration_raises_config_error(tiny_city) -> None:
+    with pytest.raises(ConfigError, match="reward_mode"):
+        marl_amod.parallel_env(reward_mode="selfish")
+    with pytest.raises(ConfigError, match="action_mode"):
+        marl_amod.parallel_env(action_mode="dirichlet")
+    with pytest.raises(ConfigError, match="render_mode"):
+        marl_amod.parallel_env(render_mode="ansi")
+    with pytest.raises(ConfigError):
+        marl_amod.parallel_env(hoirzon=5)  # typo in a scenario key
+    with pytest.raises(ConfigError, match="overrides"):
+        marl_amod.parallel_env(tiny_city, horizon=3)
+
+
+@needs_data
+def test_real_city_episode_runs_with_local_rewards() -> None:
+    env = marl_amod.parallel_env("nyc_brooklyn", reward_mode="local", horizon=5)
+    obs, _ = env.reset(seed=0)
+    assert len(obs) == env.city.n_regions == 14
+    while env.agents:
+        obs, rew, *_ = env.step({a: env.action_space(a).sample() for a in env.agents})
+    assert env.system.sim.vehicles() == env.city.fleet_size
+
+
+# ---------------------------------------------------------------------- feasibility properties
+_CITY = grid_city(3, 3, seed=1, horizon=6, vehicles_per_region=5, requests_per_region=3.0)
+_N = _CITY.n_regions
+
+tiny = st.floats(min_value=0.0, max_value=1e-30, allow_subnormal=True)
+in_range = st.floats(min_value=0.0, max_value=1.0)
+clipped = st.floats(min_value=-1e-7, max_value=50.0)
+one_hot = st.integers(0, _N - 1).map(lambda i: [1.0 if k == i else 0.0 for k in range(_N)])
+joint = st.one_of(
+    st.lists(in_range, min_size=_N, max_size=_N),
+    st.lists(tiny, min_size=_N, max_size=_N),
+    st.lists(clipped, min_size=_N, max_size=_N),
+    st.lists(st.sampled_from([0.0, 1.0, 1e-12, 2.0]), min_size=_N, max_size=_N),
+    one_hot,
+    st.just([0.0] * _N),
+)
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    episode=st.lists(joint, min_size=_CITY.horizon - 1, max_size=_CITY.horizon - 1),
+    mode=st.sampled_from(["weight", "logit"]),
+    seed=st.integers(0, 2**16),
+)
+def test_flows_stay_feasible_under_any_valid_actions(episode, mode, seed) -> None:
+    env = marl_amod.parallel_env(_CITY, action_mode=mode)
+    env.reset(seed=seed)
+    sim = env.system.sim
+    fleet = _CITY.fleet_size
+    for values in episode:
+        a = np.clip(np.asarray(values, dtype=np.float32).astype(np.float64), 0.0, 1.0)
+        idle_before = sim.idle.copy()
+        target = env.system.targets_from_weights(act.weights(a, mode))
+        env.step({f"region_{i}": np.array([v], dtype=np.float32) for i, v in enumerate(values)})
+        y = env._last_rebalance
+        assert y.dtype == np.int64 and (y >= 0).all() and (np.diag(y) == 0).all()
+        assert (y.sum(axis=1) <= idle_before).all()  # nobody sends more than it had idle
+        if target.min() >= 0:  # a wish: each region ends with at least its target (own + incoming)
+            assert target.sum() <= idle_before.sum()
+            assert (idle_before - y.sum(axis=1) + y.sum(axis=0) >= target).all()
+        else:
+            assert y.sum() == 0
+        assert sim.vehicles() == fleet
+        assert (sim.idle >= 0).all() and (sim.last_dispatch >= 0).all()
+    assert env.agents == []
