@@ -12,5 +12,5 @@ __all__ = ["BASELINES", "EqualDistribution", "NoRebalancing", "PlusOne", "Policy
 from marl_amod.baselines.behaviour import BEHAVIOUR_POLICIES  # noqa: E402
 from marl_amod.baselines.mpc import MPCForecast, MPCOracle  # noqa: E402
 
-BASELINES.update(BEHAVIOUR_POLICIES)  # type: ignore[arg-type]
-BASELINES.update({MPCOracle.name: MPCOracle, MPCForecast.name: MPCForecast})  # type: ignore[dict-item]
+BASELINES.update(BEHAVIOUR_POLICIES)
+BASELINES.update({MPCOracle.name: MPCOracle, MPCForecast.name: MPCForecast})

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from marl_amod.baselines.base import WeightPolicy
+from collections.abc import Callable
+
+from marl_amod.baselines.base import Policy, WeightPolicy
 from marl_amod.system import FleetSystem
 
 
@@ -57,6 +59,7 @@ class PlusOne(WeightPolicy):
         return np.where(asking, idle + extra.astype(np.int64), 0)
 
 
-BASELINES: dict[str, type[WeightPolicy]] = {
+# name -> a factory taking no arguments; MPC and behaviour policies join it in baselines/__init__
+BASELINES: dict[str, Callable[[], Policy]] = {
     cls.name: cls for cls in (NoRebalancing, EqualDistribution, PlusOne, RandomPolicy)
 }
