@@ -185,3 +185,36 @@ def test_marl_amod_env_builds_the_aec_env_even_after_submodules_are_imported() -
 
     aec = marl_amod.env(horizon=3)
     assert isinstance(aec, AECEnv) and aec.possible_agents[0] == "region_0"
+
+
+def test_record_episode_writes_an_animated_gif(tiny_city, tmp_path) -> None:
+    import imageio.v2 as imageio
+
+    from marl_amod.env.render import record_episode
+
+    env = marl_amod.parallel_env(tiny_city, render_mode="rgb_array")
+    path = tmp_path / "episode.gif"
+    frames = record_episode(env, seed=0, path=path)
+    assert len(frames) == tiny_city.horizon  # reset frame + one per step
+    back = imageio.mimread(path)
+    assert len(back) == len(frames) and back[0].shape[:2] == frames[0].shape[:2]
+
+
+def test_human_mode_renders_on_reset_and_step_without_a_display(tiny_city) -> None:
+    env = marl_amod.parallel_env(tiny_city, render_mode="human")
+    env.reset(seed=0)
+    assert env.render() is None and env._viewer is not None
+    env.step({a: np.array([0.5], dtype=np.float32) for a in env.agents})
+    pickle.dumps(env)  # the window does not travel
+    env.close()
+    assert env._viewer is None
+
+
+def test_random_agents_example_runs() -> None:
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parent.parent / "examples" / "random_agents.py"
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, check=True, timeout=120)
+    assert "episode profit" in out.stdout
