@@ -26,6 +26,8 @@ class StepOutcome:
     reward: float  # dispatch profit of the new step minus the rebalancing cost
     dispatch_profit: float
     rebalancing_cost: float
+    dispatch: np.ndarray  # (N, N) passenger flows of the new step
+    rebalancing: np.ndarray  # (N, N) rebalancing flows applied before moving on (zeros at reset)
 
 
 class FleetSystem:
@@ -55,17 +57,19 @@ class FleetSystem:
         """New episode; returns the outcome of the first dispatch."""
         self.sim.reset(np.random.default_rng(seed))
         profit = self._dispatch()
-        return StepOutcome(profit, profit, 0.0)
+        n = self.city.n_regions
+        return StepOutcome(profit, profit, 0.0, self.sim.last_dispatch, np.zeros((n, n), dtype=np.int64))
 
     def step(self, target: np.ndarray) -> StepOutcome:
         """Rebalance toward ``target`` (N,) idle vehicles per region (-1: no wish), then move on."""
         flows = self.coordinator.rebalance(self.sim.idle, np.asarray(target))
         cost = self.sim.apply_rebalance(flows)
+        applied = self.sim.last_rebalance
         self.sim.advance()
         profit = self._dispatch()
         if self.sim.done:
             self.sim.finish()
-        return StepOutcome(profit - cost, profit, cost)
+        return StepOutcome(profit - cost, profit, cost, self.sim.last_dispatch, applied)
 
     def targets_from_weights(self, weights: np.ndarray) -> np.ndarray:
         """The paper's target floor(w_i / sum(w) * M) from non-negative per-region weights."""

@@ -62,7 +62,7 @@ import numpy as np
 from gymnasium import logger, spaces
 from pettingzoo import ParallelEnv
 
-from marl_amod.coordinator.coordinator import Coordinator, Objective
+from marl_amod.coordinator.coordinator import Objective
 from marl_amod.env import actions as act
 from marl_amod.env import observations as ob
 from marl_amod.env.rewards import REWARD_MODES, RewardMode, rewards
@@ -72,17 +72,6 @@ from marl_amod.scenario import City, load_city
 from marl_amod.system import FleetSystem
 
 RENDER_MODES = ["human", "rgb_array"]
-
-
-class _RecordingCoordinator(Coordinator):
-    """The exact coordinator, remembering its last rebalancing flows (the simulator clears them on advance)."""
-
-    last_flows: np.ndarray | None = None
-
-    def rebalance(self, idle: np.ndarray, target: np.ndarray) -> np.ndarray:
-        flows = super().rebalance(idle, target)
-        self.last_flows = np.asarray(flows)
-        return flows
 
 
 class AmodParallelEnv(ParallelEnv):
@@ -124,7 +113,6 @@ class AmodParallelEnv(ParallelEnv):
         self.lookahead = int(lookahead)
         self.render_mode = render_mode
         self.system = FleetSystem(city, max_wait=max_wait, objective=objective)
-        self.system.coordinator = _RecordingCoordinator(city, objective=objective)
 
         n = city.n_regions
         self.possible_agents = [f"region_{i}" for i in range(n)]
@@ -179,12 +167,8 @@ class AmodParallelEnv(ParallelEnv):
             raise RuntimeError("the episode is over (all agents truncated); call reset()")
         joint = act.joint_action(actions, self.agents)
         target = self.system.targets_from_weights(act.weights(joint, self.action_mode))
-        coordinator = self.system.coordinator
-        coordinator.last_flows = None
         outcome = self.system.step(target)
-        n = self.city.n_regions
-        flows = coordinator.last_flows if coordinator.last_flows is not None else np.zeros((n, n), dtype=np.int64)
-        self._last_rebalance = np.rint(flows).astype(np.int64)
+        self._last_rebalance = outcome.rebalancing
         self._last_reward = outcome.reward
         sim = self.system.sim
         r = rewards(self.reward_mode, self.city, sim.t, sim.last_dispatch, self._last_rebalance, outcome.reward)
