@@ -98,34 +98,9 @@ def test_env_pickles_mid_episode_and_continues_identically(tiny_city) -> None:
 
 
 def _sb3_vec_env(n_envs: int = 2):
-    import supersuit as ss
-    from stable_baselines3.common.vec_env import VecEnvWrapper
+    from marl_amod.integrations.sb3 import sb3_vec_env
 
-    class SeedForwarding(VecEnvWrapper):
-        """SB3 seeds with ``venv.seed(s)``; ConcatVecEnv has no ``seed`` and SuperSuit's SB3 wrapper drops it."""
-
-        def __init__(self, venv):
-            super().__init__(venv)
-            self._seed: int | None = None
-
-        def seed(self, seed: int | None = None):
-            self._seed = seed
-            return [seed]
-
-        def reset(self):
-            seed, self._seed = self._seed, None
-            if seed is None:
-                return self.venv.reset()
-            obs, self.venv.reset_infos = self.venv.venv.reset(seed=seed)  # the ConcatVecEnv under SB3's wrapper
-            return obs
-
-        def step_wait(self):
-            return self.venv.step_wait()
-
-    env = marl_amod.parallel_env(horizon=6)
-    vec = ss.pettingzoo_env_to_vec_env_v1(env)
-    vec = ss.concat_vec_envs_v1(vec, n_envs, num_cpus=0, base_class="stable_baselines3")
-    return SeedForwarding(vec)
+    return sb3_vec_env(marl_amod.parallel_env(horizon=6), copies=n_envs)
 
 
 def test_supersuit_sb3_ppo_trains_one_shared_policy() -> None:
