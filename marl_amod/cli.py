@@ -143,6 +143,54 @@ def collect(
     console.print(f"wrote {len(data)} transitions ({city.n_regions} agents) to {path}")
 
 
+@app.command()
+def train(
+    config: Annotated[Path, typer.Option(help="training config YAML (configs/<run>.yaml)")],
+    resume: Annotated[Optional[Path], typer.Option(help="resume from a training state (runs/<run>/state.pt)")] = None,
+    data_dir: DataDir = None,
+) -> None:
+    """Train a policy (A2C or SAC, centralised or decentralised); logs under runs/, policy + card to policies/."""
+    from marl_amod.training import load_train_config, run_training
+
+    _use_data_dir(data_dir)
+    algo, args = load_train_config(config)
+    last_eval: dict[str, float] = {}
+    with progress_bar() as bar:
+        task = bar.add_task(f"{algo} {args.mode} on {args.scenario}", total=args.episodes)
+
+        def progress(ep: int, total: int, stats: dict) -> None:
+            if "eval/profit" in stats:
+                last_eval["profit"] = stats["eval/profit"]
+            desc = f"{algo} {args.mode} on {args.scenario}"
+            if last_eval:
+                desc += f" | val profit {last_eval['profit']:,.0f}"
+            bar.update(task, completed=ep, description=desc)
+
+        summary = run_training(algo, args, resume=str(resume) if resume else None, progress=progress)
+    card = summary["card"]
+    console.print(
+        f"{card['scenario']}: profit {card['profit_mean']:,.1f} ± {card['profit_std']:,.1f} over {card['eval_episodes']} episodes "
+        f"(seed {card['eval_seed']}), trained {card['episodes_trained']} episodes in {card['training_wall_s'] / 60:.1f} min"
+    )
+    if "policy" in summary:
+        console.print(f"wrote {summary['policy']} (+ .json, .md); logs in {args.run_dir}")
+
+
+@app.command()
+def compare(
+    config: Annotated[Path, typer.Option(help="comparison config YAML (configs/compare_<city>.yaml)")],
+    data_dir: DataDir = None,
+) -> None:
+    """Learned policies (centralised, decentralised, ablations) vs baselines on the same seeds: table + plots."""
+    from marl_amod.comparison import load_compare_config, run_compare
+
+    _use_data_dir(data_dir)
+    cfg = load_compare_config(config)
+    payload = run_compare(cfg, log=console.print)
+    console.print((Path(cfg.output) / "compare.md").read_text())
+    console.print(f"best baseline: {payload['best_baseline']}")
+
+
 def main() -> None:
     """Entry point: user errors print one clear line and exit 2, never a traceback."""
     try:

@@ -1,0 +1,196 @@
+"""Advantage actor-critic with a Dirichlet policy over the desired vehicle distribution (paper, sec. 4).
+
+Read top to bottom: Args, the policy's act/value functions for both modes, then ``train``.
+
+Centralised: alpha = actor(x, edge_index) (N,), action y ~ Dir(alpha), log pi = log Dir(y).
+Decentralised: alpha_i = actor.forward_local(o_i) per agent, g_i ~ Gamma(alpha_i, 1), each agent
+sends g_i and the env normalises; the joint law of g/sum(g) is the same Dirichlet, and
+log pi = sum_i log Gamma(g_i; alpha_i). Deterministic evaluation uses alpha / sum(alpha).
+
+Per control step the reward is dispatch profit minus rebalancing cost, times ``reward_scale``.
+Each update uses ``episodes_per_update`` whole episodes: discounted returns, advantage = return
+- V(s), policy loss -log pi * advantage, critic loss smooth-L1, clipped gradients.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+from typing import Any, Callable, Literal
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from marl_amod import training as T
+from marl_amod.models import GNNValueCritic, LocalActor, LocalValueCritic, build_actor, dirichlet, gamma, gamma_log_prob
+from marl_amod.scenario import load_city
+
+
+@dataclass
+class Args:
+    scenario: str = "synthetic"
+    """scenario name or YAML path"""
+    mode: Literal["centralised", "decentralised"] = "centralised"
+    """centralised: one learner on the global graph; decentralised: shared actor on local observations"""
+    actor: Literal["gnn", "mlp", "cnn"] = "gnn"
+    """centralised actor architecture (decentralised always uses the local GNN actor)"""
+    conv: Literal["gcn", "sage"] = "gcn"
+    """message passing: gcn (the paper's) or sage (mean aggregation, what the local actor computes)"""
+    hidden: int = 32
+    """hidden units of the actor and critic MLPs (the paper's A2C uses 32)"""
+    central_critic: bool = True
+    """decentralised mode only: critic on the global graph (env.state()) instead of sum of local values"""
+    episodes: int = 2000
+    """training episodes"""
+    episodes_per_update: int = 4
+    """whole episodes per gradient step (more: less noisy advantages)"""
+    lr_actor: float = 1e-3
+    """Adam learning rate of the actor"""
+    lr_critic: float = 1e-3
+    """Adam learning rate of the critic"""
+    gamma: float = 0.97
+    """discount factor (the paper's)"""
+    reward_scale: float = 0.01
+    """multiplies the money reward so returns are O(1..100)"""
+    normalize_returns: bool = True
+    """standardise the batch's returns before computing advantages (as RL4AMOD's A2C)"""
+    entropy_coef: float = 0.0
+    """weight of the policy entropy bonus"""
+    max_grad_norm: float = 10.0
+    """gradient clipping (global L2 norm per network)"""
+    lookahead: int = 6
+    """look-ahead steps T of the node features (F = 1 + 2T)"""
+    seed: int = 0
+    """torch/numpy seed and training demand stream"""
+    eval_every: int = 200
+    """episodes between validation evaluations"""
+    eval_episodes: int = 5
+    """validation episodes (deterministic policy)"""
+    eval_seed: int = 1000
+    """validation demand seed; the best validation actor is kept (never the report seeds)"""
+    final_eval_episodes: int = 10
+    """episodes of the final report evaluation"""
+    final_eval_seed: int = 0
+    """report seed: same streams as `marl-amod evaluate --seed 0`"""
+    threads: int = 1
+    """torch CPU threads (the machine is shared)"""
+    run_dir: str = "runs/a2c"
+    """TensorBoard + CSV logs and the resumable training state"""
+    policy_out: str = ""
+    """where the final policy .pt (+ .json/.md cards) goes; empty: do not write one"""
+    time_limit_s: float = 0.0
+    """stop early after this much wall time (0: no limit)"""
+
+
+def act(actor: torch.nn.Module, obs: T.Obs, edge_index: torch.Tensor, mode: str) -> tuple[np.ndarray, torch.Tensor, torch.Tensor]:
+    """Sample an action; returns (weights (N,), log pi (), entropy ())."""
+    if mode == "centralised":
+        alpha = actor(obs.x, edge_index)  # (N,)
+        dist = dirichlet(alpha)
+        y = dist.sample().clamp_min(1e-6)
+        y = y / y.sum()
+        return y.numpy(), dist.log_prob(y), dist.entropy()
+    alpha = actor.forward_local(obs.own, obs.nbrs, obs.mask)  # (N,) one row per agent, its own obs only
+    g = gamma(alpha).sample().clamp_min(1e-8)  # each agent draws its own weight
+    return g.numpy(), gamma_log_prob(g, alpha), gamma(alpha).entropy().sum()
+
+
+def value(critic: torch.nn.Module, obs: T.Obs, edge_index: torch.Tensor, local: bool) -> torch.Tensor:
+    """V(s) as a scalar tensor."""
+    if local:
+        return critic.forward_local(obs.own[None], obs.nbrs[None], obs.mask[None])[0]
+    return critic(obs.x, edge_index)
+
+
+def discounted_returns(rewards: list[float], gamma_: float) -> torch.Tensor:
+    out, g = [], 0.0
+    for r in reversed(rewards):
+        g = r + gamma_ * g
+        out.append(g)
+    return torch.tensor(out[::-1], dtype=torch.float32)  # (T,)
+
+
+def train(args: Args, resume: str | None = None, progress: Callable[[int, int, dict], None] | None = None) -> dict[str, Any]:
+    torch.set_num_threads(args.threads)
+    T.seed_everything(args.seed)
+    city = load_city(args.scenario)
+    rollout = T.Rollout(city, args.mode, args.lookahead)
+    edge_index = torch.as_tensor(city.edge_index, dtype=torch.long)
+    n_features = 1 + 2 * args.lookahead
+    local_critic = args.mode == "decentralised" and not args.central_critic
+    if args.mode == "decentralised":
+        actor = LocalActor(n_features, args.hidden)
+    else:
+        actor = build_actor(args.actor, city, n_features, args.hidden, args.conv)
+    critic = LocalValueCritic(n_features, args.hidden) if local_critic else GNNValueCritic(n_features, args.hidden, args.conv)
+    opt_a = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
+    opt_c = torch.optim.Adam(critic.parameters(), lr=args.lr_critic)
+
+    start_ep, best_val, best_actor, prior_wall = 0, -np.inf, copy.deepcopy(actor.state_dict()), 0.0
+    if resume:
+        st = T.load_state(resume)
+        actor.load_state_dict(st["actor"]), critic.load_state_dict(st["critic"])
+        opt_a.load_state_dict(st["opt_a"]), opt_c.load_state_dict(st["opt_c"])
+        start_ep, best_val, best_actor, prior_wall = st["episode"], st["best_val"], st["best_actor"], st["wall_s"]
+    log = T.Logger(args.run_dir)
+    timer = T.Timer()
+
+    ep = start_ep
+    while ep < args.episodes:
+        # ---- collect a batch of whole episodes ----
+        logps, values, returns, ents, ep_rewards = [], [], [], [], []
+        for _ in range(args.episodes_per_update):
+            obs = rollout.reset(T.train_seed(args.seed, ep))
+            rewards: list[float] = []
+            while not rollout.done:
+                w, logp, ent = act(actor, obs, edge_index, args.mode)
+                values.append(value(critic, obs, edge_index, local_critic))
+                logps.append(logp)
+                ents.append(ent)
+                obs, r = rollout.step(w)
+                rewards.append(r * args.reward_scale)
+            returns.append(discounted_returns(rewards, args.gamma))
+            ep_rewards.append(sum(rewards) / args.reward_scale)
+            ep += 1
+        ret = torch.cat(returns)  # (B*T,)
+        if args.normalize_returns:
+            ret = (ret - ret.mean()) / (ret.std() + 1e-8)
+        v = torch.stack(values)  # (B*T,)
+        adv = ret - v.detach()
+
+        # ---- one actor and one critic step ----
+        loss_pi = -(torch.stack(logps) * adv).mean() - args.entropy_coef * torch.stack(ents).mean()
+        loss_v = F.smooth_l1_loss(v, ret)
+        opt_a.zero_grad()
+        loss_pi.backward()
+        torch.nn.utils.clip_grad_norm_(actor.parameters(), args.max_grad_norm)
+        opt_a.step()
+        opt_c.zero_grad()
+        loss_v.backward()
+        torch.nn.utils.clip_grad_norm_(critic.parameters(), args.max_grad_norm)
+        opt_c.step()
+
+        stats = {"train/episode_reward": float(np.mean(ep_rewards)), "loss/policy": loss_pi.item(), "loss/value": loss_v.item()}
+        # ---- periodic validation, best-actor selection, resumable state ----
+        if ep // args.eval_every != (ep - args.episodes_per_update) // args.eval_every or ep >= args.episodes:
+            val = T.evaluate_actor(actor, city, args.eval_episodes, args.eval_seed, args.lookahead)["metrics"]["profit"]["mean"]
+            stats["eval/profit"] = val
+            if val > best_val:
+                best_val, best_actor = val, copy.deepcopy(actor.state_dict())
+            T.save_state(
+                f"{args.run_dir}/state.pt", actor=actor.state_dict(), critic=critic.state_dict(), opt_a=opt_a.state_dict(),
+                opt_c=opt_c.state_dict(), episode=ep, best_val=best_val, best_actor=best_actor, wall_s=prior_wall + timer(),
+            )
+        stats["time/wall_s"] = prior_wall + timer()
+        if rollout.env is not None:
+            stats["env/clipped_actions"] = rollout.clipped  # cumulative; should stay 0
+        log.log(ep, **stats)
+        if progress is not None:
+            progress(ep, args.episodes, stats)
+        if args.time_limit_s and prior_wall + timer() > args.time_limit_s:
+            break
+
+    log.close()
+    actor.load_state_dict(best_actor)
+    return T.finish_run(args, "a2c", actor, city, prior_wall + timer(), ep)

@@ -1,0 +1,242 @@
+"""Soft actor-critic with a Dirichlet policy and twin GNN Q critics (paper, sec. 4; RL4AMOD's SAC).
+
+Read top to bottom: Args, the replay buffer, the reparameterised policy sample for both modes,
+then ``train``.
+
+The action is the desired distribution y (N,) on the simplex. Centralised: y = rsample of
+Dir(actor(x)). Decentralised: every agent draws g_i ~ Gamma(alpha_i(o_i), 1) (reparameterised)
+from its local observation and y = g / sum(g), the same Dirichlet law; its log-density is the
+Gamma one, sum_i log Gamma(g_i; alpha_i). The twin critics Q(s, y) always see the global graph
+with y appended as a node feature (centralised training, decentralised execution).
+
+Losses: Q -> r + gamma (1 - done) (min Q_targ(s', y') - a log pi(y'|s')), policy ->
+a log pi(y|s) - min Q(s, y); Polyak-averaged targets; clipped gradients.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+from typing import Any, Callable, Literal
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from marl_amod import training as T
+from marl_amod.models import LocalActor, TwinQ, build_actor, dirichlet, gamma, gamma_log_prob
+from marl_amod.scenario import load_city
+
+
+@dataclass
+class Args:
+    scenario: str = "synthetic"
+    """scenario name or YAML path"""
+    mode: Literal["centralised", "decentralised"] = "centralised"
+    """centralised: one learner on the global graph; decentralised: shared actor on local observations"""
+    actor: Literal["gnn", "mlp", "cnn"] = "gnn"
+    """centralised actor architecture (decentralised always uses the local GNN actor)"""
+    conv: Literal["gcn", "sage"] = "gcn"
+    """message passing of actor and critics: gcn (the paper's) or sage (mean aggregation)"""
+    hidden: int = 256
+    """hidden units of the actor and critic MLPs (the paper's SAC uses 256)"""
+    central_critic: bool = True
+    """kept for symmetry with A2C: SAC's Q critics always read the global graph (state())"""
+    episodes: int = 1000
+    """training episodes"""
+    batch_size: int = 100
+    """transitions per gradient step"""
+    buffer_size: int = 100_000
+    """replay capacity (transitions)"""
+    warmup_steps: int = 200
+    """transitions collected before the first update"""
+    updates_per_step: int = 1
+    """gradient steps per environment step"""
+    lr_actor: float = 1e-3
+    """Adam learning rate of the actor"""
+    lr_critic: float = 1e-3
+    """Adam learning rate of the twin critics"""
+    alpha: float = 0.3
+    """entropy temperature (fixed unless auto_entropy)"""
+    auto_entropy: bool = False
+    """tune the temperature towards target entropy -N"""
+    gamma: float = 0.97
+    """discount factor"""
+    polyak: float = 0.995
+    """target-network averaging factor"""
+    reward_scale: float = 0.01
+    """multiplies the money reward (RL4AMOD scales rewards for SAC too)"""
+    max_grad_norm: float = 10.0
+    """gradient clipping (global L2 norm per network)"""
+    lookahead: int = 6
+    """look-ahead steps T of the node features (F = 1 + 2T)"""
+    seed: int = 0
+    """torch/numpy seed and training demand stream"""
+    eval_every: int = 50
+    """episodes between validation evaluations"""
+    eval_episodes: int = 5
+    """validation episodes (deterministic policy)"""
+    eval_seed: int = 1000
+    """validation demand seed; the best validation actor is kept (never the report seeds)"""
+    final_eval_episodes: int = 10
+    """episodes of the final report evaluation"""
+    final_eval_seed: int = 0
+    """report seed: same streams as `marl-amod evaluate --seed 0`"""
+    threads: int = 1
+    """torch CPU threads (the machine is shared)"""
+    run_dir: str = "runs/sac"
+    """TensorBoard + CSV logs and the resumable training state"""
+    policy_out: str = ""
+    """where the final policy .pt (+ .json/.md cards) goes; empty: do not write one"""
+    time_limit_s: float = 0.0
+    """stop early after this much wall time (0: no limit)"""
+
+
+class Replay:
+    """Fixed-size ring buffer of (obs, action y, reward, next obs, done) as stacked tensors."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity, self.size, self.ptr = capacity, 0, 0
+        self.data: dict[str, torch.Tensor] = {}
+
+    def add(self, **item: torch.Tensor) -> None:
+        for k, v in item.items():
+            v = torch.as_tensor(v, dtype=torch.float32)
+            if k not in self.data:
+                self.data[k] = torch.zeros((self.capacity, *v.shape), dtype=torch.float32)
+            self.data[k][self.ptr] = v
+        self.ptr = (self.ptr + 1) % self.capacity
+        self.size = min(self.size + 1, self.capacity)
+
+    def sample(self, batch: int, gen: torch.Generator) -> dict[str, torch.Tensor]:
+        idx = torch.randint(0, self.size, (batch,), generator=gen)
+        return {k: v[idx] for k, v in self.data.items()}
+
+
+def _obs_items(obs: T.Obs, prefix: str, local: bool) -> dict[str, torch.Tensor]:
+    items = {f"{prefix}x": obs.x}
+    if local:
+        items.update({f"{prefix}own": obs.own, f"{prefix}nbrs": obs.nbrs, f"{prefix}mask": obs.mask})
+    return items
+
+
+def policy_sample(actor, b: dict[str, torch.Tensor], prefix: str, edge_index: torch.Tensor, local: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """Reparameterised action y (B, N) on the simplex and log pi (B,)."""
+    if local:
+        alpha = actor.forward_local(b[f"{prefix}own"], b[f"{prefix}nbrs"], b[f"{prefix}mask"])  # (B, N)
+        g = gamma(alpha).rsample().clamp_min(1e-8)
+        return g / g.sum(-1, keepdim=True), gamma_log_prob(g, alpha)
+    alpha = actor(b[f"{prefix}x"], edge_index)  # (B, N)
+    y = dirichlet(alpha).rsample().clamp_min(1e-6)
+    y = y / y.sum(-1, keepdim=True)
+    return y, dirichlet(alpha).log_prob(y)
+
+
+def train(args: Args, resume: str | None = None, progress: Callable[[int, int, dict], None] | None = None) -> dict[str, Any]:
+    torch.set_num_threads(args.threads)
+    T.seed_everything(args.seed)
+    gen = torch.Generator().manual_seed(args.seed)
+    city = load_city(args.scenario)
+    local = args.mode == "decentralised"
+    rollout = T.Rollout(city, args.mode, args.lookahead)
+    edge_index = torch.as_tensor(city.edge_index, dtype=torch.long)
+    n_features = 1 + 2 * args.lookahead
+    actor = LocalActor(n_features, args.hidden) if local else build_actor(args.actor, city, n_features, args.hidden, args.conv)
+    critic = TwinQ(n_features, args.hidden, "sage" if local else args.conv)
+    critic_targ = copy.deepcopy(critic).requires_grad_(False)
+    opt_a = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
+    opt_c = torch.optim.Adam(critic.parameters(), lr=args.lr_critic)
+    log_alpha = torch.tensor(float(np.log(args.alpha)), requires_grad=True)
+    opt_alpha = torch.optim.Adam([log_alpha], lr=1e-3)
+    target_entropy = -float(city.n_regions)
+    buffer = Replay(args.buffer_size)
+
+    start_ep, best_val, best_actor, prior_wall, n_steps = 0, -np.inf, copy.deepcopy(actor.state_dict()), 0.0, 0
+    if resume:
+        st = T.load_state(resume)
+        actor.load_state_dict(st["actor"]), critic.load_state_dict(st["critic"]), critic_targ.load_state_dict(st["critic_targ"])
+        opt_a.load_state_dict(st["opt_a"]), opt_c.load_state_dict(st["opt_c"])
+        start_ep, best_val, best_actor, prior_wall = st["episode"], st["best_val"], st["best_actor"], st["wall_s"]
+        log_alpha.data.fill_(st["log_alpha"])
+    log = T.Logger(args.run_dir)
+    timer = T.Timer()
+
+    def update() -> dict[str, float]:
+        b = buffer.sample(args.batch_size, gen)
+        a = log_alpha.exp().detach()
+        # ---- twin Q regression towards the soft Bellman target ----
+        with torch.no_grad():
+            y2, logp2 = policy_sample(actor, b, "next_", edge_index, local)
+            q_targ = torch.min(*critic_targ(b["next_x"], edge_index, y2))  # (B,)
+            backup = b["reward"] + args.gamma * (1 - b["done"]) * (q_targ - a * logp2)
+        q1, q2 = critic(b["x"], edge_index, b["action"])
+        loss_q = F.mse_loss(q1, backup) + F.mse_loss(q2, backup)
+        opt_c.zero_grad()
+        loss_q.backward()
+        torch.nn.utils.clip_grad_norm_(critic.parameters(), args.max_grad_norm)
+        opt_c.step()
+        # ---- policy: maximise min Q minus entropy cost (critics frozen) ----
+        critic.requires_grad_(False)
+        y, logp = policy_sample(actor, b, "", edge_index, local)
+        loss_pi = (a * logp - torch.min(*critic(b["x"], edge_index, y))).mean()
+        opt_a.zero_grad()
+        loss_pi.backward()
+        torch.nn.utils.clip_grad_norm_(actor.parameters(), args.max_grad_norm)
+        opt_a.step()
+        critic.requires_grad_(True)
+        if args.auto_entropy:
+            loss_alpha = -(log_alpha * (logp.detach() + target_entropy)).mean()
+            opt_alpha.zero_grad()
+            loss_alpha.backward()
+            opt_alpha.step()
+        with torch.no_grad():
+            for p, pt in zip(critic.parameters(), critic_targ.parameters()):
+                pt.mul_(args.polyak).add_((1 - args.polyak) * p)
+        return {"loss/q": loss_q.item(), "loss/policy": loss_pi.item(), "alpha": a.item()}
+
+    ep = start_ep
+    while ep < args.episodes:
+        obs = rollout.reset(T.train_seed(args.seed, ep))
+        ep_reward, stats = 0.0, {}
+        while not rollout.done:
+            with torch.no_grad():
+                if local:
+                    alpha_i = actor.forward_local(obs.own, obs.nbrs, obs.mask)  # (N,), each row from its own obs
+                    w = gamma(alpha_i).sample().clamp_min(1e-8)  # agents' Gamma weights
+                    y = w / w.sum()
+                else:
+                    y = dirichlet(actor(obs.x, edge_index)).sample().clamp_min(1e-6)
+                    y = w = y / y.sum()
+            nxt, r = rollout.step(w.numpy())
+            ep_reward += r
+            buffer.add(**_obs_items(obs, "", local), action=y, reward=r * args.reward_scale, done=float(rollout.done),
+                       **_obs_items(nxt, "next_", local))
+            obs = nxt
+            n_steps += 1
+            if buffer.size >= max(args.warmup_steps, args.batch_size):
+                for _ in range(args.updates_per_step):
+                    stats = update()
+        ep += 1
+        stats["train/episode_reward"] = ep_reward
+        if ep % args.eval_every == 0 or ep >= args.episodes:
+            val = T.evaluate_actor(actor, city, args.eval_episodes, args.eval_seed, args.lookahead)["metrics"]["profit"]["mean"]
+            stats["eval/profit"] = val
+            if val > best_val:
+                best_val, best_actor = val, copy.deepcopy(actor.state_dict())
+            T.save_state(
+                f"{args.run_dir}/state.pt", actor=actor.state_dict(), critic=critic.state_dict(), critic_targ=critic_targ.state_dict(),
+                opt_a=opt_a.state_dict(), opt_c=opt_c.state_dict(), log_alpha=log_alpha.item(), episode=ep, best_val=best_val,
+                best_actor=best_actor, wall_s=prior_wall + timer(),
+            )
+        stats["time/wall_s"] = prior_wall + timer()
+        if rollout.env is not None:
+            stats["env/clipped_actions"] = rollout.clipped  # cumulative; should stay 0
+        log.log(ep, **stats)
+        if progress is not None:
+            progress(ep, args.episodes, stats)
+        if args.time_limit_s and prior_wall + timer() > args.time_limit_s:
+            break
+
+    log.close()
+    actor.load_state_dict(best_actor)
+    return T.finish_run(args, "sac", actor, city, prior_wall + timer(), ep)

@@ -1,0 +1,165 @@
+"""``marl-amod compare``: trained policies against baselines and ablations on the same seeds.
+
+A compare config (configs/compare_<city>.yaml) names the scenario, the evaluation seeds, the
+baselines, and the learned runs. Each run either points at an existing policy file or is trained
+from its algorithm Args (with the same budget as its siblings). Everything is then evaluated on
+the same demand streams and written as a markdown table, a JSON file and three plots.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Callable, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from marl_amod.errors import ConfigError
+
+
+class RunSpec(BaseModel):
+    """One learned policy in the comparison."""
+
+    model_config = ConfigDict(extra="forbid")
+    label: str = Field(description="row name in the table and plots")
+    algo: Literal["a2c", "sac"]
+    args: dict[str, Any] = Field(default_factory=dict, description="the algorithm's Args (checked strictly)")
+    retrain: bool = Field(False, description="train even if args.policy_out already exists")
+
+
+class CompareConfig(BaseModel):
+    """configs/compare_<city>.yaml."""
+
+    model_config = ConfigDict(extra="forbid")
+    scenario: str
+    episodes: int = Field(10, ge=1, description="evaluation episodes per policy (demand streams (seed, k))")
+    seed: int = 0
+    baselines: list[str] = Field(default_factory=lambda: ["equal-distribution", "plus-one", "no-rebalancing"])
+    runs: list[RunSpec] = Field(default_factory=list)
+    output: str = Field("results/compare", description="folder for compare.md, compare.json and plots")
+
+
+def load_compare_config(path: str | Path) -> CompareConfig:
+    from marl_amod.training import make_args
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config {path} not found")
+    try:
+        cfg = CompareConfig.model_validate(yaml.safe_load(path.read_text()) or {})
+    except ValidationError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+    for run in cfg.runs:  # fail on a typo before any training starts
+        args = make_args(run.algo, {"scenario": cfg.scenario, **run.args}, f"{path} run {run.label!r}")
+        if not args.policy_out:
+            raise ConfigError(f"{path} run {run.label!r}: args.policy_out is required (where the trained policy lives)")
+    return cfg
+
+
+def run_compare(cfg: CompareConfig, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Train what is missing, evaluate everything on the same seeds, write table + plots."""
+    from marl_amod.checkpoints import load_policy
+    from marl_amod.evaluation import evaluate
+    from marl_amod.scenario import load_city
+    from marl_amod.training import make_args, run_training
+
+    city = load_city(cfg.scenario)
+    out = Path(cfg.output)
+    out.mkdir(parents=True, exist_ok=True)
+    rows: list[dict[str, Any]] = []
+    for name in cfg.baselines:
+        log(f"evaluating {name}")
+        rows.append({"label": name, "kind": "baseline", "result": evaluate(city, name, episodes=cfg.episodes, seed=cfg.seed)})
+    for run in cfg.runs:
+        args = make_args(run.algo, {"scenario": cfg.scenario, **run.args})
+        if run.retrain or not Path(args.policy_out).is_file():
+            log(f"training {run.label} ({run.algo}, {args.mode})")
+            run_training(run.algo, args)
+        card = json.loads(Path(args.policy_out).with_suffix(".json").read_text())
+        log(f"evaluating {run.label}")
+        result = evaluate(city, load_policy(args.policy_out, city), episodes=cfg.episodes, seed=cfg.seed)
+        rows.append({"label": run.label, "kind": "learned", "result": result, "card": card, "run_dir": args.run_dir})
+
+    best = max((r for r in rows if r["kind"] == "baseline"), key=lambda r: r["result"]["metrics"]["profit"]["mean"], default=None)
+    best_profit = best["result"]["metrics"]["profit"]["mean"] if best else float("nan")
+    for r in rows:
+        r["gap_to_best_baseline"] = r["result"]["metrics"]["profit"]["mean"] / best_profit - 1.0
+    payload = {
+        "scenario": city.name, "episodes": cfg.episodes, "seed": cfg.seed,
+        "best_baseline": best["label"] if best else None,
+        "rows": [{k: v for k, v in r.items() if k != "result"} | {"metrics": r["result"]["metrics"],
+                  "per_region": r["result"]["per_region"]} for r in rows],
+    }
+    (out / "compare.json").write_text(json.dumps(payload, indent=2, default=float))
+    (out / "compare.md").write_text(markdown_table(rows, city.name, cfg.episodes, cfg.seed, best["label"] if best else "-"))
+    plot_all(rows, out, city.name)
+    log(f"wrote {out}/compare.md, compare.json, learning_curves.png, profit.png, served_by_region.png")
+    return payload
+
+
+def markdown_table(rows: list[dict], scenario: str, episodes: int, seed: int, best: str) -> str:
+    lines = [
+        f"### {scenario}: {episodes} evaluation episodes (demand streams seed {seed}, k = 0..{episodes - 1})",
+        "",
+        f"| policy | algorithm / mode | profit (mean ± std) | served demand | rebalancing cost | gap to best baseline ({best}) | training wall time |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        m = r["result"]["metrics"]
+        card = r.get("card")
+        algo = f"{card['algorithm'].upper()} / {card['mode']} ({card['actor']}, {card['conv']})" if card else "baseline"
+        wall = f"{card['training_wall_s'] / 60:.1f} min ({card['episodes_trained']} ep.)" if card else "-"
+        lines.append(
+            f"| {r['label']} | {algo} | {m['profit']['mean']:,.0f} ± {m['profit']['std']:,.0f} | {m['served_demand']['mean']:,.0f} "
+            f"| {m['rebalancing_cost']['mean']:,.0f} | {100 * r['gap_to_best_baseline']:+.1f}% | {wall} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+def plot_all(rows: list[dict], out: Path, scenario: str) -> None:
+    """Learning curves, profit bars with std, per-region served demand (matplotlib Agg)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from marl_amod.training import read_curve
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for r in rows:
+        if r["kind"] == "learned":
+            xs, ys = read_curve(r["run_dir"], "eval/profit")
+            if xs:
+                ax.plot(xs, ys, marker=".", label=r["label"])
+        else:
+            ax.axhline(r["result"]["metrics"]["profit"]["mean"], ls="--", lw=1, color="grey")
+            ax.text(0, r["result"]["metrics"]["profit"]["mean"], r["label"], fontsize=7, va="bottom", color="grey")
+    ax.set(xlabel="training episodes", ylabel="validation profit per episode", title=f"{scenario}: learning curves")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "learning_curves.png", dpi=120)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    means = [r["result"]["metrics"]["profit"]["mean"] for r in rows]
+    stds = [r["result"]["metrics"]["profit"]["std"] for r in rows]
+    colors = ["tab:grey" if r["kind"] == "baseline" else "tab:blue" for r in rows]
+    ax.bar(range(len(rows)), means, yerr=stds, color=colors, capsize=4)
+    ax.set_xticks(range(len(rows)), [r["label"] for r in rows], rotation=30, ha="right", fontsize=8)
+    ax.set(ylabel="profit per episode (mean ± std)", title=f"{scenario}: profit")
+    fig.tight_layout()
+    fig.savefig(out / "profit.png", dpi=120)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(8, 4))
+    n = len(rows[0]["result"]["per_region"]["served_demand"])
+    width = 0.8 / len(rows)
+    for k, r in enumerate(rows):
+        ax.bar(np.arange(n) + k * width, r["result"]["per_region"]["served_demand"], width, label=r["label"])
+    ax.set(xlabel="region", ylabel="served demand per episode", title=f"{scenario}: served demand by region")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "served_by_region.png", dpi=120)
+    plt.close(fig)

@@ -1,0 +1,31 @@
+"""Policy and value networks: GNN (the paper's), local shared-parameter actor, MLP and CNN ablations."""
+
+from marl_amod.models.distributions import dirichlet, dirichlet_log_prob_from_gammas, dirichlet_mean, gamma, gamma_log_prob
+from marl_amod.models.gnn import GNNActor, GNNQCritic, GNNValueCritic, TwinQ, batch_edge_index
+from marl_amod.models.local import LocalActor, LocalValueCritic, local_from_global
+from marl_amod.models.mlp import MLPActor
+from marl_amod.models.cnn import CNNActor
+
+ACTORS = {"gnn": GNNActor, "local": LocalActor, "mlp": MLPActor, "cnn": CNNActor}
+
+
+def build_actor(kind: str, city, n_features: int = 13, hidden: int = 32, conv: str = "gcn"):
+    """An actor by name for ``city``; MLP and CNN are tied to the city's size/grid, GNNs are not."""
+    if kind == "gnn":
+        return GNNActor(n_features, hidden, conv)  # type: ignore[arg-type]
+    if kind == "local":
+        return LocalActor(n_features, hidden)
+    if kind == "mlp":
+        return MLPActor(n_features, hidden, city.n_regions)
+    if kind == "cnn":
+        from marl_amod.models.cnn import grid_layout
+
+        rows, cols, cells = grid_layout(city.positions)
+        return CNNActor(n_features, hidden, rows, cols, cells.tolist())
+    raise ValueError(f"unknown actor {kind!r}; known: {', '.join(ACTORS)}")
+
+__all__ = [
+    "ACTORS", "TwinQ", "build_actor", "CNNActor", "GNNActor", "GNNQCritic", "GNNValueCritic", "LocalActor", "LocalValueCritic", "MLPActor",
+    "batch_edge_index", "dirichlet", "dirichlet_log_prob_from_gammas", "dirichlet_mean", "gamma", "gamma_log_prob",
+    "local_from_global",
+]

@@ -1,0 +1,115 @@
+"""The paper's graph networks: a GNN actor with a Dirichlet head and GNN critics.
+
+One message-passing layer with a residual connection, then a per-node MLP: the same weights
+act on every region, so a trained model runs on any city's graph (size-agnostic) and relabelling
+the regions relabels the outputs (permutation equivariance).
+
+Shapes: B graphs in a batch, N regions, F node features, E directed edges, H hidden units.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+from torch_geometric.nn import GCNConv, SAGEConv
+
+from marl_amod.models.distributions import CONCENTRATION_EPS
+
+ConvKind = Literal["gcn", "sage"]
+
+
+def batch_edge_index(edge_index: torch.Tensor, batch: int, n: int) -> torch.Tensor:
+    """Stack B copies of one (2, E) graph into (2, B*E) over B*N flattened nodes."""
+    offsets = (torch.arange(batch, device=edge_index.device) * n).view(batch, 1, 1)  # (B, 1, 1)
+    return (edge_index.unsqueeze(0) + offsets).permute(1, 0, 2).reshape(2, -1)
+
+
+def make_conv(kind: ConvKind, channels: int) -> nn.Module:
+    """GCN (the paper's, degree-normalised sum) or SAGE (mean of neighbours, computable locally)."""
+    if kind == "gcn":
+        return GCNConv(channels, channels)
+    if kind == "sage":
+        return SAGEConv(channels, channels, aggr="mean")
+    raise ValueError(f"unknown conv {kind!r}; use 'gcn' or 'sage'")
+
+
+class _GraphTrunk(nn.Module):
+    """relu(conv(x)) + x over a batch of copies of one graph: (B, N, C) -> (B, N, C)."""
+
+    def __init__(self, channels: int, conv: ConvKind) -> None:
+        super().__init__()
+        self.conv = make_conv(conv, channels)
+
+    def forward(self, x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
+        b, n, c = x.shape
+        flat = x.reshape(b * n, c)  # (B*N, C)
+        h = F.relu(self.conv(flat, batch_edge_index(edge_index, b, n)))  # (B*N, C)
+        return (h + flat).view(b, n, c)
+
+
+def mlp_head(in_dim: int, hidden: int, out_dim: int = 1) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, out_dim))
+
+
+def concentration(raw: torch.Tensor) -> torch.Tensor:
+    """softplus + eps: positive Dirichlet concentrations."""
+    return F.softplus(raw) + CONCENTRATION_EPS
+
+
+def _batched(x: torch.Tensor) -> tuple[torch.Tensor, bool]:
+    return (x.unsqueeze(0), True) if x.dim() == 2 else (x, False)
+
+
+class GNNActor(nn.Module):
+    """Node features (B, N, F) -> Dirichlet concentrations (B, N); unbatched (N, F) -> (N,)."""
+
+    def __init__(self, n_features: int = 13, hidden: int = 32, conv: ConvKind = "gcn") -> None:
+        super().__init__()
+        self.trunk = _GraphTrunk(n_features, conv)
+        self.head = mlp_head(n_features, hidden)
+
+    def forward(self, x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
+        x, squeeze = _batched(x)
+        alpha = concentration(self.head(self.trunk(x, edge_index)).squeeze(-1))  # (B, N)
+        return alpha[0] if squeeze else alpha
+
+
+class GNNValueCritic(nn.Module):
+    """State value V(s): per-node embedding summed over regions -> (B,) (unbatched -> ())."""
+
+    def __init__(self, n_features: int = 13, hidden: int = 32, conv: ConvKind = "gcn") -> None:
+        super().__init__()
+        self.trunk = _GraphTrunk(n_features, conv)
+        self.node = mlp_head(n_features, hidden, hidden)
+        self.out = nn.Linear(hidden, 1)
+
+    def forward(self, x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
+        x, squeeze = _batched(x)
+        v = self.out(F.relu(self.node(self.trunk(x, edge_index)).sum(1))).squeeze(-1)  # (B,)
+        return v[0] if squeeze else v
+
+
+class GNNQCritic(nn.Module):
+    """Q(s, a) with the action (B, N) appended as one more node feature -> (B,)."""
+
+    def __init__(self, n_features: int = 13, hidden: int = 256, conv: ConvKind = "gcn") -> None:
+        super().__init__()
+        self.value = GNNValueCritic(n_features + 1, hidden, conv)
+
+    def forward(self, x: torch.Tensor, edge_index: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        return self.value(torch.cat([x, action.unsqueeze(-1)], dim=-1), edge_index)
+
+
+class TwinQ(nn.Module):
+    """SAC's two independent Q critics; min of the two curbs over-estimation."""
+
+    def __init__(self, n_features: int = 13, hidden: int = 256, conv: ConvKind = "gcn") -> None:
+        super().__init__()
+        self.q1 = GNNQCritic(n_features, hidden, conv)
+        self.q2 = GNNQCritic(n_features, hidden, conv)
+
+    def forward(self, x: torch.Tensor, edge_index: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.q1(x, edge_index, action), self.q2(x, edge_index, action)
