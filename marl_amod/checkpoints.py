@@ -43,6 +43,8 @@ def write_card_markdown(path: str | Path, card: dict[str, Any]) -> Path:
         if isinstance(v, float):
             v = f"{v:,.2f}"
         lines.append(f"| {k} | {v} |")
+    if "config" in card:
+        lines += ["", f"Reproduce: `marl-amod train --config {card['config']}`"]
     lines += ["", f"Evaluate: `marl-amod evaluate --scenario {card['scenario']} --policy {Path(path).with_suffix('.pt')} --episodes 10`", ""]
     path.write_text("\n".join(lines))
     return path
@@ -85,3 +87,14 @@ def load_policy(path: str | Path, city: City) -> ActorPolicy:
     """A deterministic policy from a checkpoint, ready for :func:`marl_amod.evaluation.evaluate`."""
     actor, card = load_actor(path, city)
     return ActorPolicy(actor, city, card["lookahead"], name=Path(path).stem)
+
+
+def update_card(path: str | Path, **fields: Any) -> dict[str, Any]:
+    """Add fields (e.g. the config that reproduces the run) to a policy's card in .pt, .json and .md."""
+    path = Path(path)
+    blob = torch.load(path, map_location="cpu", weights_only=True)
+    blob["card"].update(fields)
+    torch.save(blob, path)
+    path.with_suffix(".json").write_text(json.dumps(blob["card"], indent=2, default=float) + "\n")
+    write_card_markdown(path, blob["card"])
+    return blob["card"]

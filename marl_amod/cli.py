@@ -173,6 +173,9 @@ def train(
         f"(seed {card['eval_seed']}), trained {card['episodes_trained']} episodes in {card['training_wall_s'] / 60:.1f} min"
     )
     if "policy" in summary:
+        from marl_amod.checkpoints import update_card
+
+        update_card(summary["policy"], config=str(config))
         console.print(f"wrote {summary['policy']} (+ .json, .md); logs in {args.run_dir}")
 
 

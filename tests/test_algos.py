@@ -143,6 +143,7 @@ def test_cli_train_and_compare_on_tiny_city(tmp_path, tiny_yaml):
     res = CliRunner().invoke(app, ["train", "--config", str(cfg)])
     assert res.exit_code == 0, res.output
     assert (tmp_path / "policies" / "p.pt").is_file()
+    assert json.loads((tmp_path / "policies" / "p.json").read_text())["config"] == str(cfg)  # card says how to reproduce
     args.pop("scenario")
     cmp_cfg = tmp_path / "compare.yaml"
     cmp_cfg.write_text(yaml.safe_dump({"scenario": tiny_yaml, "episodes": 2, "baselines": ["equal-distribution"],
