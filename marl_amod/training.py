@@ -32,7 +32,7 @@ from marl_amod.scenario import City, load_city
 from marl_amod.system import FleetSystem
 
 Mode = Literal["centralised", "decentralised"]
-WEIGHT_DIVISOR = 100.0  # Gamma weights / this constant fit the env's Box(0, 1) almost surely
+WEIGHT_DIVISOR = 1000.0  # Gamma weights / this constant fit the env's Box(0, 1) almost surely (alpha stays < 100)
 
 
 # --------------------------------------------------------------------------------------------
