@@ -56,8 +56,10 @@ class Args:
     """Adam learning rate of the actor"""
     lr_critic: float = 1e-3
     """Adam learning rate of the twin critics"""
-    alpha: float = 0.3
-    """entropy temperature (fixed unless auto_entropy)"""
+    alpha: float = 0.02
+    """entropy temperature (fixed unless auto_entropy). Relative to reward_scale: RL4AMOD's 0.3 at
+    reward_scale 0.01 on Brooklyn costs more entropy than sharpening the Dirichlet gains, so SAC drifts
+    to a near-uniform policy (measured: validation profit fell from 50k to 45k in 200 episodes)"""
     auto_entropy: bool = False
     """tune the temperature towards target entropy -N"""
     gamma: float = 0.97
