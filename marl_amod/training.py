@@ -28,11 +28,62 @@ import yaml
 from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
 
 from marl_amod.errors import ConfigError
-from marl_amod.scenario import City, load_city
+from marl_amod.scenario import City
 from marl_amod.system import FleetSystem
 
 Mode = Literal["centralised", "decentralised"]
 WEIGHT_DIVISOR = 1000.0  # Gamma weights / this constant fit the env's Box(0, 1) almost surely (alpha stays < 100)
+
+
+@dataclass
+class RunArgs:
+    """What every training run has, whatever the algorithm; each algorithm's ``Args`` extends it.
+
+    Each field is documented by the string under it, as in single-file RL scripts.
+    """
+
+    scenario: str = "synthetic"
+    """scenario name or YAML path"""
+    mode: Mode = "centralised"
+    """centralised: one learner on the global graph; decentralised: shared actor on local observations"""
+    actor: Literal["gnn", "mlp", "cnn"] = "gnn"
+    """centralised actor architecture (decentralised always uses the local GNN actor)"""
+    conv: Literal["gcn", "sage"] = "gcn"
+    """message passing: gcn (the paper's) or sage (mean aggregation, what the local actor computes)"""
+    hidden: int = 32
+    """hidden units of the actor and critic MLPs"""
+    central_critic: bool = True
+    """decentralised mode only: critic on the global graph (env.state()) instead of sum of local values"""
+    episodes: int = 1000
+    """training episodes"""
+    gamma: float = 0.97
+    """discount factor (the paper's)"""
+    reward_scale: float = 0.01
+    """multiplies the money reward so returns are O(1..100)"""
+    max_grad_norm: float = 10.0
+    """gradient clipping (global L2 norm per network)"""
+    lookahead: int = 6
+    """look-ahead steps T of the node features (F = 1 + 2T)"""
+    seed: int = 0
+    """torch/numpy seed and training demand stream"""
+    eval_every: int = 200
+    """episodes between validation evaluations"""
+    eval_episodes: int = 5
+    """validation episodes (deterministic policy)"""
+    eval_seed: int = 1000
+    """validation demand seed; the best validation actor is kept (never the report seeds)"""
+    final_eval_episodes: int = 10
+    """episodes of the final report evaluation"""
+    final_eval_seed: int = 0
+    """report seed: same streams as `marl-amod evaluate --seed 0`"""
+    threads: int = 1
+    """torch CPU threads (the machine is shared)"""
+    run_dir: str = "runs/train"
+    """TensorBoard + CSV logs and the resumable training state"""
+    policy_out: str = ""
+    """where the final policy .pt (+ .json/.md cards) goes; empty: do not write one"""
+    time_limit_s: float = 0.0
+    """stop early after this much wall time (0: no limit)"""
 
 
 # --------------------------------------------------------------------------------------------
@@ -195,6 +246,25 @@ def evaluate_actor(actor: torch.nn.Module, city: City, episodes: int, seed: int,
         return evaluate(city, ActorPolicy(actor, city, lookahead), episodes=episodes, seed=seed)
     finally:
         actor.train(was_training)
+
+
+def validation_profit(actor: torch.nn.Module, city: City, args: RunArgs) -> float:
+    """Mean profit of the deterministic actor on the validation seeds (picks the kept actor)."""
+    return evaluate_actor(actor, city, args.eval_episodes, args.eval_seed, args.lookahead)["metrics"]["profit"]["mean"]
+
+
+def close_episode(
+    log: Logger, rollout: Rollout, ep: int, stats: dict[str, float], args: RunArgs, wall_s: float,
+    progress: Callable[[int, int, dict], None] | None,
+) -> bool:
+    """Log one episode's stats and report progress; returns True when the time limit says stop."""
+    stats["time/wall_s"] = wall_s
+    if rollout.env is not None:
+        stats["env/clipped_actions"] = rollout.clipped  # cumulative; should stay 0
+    log.log(ep, **stats)
+    if progress is not None:
+        progress(ep, args.episodes, stats)
+    return bool(args.time_limit_s) and wall_s > args.time_limit_s
 
 
 def finish_run(

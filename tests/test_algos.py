@@ -14,7 +14,7 @@ from marl_amod.checkpoints import load_policy, save_policy
 from marl_amod.errors import ConfigError
 from marl_amod.evaluation import evaluate
 from marl_amod.models import build_actor
-from marl_amod.scenario import grid_city, load_city
+from marl_amod.scenario import load_city
 from marl_amod.system import FleetSystem
 
 

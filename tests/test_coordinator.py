@@ -7,7 +7,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from marl_amod.coordinator import Coordinator, desired_targets, greedy_dispatch, min_cost_rebalance
+from marl_amod.coordinator import (
+    Coordinator,
+    desired_targets,
+    greedy_dispatch,
+    min_cost_rebalance,
+)
 from marl_amod.coordinator.rebalance import satisfies_triangle_inequality
 from marl_amod.coordinator.reference import lp_dispatch, lp_rebalance
 from marl_amod.errors import SolverError

@@ -155,8 +155,9 @@ def test_torchrl_pettingzoo_wrapper_rollout() -> None:
 
 
 def test_marl_amod_env_builds_the_aec_env_even_after_submodules_are_imported() -> None:
-    import marl_amod.env.features  # noqa: F401  binds the subpackage to marl_amod.env
     from pettingzoo import AECEnv
+
+    import marl_amod.env.features  # noqa: F401  binds the subpackage to marl_amod.env
 
     aec = marl_amod.env(horizon=3)
     assert isinstance(aec, AECEnv) and aec.possible_agents[0] == "region_0"

@@ -10,10 +10,19 @@ from marl_amod.env.features import node_features
 from marl_amod.env.observations import local_observations, split_local
 from marl_amod.errors import ConfigError
 from marl_amod.models import (
-    CNNActor, GNNActor, GNNValueCritic, LocalActor, LocalValueCritic, MLPActor, TwinQ, build_actor, dirichlet,
-    dirichlet_log_prob_from_gammas, gamma, gamma_log_prob,
+    CNNActor,
+    GNNActor,
+    GNNValueCritic,
+    LocalActor,
+    LocalValueCritic,
+    MLPActor,
+    TwinQ,
+    build_actor,
+    dirichlet,
+    dirichlet_log_prob_from_gammas,
+    gamma,
+    gamma_log_prob,
 )
-from marl_amod.scenario import grid_city
 from marl_amod.system import FleetSystem
 
 

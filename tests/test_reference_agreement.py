@@ -9,8 +9,8 @@ scenario must land on the same numbers.
 from __future__ import annotations
 
 import pytest
-
 from conftest import needs_data
+
 from marl_amod.data import data_dir, read_json
 from marl_amod.evaluation import evaluate
 

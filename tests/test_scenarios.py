@@ -6,8 +6,8 @@ import json
 
 import numpy as np
 import pytest
-
 from conftest import REAL_CITIES, needs_data
+
 from marl_amod.errors import ConfigError, DataError
 from marl_amod.evaluation import evaluate
 from marl_amod.scenario import available, grid_city, load_city

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass
-from typing import Any, Callable, Literal
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -28,19 +28,9 @@ from marl_amod.scenario import load_city
 
 
 @dataclass
-class Args:
-    scenario: str = "synthetic"
-    """scenario name or YAML path"""
-    mode: Literal["centralised", "decentralised"] = "centralised"
-    """centralised: one learner on the global graph; decentralised: shared actor on local observations"""
-    actor: Literal["gnn", "mlp", "cnn"] = "gnn"
-    """centralised actor architecture (decentralised always uses the local GNN actor)"""
-    conv: Literal["gcn", "sage"] = "gcn"
-    """message passing: gcn (the paper's) or sage (mean aggregation, what the local actor computes)"""
+class Args(T.RunArgs):
     hidden: int = 32
     """hidden units of the actor and critic MLPs (the paper's A2C uses 32)"""
-    central_critic: bool = True
-    """decentralised mode only: critic on the global graph (env.state()) instead of sum of local values"""
     episodes: int = 2000
     """training episodes"""
     episodes_per_update: int = 4
@@ -49,38 +39,12 @@ class Args:
     """Adam learning rate of the actor"""
     lr_critic: float = 1e-3
     """Adam learning rate of the critic"""
-    gamma: float = 0.97
-    """discount factor (the paper's)"""
-    reward_scale: float = 0.01
-    """multiplies the money reward so returns are O(1..100)"""
     normalize_returns: bool = True
     """standardise the batch's returns before computing advantages (as RL4AMOD's A2C)"""
     entropy_coef: float = 0.0
     """weight of the policy entropy bonus"""
-    max_grad_norm: float = 10.0
-    """gradient clipping (global L2 norm per network)"""
-    lookahead: int = 6
-    """look-ahead steps T of the node features (F = 1 + 2T)"""
-    seed: int = 0
-    """torch/numpy seed and training demand stream"""
-    eval_every: int = 200
-    """episodes between validation evaluations"""
-    eval_episodes: int = 5
-    """validation episodes (deterministic policy)"""
-    eval_seed: int = 1000
-    """validation demand seed; the best validation actor is kept (never the report seeds)"""
-    final_eval_episodes: int = 10
-    """episodes of the final report evaluation"""
-    final_eval_seed: int = 0
-    """report seed: same streams as `marl-amod evaluate --seed 0`"""
-    threads: int = 1
-    """torch CPU threads (the machine is shared)"""
     run_dir: str = "runs/a2c"
     """TensorBoard + CSV logs and the resumable training state"""
-    policy_out: str = ""
-    """where the final policy .pt (+ .json/.md cards) goes; empty: do not write one"""
-    time_limit_s: float = 0.0
-    """stop early after this much wall time (0: no limit)"""
 
 
 def act(actor: torch.nn.Module, obs: T.Obs, edge_index: torch.Tensor, mode: str) -> tuple[np.ndarray, torch.Tensor, torch.Tensor]:
@@ -174,7 +138,7 @@ def train(args: Args, resume: str | None = None, progress: Callable[[int, int, d
         stats = {"train/episode_reward": float(np.mean(ep_rewards)), "loss/policy": loss_pi.item(), "loss/value": loss_v.item()}
         # ---- periodic validation, best-actor selection, resumable state ----
         if ep // args.eval_every != (ep - args.episodes_per_update) // args.eval_every or ep >= args.episodes:
-            val = T.evaluate_actor(actor, city, args.eval_episodes, args.eval_seed, args.lookahead)["metrics"]["profit"]["mean"]
+            val = T.validation_profit(actor, city, args)
             stats["eval/profit"] = val
             if val > best_val:
                 best_val, best_actor = val, copy.deepcopy(actor.state_dict())
@@ -182,13 +146,7 @@ def train(args: Args, resume: str | None = None, progress: Callable[[int, int, d
                 f"{args.run_dir}/state.pt", actor=actor.state_dict(), critic=critic.state_dict(), opt_a=opt_a.state_dict(),
                 opt_c=opt_c.state_dict(), episode=ep, best_val=best_val, best_actor=best_actor, wall_s=prior_wall + timer(),
             )
-        stats["time/wall_s"] = prior_wall + timer()
-        if rollout.env is not None:
-            stats["env/clipped_actions"] = rollout.clipped  # cumulative; should stay 0
-        log.log(ep, **stats)
-        if progress is not None:
-            progress(ep, args.episodes, stats)
-        if args.time_limit_s and prior_wall + timer() > args.time_limit_s:
+        if T.close_episode(log, rollout, ep, stats, args, prior_wall + timer(), progress):
             break
 
     log.close()

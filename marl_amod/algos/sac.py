@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import dataclass
-from typing import Any, Callable, Literal
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -29,21 +29,11 @@ from marl_amod.scenario import load_city
 
 
 @dataclass
-class Args:
-    scenario: str = "synthetic"
-    """scenario name or YAML path"""
-    mode: Literal["centralised", "decentralised"] = "centralised"
-    """centralised: one learner on the global graph; decentralised: shared actor on local observations"""
-    actor: Literal["gnn", "mlp", "cnn"] = "gnn"
-    """centralised actor architecture (decentralised always uses the local GNN actor)"""
-    conv: Literal["gcn", "sage"] = "gcn"
-    """message passing of actor and critics: gcn (the paper's) or sage (mean aggregation)"""
+class Args(T.RunArgs):
     hidden: int = 256
     """hidden units of the actor and critic MLPs (the paper's SAC uses 256)"""
     central_critic: bool = True
     """kept for symmetry with A2C: SAC's Q critics always read the global graph (state())"""
-    episodes: int = 1000
-    """training episodes"""
     batch_size: int = 100
     """transitions per gradient step"""
     buffer_size: int = 100_000
@@ -60,36 +50,12 @@ class Args:
     """entropy temperature (fixed unless auto_entropy); its effect scales inversely with reward_scale"""
     auto_entropy: bool = False
     """tune the temperature towards target entropy -N"""
-    gamma: float = 0.97
-    """discount factor"""
     polyak: float = 0.995
     """target-network averaging factor"""
-    reward_scale: float = 0.01
-    """multiplies the money reward (RL4AMOD scales rewards for SAC too)"""
-    max_grad_norm: float = 10.0
-    """gradient clipping (global L2 norm per network)"""
-    lookahead: int = 6
-    """look-ahead steps T of the node features (F = 1 + 2T)"""
-    seed: int = 0
-    """torch/numpy seed and training demand stream"""
     eval_every: int = 50
     """episodes between validation evaluations"""
-    eval_episodes: int = 5
-    """validation episodes (deterministic policy)"""
-    eval_seed: int = 1000
-    """validation demand seed; the best validation actor is kept (never the report seeds)"""
-    final_eval_episodes: int = 10
-    """episodes of the final report evaluation"""
-    final_eval_seed: int = 0
-    """report seed: same streams as `marl-amod evaluate --seed 0`"""
-    threads: int = 1
-    """torch CPU threads (the machine is shared)"""
     run_dir: str = "runs/sac"
     """TensorBoard + CSV logs and the resumable training state"""
-    policy_out: str = ""
-    """where the final policy .pt (+ .json/.md cards) goes; empty: do not write one"""
-    time_limit_s: float = 0.0
-    """stop early after this much wall time (0: no limit)"""
 
 
 class Replay:
@@ -219,7 +185,7 @@ def train(args: Args, resume: str | None = None, progress: Callable[[int, int, d
         ep += 1
         stats["train/episode_reward"] = ep_reward
         if ep % args.eval_every == 0 or ep >= args.episodes:
-            val = T.evaluate_actor(actor, city, args.eval_episodes, args.eval_seed, args.lookahead)["metrics"]["profit"]["mean"]
+            val = T.validation_profit(actor, city, args)
             stats["eval/profit"] = val
             if val > best_val:
                 best_val, best_actor = val, copy.deepcopy(actor.state_dict())
@@ -228,13 +194,7 @@ def train(args: Args, resume: str | None = None, progress: Callable[[int, int, d
                 opt_a=opt_a.state_dict(), opt_c=opt_c.state_dict(), log_alpha=log_alpha.item(), episode=ep, best_val=best_val,
                 best_actor=best_actor, wall_s=prior_wall + timer(),
             )
-        stats["time/wall_s"] = prior_wall + timer()
-        if rollout.env is not None:
-            stats["env/clipped_actions"] = rollout.clipped  # cumulative; should stay 0
-        log.log(ep, **stats)
-        if progress is not None:
-            progress(ep, args.episodes, stats)
-        if args.time_limit_s and prior_wall + timer() > args.time_limit_s:
+        if T.close_episode(log, rollout, ep, stats, args, prior_wall + timer(), progress):
             break
 
     log.close()

@@ -12,7 +12,11 @@ from typing import Literal
 import numpy as np
 
 from marl_amod.coordinator.dispatch import greedy_dispatch, margin_order
-from marl_amod.coordinator.rebalance import desired_targets, min_cost_rebalance, satisfies_triangle_inequality
+from marl_amod.coordinator.rebalance import (
+    desired_targets,
+    min_cost_rebalance,
+    satisfies_triangle_inequality,
+)
 from marl_amod.errors import ConfigError
 from marl_amod.scenario.types import City
 
