@@ -172,3 +172,21 @@ def test_mpc_forecast_noise_is_seeded_and_targets_are_feasible(tiny_city):
         target = policy.target(system)
         assert target.dtype.kind == "i" and target.sum() == system.sim.idle.sum() and np.all(target >= 0)
         system.step(target)
+
+
+def test_mpc_offers_requests_still_waiting_to_the_next_step(tiny_city):
+    """With max_wait > 0 the plan sees the backlog left after dispatch, not just new demand."""
+    system = FleetSystem(tiny_city, max_wait=2)
+    system.reset(0)
+    sim = system.sim
+    sim.backlog[0] += 5  # more requests than the fleet serves: some stay open
+    sim.backlog[1] += 2  # these are one step old and may wait once more
+    oracle = MPCOracle(horizon=3)
+    oracle.reset(system, np.random.default_rng(0))
+    believed = oracle.believed_demand(system)
+    forecast = oracle.forecast(system, sim.t + np.arange(3))
+    np.testing.assert_array_equal(believed[1] - forecast[1], sim.backlog[:2].sum(axis=0))
+    np.testing.assert_array_equal(believed[[0, 2]], forecast[[0, 2]])
+    no_wait = FleetSystem(tiny_city)
+    no_wait.reset(0)
+    np.testing.assert_array_equal(oracle.believed_demand(no_wait), oracle.forecast(no_wait, np.arange(3)))

@@ -255,10 +255,22 @@ class MPCPolicy:
         """(H, N, N) demand believed for absolute ``steps`` (clipped to the tabulated range)."""
         raise NotImplementedError
 
+    def believed_demand(self, system: FleetSystem) -> np.ndarray:
+        """(H, N, N) requests the plan may serve: the forecast, plus, when requests wait
+        (``max_wait`` > 0), those still open after this step's dispatch, added to step t + 1.
+
+        A waiting request could also be served later than t + 1; offering it once, at the
+        first chance, keeps the LP a plain network flow and is where the dispatch takes it.
+        """
+        sim = system.sim
+        demand = self.forecast(system, sim.t + np.arange(self.horizon)).astype(float)
+        if sim.max_wait > 0 and self.horizon > 1 and sim.t + 1 < system.city.horizon:
+            demand[1] += sim.backlog[: sim.max_wait].sum(axis=0)  # the oldest age leaves at advance()
+        return demand
+
     def plan(self, system: FleetSystem) -> FlowPlan:
         sim, city = system.sim, system.city
-        steps = sim.t + np.arange(self.horizon)
-        data = plan_data(city, sim.t, sim.idle, sim.arrivals, self.forecast(system, steps), self.horizon)
+        data = plan_data(city, sim.t, sim.idle, sim.arrivals, self.believed_demand(system), self.horizon)
         start = time.perf_counter()
         plan = self._cvx.solve(data) if self._cvx is not None else solve_scipy(data)
         self.solve_seconds.append(time.perf_counter() - start)
