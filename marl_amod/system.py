@@ -16,7 +16,7 @@ import numpy as np
 
 from marl_amod.coordinator.coordinator import Backend, Coordinator, Objective
 from marl_amod.scenario.types import City
-from marl_amod.sim.macro import MacroSim
+from marl_amod.sim.base import Simulator, make_simulator
 
 
 @dataclass(frozen=True)
@@ -40,9 +40,11 @@ class FleetSystem:
         max_wait: int = 0,
         objective: Objective = "profit",
         solver: Backend = "fast",
+        sim: Simulator | None = None,
     ) -> None:
         self.city = city
-        self.sim = MacroSim(city, max_wait=max_wait)
+        # the city's own simulator (macro unless the scenario says otherwise), or one passed in
+        self.sim = sim if sim is not None else make_simulator(city, max_wait)
         self.coordinator = Coordinator(city, objective=objective, solver=solver)
 
     @property
