@@ -58,6 +58,7 @@ class FleetSystem:
     def reset(self, seed: int | np.random.SeedSequence | None = None) -> StepOutcome:
         """New episode; returns the outcome of the first dispatch."""
         self.sim.reset(np.random.default_rng(seed))
+        self._follow_city()
         profit = self._dispatch()
         n = self.city.n_regions
         return StepOutcome(profit, profit, 0.0, self.sim.last_dispatch, np.zeros((n, n), dtype=np.int64))
@@ -68,6 +69,7 @@ class FleetSystem:
         cost = self.sim.apply_rebalance(flows)
         applied = self.sim.last_rebalance
         self.sim.advance()
+        self._follow_city()
         profit = self._dispatch()
         if self.sim.done:
             self.sim.finish()
@@ -76,6 +78,13 @@ class FleetSystem:
     def targets_from_weights(self, weights: np.ndarray) -> np.ndarray:
         """The paper's target floor(w_i / sum(w) * M) from non-negative per-region weights."""
         return self.coordinator.targets(weights, self.sim.idle)
+
+    def _follow_city(self) -> None:
+        """Adopt the simulator's region view when it changed (SUMO travel times follow congestion),
+        so the coordinator and observations price and time moves as the simulator now sees them."""
+        if self.sim.city is not self.city:
+            self.city = self.sim.city
+            self.coordinator = Coordinator(self.city, objective=self.coordinator.objective, solver=self.coordinator.solver)
 
     def _dispatch(self) -> float:
         x = self.coordinator.dispatch(self.sim.idle, self.sim.requests(), self.sim.t)

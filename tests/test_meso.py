@@ -23,12 +23,6 @@ from marl_amod.sim.meso.sumo_sim import MesoSim  # noqa: E402
 from marl_amod.system import FleetSystem  # noqa: E402
 
 
-@pytest.fixture(autouse=True)
-def _private_cache(tmp_path_factory, monkeypatch):
-    """Networks go to a cache folder the tests own, never to the user's."""
-    monkeypatch.setenv("MARL_AMOD_CACHE", str(tmp_path_factory.getbasetemp() / "sumo_cache"))
-
-
 def _episode(seed: int, *, weights=None, **overrides):
     """Run one grid episode, checking the invariants after every step; returns the system."""
     city = load_city("sumo_grid", **overrides)

@@ -80,9 +80,11 @@ class SumoScenario(_Spec):
     fare_per_km: float = Field(1.9, ge=0)
     beta: float = Field(0.3, ge=0, description="operating cost per minute of driving")
     max_wait_min: float = Field(10.0, ge=0, description="a request leaves after waiting this long")
-    mode: Literal["meso", "micro"] = "meso"
+    mode: Literal["meso", "micro", "macro"] = Field("meso", description="macro: the same city in the macro model")
     backend: Literal["libsumo", "traci"] = "libsumo"
     step_length: float = Field(1.0, gt=0, description="SUMO seconds per simulation step")
+    refresh_travel_times: bool = Field(True, description="region travel times follow SUMO's edge times each step")
+    sumo_args: list[str] = Field(default_factory=list, description="extra SUMO options, e.g. [--tripinfo-output, t.xml]")
 
     @model_validator(mode="after")
     def _network_source(self) -> "SumoScenario":
@@ -171,9 +173,10 @@ def _build_sumo_city(spec: SumoScenario) -> City:
         net_file = nw.build_grid(spec.grid_size, spec.grid_length, spec.seed)
     keys = ("regions", "horizon", "tstep", "start_hour", "fleet", "requests_per_hour", "imbalance",
             "mean_trip_min", "peak", "fare_base", "fare_per_km", "beta")  # fmt: skip
-    options = {"max_wait_min": spec.max_wait_min, "mode": spec.mode, "backend": spec.backend,
-               "step_length": spec.step_length, "sumo_seed": spec.seed}  # fmt: skip
-    return sumo_city(name=spec.name, net_file=net_file, region_seed=spec.seed, options=options,
+    options = {"max_wait_min": spec.max_wait_min, "backend": spec.backend, "step_length": spec.step_length,
+               "sumo_seed": spec.seed, "refresh_travel_times": spec.refresh_travel_times,
+               "extra_args": tuple(spec.sumo_args)}  # fmt: skip
+    return sumo_city(name=spec.name, net_file=net_file, region_seed=spec.seed, mode=spec.mode, options=options,
                      **{k: getattr(spec, k) for k in keys})  # fmt: skip
 
 

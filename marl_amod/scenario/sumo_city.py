@@ -38,9 +38,15 @@ def sumo_city(
     fare_base: float,
     fare_per_km: float,
     beta: float,
-    options: dict,
+    mode: str = "meso",
+    options: dict | None = None,
 ) -> City:
-    """Build the city of a SUMO network (regions by k-means, demand by the gravity model)."""
+    """Build the city of a SUMO network (regions by k-means, demand by the gravity model).
+
+    ``mode`` "meso" or "micro" simulates it in SUMO; "macro" gives the same city (regions,
+    free-flow travel times, demand, fares, fleet) to the macro model, for training cheaply and
+    transferring to SUMO zero-shot."""
+    options = options or {}
     net = nw.read_network(net_file)
     part = partition(net, regions, seed=region_seed)
     n_steps = horizon + 12  # look-ahead past the horizon for observations and MPC
@@ -67,8 +73,10 @@ def sumo_city(
         edge_index=part.adjacency.astype(np.int64),
         positions=part.centers / 1000.0,
         start_hour=start_hour,
-        meta={"network": str(net_file), "edges": net.n_edges, "simulator": options.get("mode", "meso")},
-        simulator=MesoOptions(net_file=net_file, of_edge=part.of_edge, begin_s=3600.0 * start_hour, **options),
+        meta={"network": str(net_file), "edges": net.n_edges, "simulator": mode},
+        simulator=None if mode == "macro" else MesoOptions(
+            net_file=net_file, of_edge=part.of_edge, begin_s=3600.0 * start_hour, region_seed=region_seed, mode=mode, **options
+        ),
     )
 
 

@@ -110,12 +110,14 @@ class RoadNetwork:
     def n_edges(self) -> int:
         return len(self.edges)
 
-    def travel_times(self, sources: np.ndarray) -> np.ndarray:
-        """(len(sources), E) free-flow seconds from the start of each source edge to the end of
-        every edge (Dijkstra over the connection graph; what SUMO's router sees on an empty net)."""
-        weights = self.successors.multiply(self.free_time[None, :]).tocsr()
+    def travel_times(self, sources: np.ndarray, edge_time: np.ndarray | None = None) -> np.ndarray:
+        """(len(sources), E) seconds from the start of each source edge to the end of every edge
+        (Dijkstra over the connection graph). ``edge_time`` (E,) defaults to free flow, what
+        SUMO's router sees on an empty network; pass SUMO's current edge times for congestion."""
+        cost = self.free_time if edge_time is None else edge_time
+        weights = self.successors.multiply(cost[None, :]).tocsr()
         dist = dijkstra(weights, directed=True, indices=sources)
-        return dist + self.free_time[sources][:, None]
+        return dist + cost[sources][:, None]
 
     def distances(self, sources: np.ndarray) -> np.ndarray:
         """(len(sources), E) metres along the shortest route (what fares are charged on)."""

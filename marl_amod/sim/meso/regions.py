@@ -14,6 +14,8 @@ import numpy as np
 
 from marl_amod.sim.meso.network import RoadNetwork
 
+TRAVEL_SAMPLES = 12  # sampled edges per region that region-to-region travel times average over
+
 
 def kmeans(points: np.ndarray, k: int, seed: int = 0, iters: int = 50) -> tuple[np.ndarray, np.ndarray]:
     """(labels (P,), centers (k, 2)) of ``points`` (P, 2); deterministic for a seed."""
@@ -56,26 +58,45 @@ class Regions:
         return np.flatnonzero(self.of_edge == region)
 
 
-def partition(net: RoadNetwork, n_regions: int, seed: int = 0, samples: int = 12) -> Regions:
-    """Cluster the network into regions; travel statistics from ``samples`` random edges per
-    region (one Dijkstra per sampled edge: O(N * samples), never O(N^2) routing calls)."""
-    labels, centers = kmeans(net.midpoint, n_regions, seed)
+def sample_edges(of_edge: np.ndarray, n_regions: int, samples: int, seed: int) -> list[np.ndarray]:
+    """Up to ``samples`` random edges of every region (seeded): the points region times average over."""
     rng = np.random.default_rng(seed)
-    picks = [rng.choice(np.flatnonzero(labels == r), size=min(samples, int(np.sum(labels == r))), replace=False) for r in range(n_regions)]
+    members = [np.flatnonzero(of_edge == r) for r in range(n_regions)]
+    return [rng.choice(m, size=min(samples, len(m)), replace=False) for m in members]
+
+
+def region_means(picks: list[np.ndarray], table: np.ndarray) -> np.ndarray:
+    """(N, N) mean of ``table`` (sum(picks), E) rows from region i's picks to region j's picks,
+    leaving out same-edge pairs (a trip needs distinct origin and destination edges)."""
     src = np.concatenate(picks)
-    owner = np.repeat(np.arange(n_regions), [len(p) for p in picks])
-    times, dists = net.travel_times(src), net.distances(src)
-    travel = np.zeros((n_regions, n_regions))
-    distance = np.zeros((n_regions, n_regions))
+    owner = np.repeat(np.arange(len(picks)), [len(p) for p in picks])
+    n = len(picks)
+    out = np.zeros((n, n))
     for j, p in enumerate(picks):
-        t = times[:, p]
-        d = dists[:, p]
-        for i in range(n_regions):
+        sub = table[:, p]
+        off = ~np.equal.outer(src, p)
+        for i in range(n):
             rows = owner == i
-            off = ~np.equal.outer(src[rows], p)  # a trip needs distinct origin and destination edges
-            travel[i, j] = t[rows][off].mean()
-            distance[i, j] = d[rows][off].mean()
+            out[i, j] = sub[rows][off[rows]].mean()
+    return out
+
+
+def region_travel(net: RoadNetwork, picks: list[np.ndarray], edge_time: np.ndarray | None = None) -> np.ndarray:
+    """(N, N) mean seconds between sampled edges of region i and of region j: one Dijkstra per
+    sampled edge, O(N * samples), never O(N^2) routing calls."""
+    return region_means(picks, net.travel_times(np.concatenate(picks), edge_time))
+
+
+def partition(net: RoadNetwork, n_regions: int, seed: int = 0, samples: int = TRAVEL_SAMPLES) -> Regions:
+    """Cluster the network into regions, with free-flow travel statistics between them."""
+    labels, centers = kmeans(net.midpoint, n_regions, seed)
+    picks = sample_edges(labels, n_regions, samples, seed)
     coo = net.successors.tocoo()
     pairs = np.unique(np.stack([labels[coo.row], labels[coo.col]]), axis=1)
-    adjacency = pairs[:, pairs[0] != pairs[1]]
-    return Regions(of_edge=labels, centers=centers, travel_s=travel, distance_m=distance, adjacency=adjacency)
+    return Regions(
+        of_edge=labels,
+        centers=centers,
+        travel_s=region_travel(net, picks),
+        distance_m=region_means(picks, net.distances(np.concatenate(picks))),
+        adjacency=pairs[:, pairs[0] != pairs[1]],
+    )

@@ -21,6 +21,7 @@ optimises, so rewards are comparable with the macro model.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,6 +33,7 @@ from marl_amod.sim.flows import as_flows, check_dispatch, check_rebalance
 from marl_amod.sim.macro import EpisodeTotals
 from marl_amod.sim.meso import engine
 from marl_amod.sim.meso.network import read_network
+from marl_amod.sim.meso.regions import TRAVEL_SAMPLES, region_travel, sample_edges
 
 IDLE, PICKUP, OCCUPIED, REBALANCING = 0, 1, 2, 3
 OPEN, ASSIGNED, PICKED, LOST = 0, 1, 2, 3
@@ -50,6 +52,8 @@ class MesoOptions:
     sumo_seed: int = 0
     begin_s: float = 0.0  # clock time of step 0, in seconds of the day
     time_to_teleport: float = 300.0
+    refresh_travel_times: bool = True  # re-estimate region travel times from SUMO every step
+    region_seed: int = 0  # seeds the edges that region travel times average over
     quiet: bool = True  # silence SUMO's warnings (pass extra_args=("--log", file) to keep them)
     extra_args: tuple[str, ...] = ()
 
@@ -80,7 +84,8 @@ class MesoSim:
     def __init__(self, city: City, options: MesoOptions, *, max_wait_min: float = 10.0) -> None:
         if max_wait_min < 0:
             raise ValueError(f"max_wait_min must be >= 0, got {max_wait_min}")
-        self.city = city
+        self.city = city  # the region view; its travel times follow SUMO's state during an episode
+        self.base_city = city
         self.options = options
         self.max_wait_s = 60.0 * max_wait_min
         self.net = read_network(Path(options.net_file))
@@ -90,6 +95,7 @@ class MesoSim:
         self.members = [np.flatnonzero(options.of_edge == r) for r in range(n)]
         self.region_center = np.array([self.net.midpoint[m].mean(axis=0) for m in self.members])
         self.step_s = 60.0 * city.tstep
+        self._picks = sample_edges(options.of_edge, n, TRAVEL_SAMPLES, options.region_seed)
         self._api: Any = None
         self.t = 0
         self.totals = EpisodeTotals.zeros(n)
@@ -106,6 +112,7 @@ class MesoSim:
         self.close()
         self._api = engine.start(self.options.sumo_args(), self.options.backend)
         self._rng = rng
+        self.city = self.base_city
         n = self.city.n_regions
         self.t = 0
         self.totals = EpisodeTotals.zeros(n)
@@ -245,6 +252,8 @@ class MesoSim:
             lost = sorted(set(self._leg) - known)
             raise RuntimeError(f"SUMO lost fleet vehicles {lost[:5]} (holds {self.vehicles_in_sumo()}, {len(self._leg)} driving)")
         self.t += 1
+        if self.options.refresh_travel_times:
+            self._refresh_travel_times()
         self._expire(self.now - self.max_wait_s)
         self._new_requests(self.t)
         n = self.city.n_regions
@@ -261,6 +270,21 @@ class MesoSim:
             tail = min(max(self.v_eta[v] - now, 0.0), self.step_s)
             self.totals.busy_vehicle_steps[self.v_origin[v]] += (now - self.v_since[v] + tail) / self.step_s
             self.v_since[v] = now
+
+    def _refresh_travel_times(self) -> None:
+        """Region travel times (in steps) from SUMO's current edge travel times: one vectorised
+        Dijkstra from a few sampled edges per region instead of N^2 routing calls. The city is
+        replaced only when a rounded travel time changes, from the current step on."""
+        api = self._api
+        edge_time = np.fromiter((api.edge.getTraveltime(e) for e in self.net.edges), float, self.net.n_edges)
+        edge_time = np.where(np.isfinite(edge_time) & (edge_time > 0), edge_time, self.net.free_time)
+        steps = np.maximum(np.ceil(region_travel(self.net, self._picks, edge_time) / self.step_s), 1).astype(np.int64)
+        if np.array_equal(steps, self.city.trip_time[self.t]):
+            return
+        trip = self.city.trip_time.copy()
+        trip[self.t :] = steps
+        np.fill_diagonal(steps, 0)
+        self.city = dataclasses.replace(self.city, trip_time=trip, reb_time=steps)
 
     # ------------------------------------------------------------------ vehicles
     def _init_fleet(self) -> None:
