@@ -90,7 +90,7 @@ def test_meso_evaluate_gives_the_macro_json_schema():
 
 def test_meso_city_is_a_valid_region_view():
     city = load_city("sumo_grid")
-    assert city.n_regions == 4 and city.fleet_size == 40
+    assert city.n_regions == 4 and city.fleet_size == 24
     assert city.edge_index.shape[0] == 2 and city.edge_index.shape[1] > 0
     assert np.all(city.price > 0) and np.all(city.trip_time >= 1)
 
@@ -152,3 +152,47 @@ def test_lux_network_and_regions_build():
     sim = city.simulator
     assert len(np.unique(sim.of_edge)) == 10
     assert dataclasses.is_dataclass(sim)
+
+
+def test_meso_traci_backend_matches_libsumo():
+    a = _episode(5).sim.totals
+    b = _episode(5, backend="traci").sim.totals
+    for name in a.__dataclass_fields__:
+        np.testing.assert_allclose(getattr(a, name), getattr(b, name))
+
+
+def test_micro_mode_runs_the_same_episode_contract():
+    system = _episode(0, mode="micro")
+    assert system.sim.options.mode == "micro" and "--mesosim" not in system.sim.options.sumo_args()
+
+
+def test_macro_twin_is_the_same_city_without_sumo():
+    meso, macro = load_city("sumo_grid"), load_city("sumo_grid", mode="macro")
+    assert macro.simulator is None and isinstance(meso.simulator(meso), MesoSim)
+    np.testing.assert_array_equal(meso.demand_rate, macro.demand_rate)
+    np.testing.assert_array_equal(meso.reb_time, macro.reb_time)
+    assert type(FleetSystem(macro).sim).__name__ == "MacroSim"
+
+
+def test_meso_travel_times_follow_sumo_and_the_system_adopts_them():
+    system = _episode(0, requests_per_hour=600, fleet=60)
+    assert system.city is system.sim.city  # coordinator and observations read the simulator's view
+    assert np.all(system.city.trip_time >= 1)
+
+
+def test_a_second_libsumo_simulation_makes_the_first_refuse_to_continue():
+    first, second = FleetSystem(load_city("sumo_grid")), FleetSystem(load_city("sumo_grid"))
+    first.reset(0)
+    second.reset(0)  # libsumo: one simulation per process
+    with pytest.raises(RuntimeError, match="traci"):
+        first.step(first.targets_from_weights(np.ones(4)))
+    second.step(second.targets_from_weights(np.ones(4)))
+    first.reset(1)  # a reset takes the simulation back
+    first.step(first.targets_from_weights(np.ones(4)))
+
+
+def test_meso_env_renders_the_region_map():
+    env = AmodParallelEnv("sumo_grid", render_mode="rgb_array")
+    env.reset(seed=0)
+    env.step({a: np.array([1.0], dtype=np.float32) for a in env.agents})
+    assert env.render().ndim == 3

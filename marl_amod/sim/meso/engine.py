@@ -47,7 +47,15 @@ def version() -> str:
         raise ConfigError(f"SUMO scenarios need the SUMO extra: {INSTALL_HINT}") from exc
 
 
-def start(args: list[str], backend: Backend) -> Any:
+_libsumo_owner: list[object | None] = [None]  # who started the one in-process libsumo simulation
+
+
+def owns(owner: object) -> bool:
+    """Whether ``owner`` started the libsumo simulation that is running now."""
+    return _libsumo_owner[0] is owner
+
+
+def start(args: list[str], backend: Backend, owner: object = None) -> Any:
     """Start a simulation; returns an object with ``.vehicle``, ``.simulation``, ``.route``,
     ``simulationStep`` and ``close`` (the libsumo module, or one labelled TraCI connection).
 
@@ -63,6 +71,7 @@ def start(args: list[str], backend: Backend) -> Any:
         if libsumo.simulation.isLoaded():
             libsumo.close()
         libsumo.start(cmd)
+        _libsumo_owner[0] = owner
         return libsumo
     if backend == "traci":
         try:

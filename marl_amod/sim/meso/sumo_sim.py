@@ -97,6 +97,7 @@ class MesoSim:
         self.step_s = 60.0 * city.tstep
         self._picks = sample_edges(options.of_edge, n, TRAVEL_SAMPLES, options.region_seed)
         self._api: Any = None
+        self._rng = np.random.default_rng(options.sumo_seed)  # replaced by reset()'s generator
         self.t = 0
         self.totals = EpisodeTotals.zeros(n)
         self.demand = np.zeros((city.n_steps, n, n), dtype=np.int64)
@@ -110,7 +111,7 @@ class MesoSim:
     def reset(self, rng: np.random.Generator) -> None:
         """Start an episode: (re)start SUMO, place the fleet, draw every step's OD counts."""
         self.close()
-        self._api = engine.start(self.options.sumo_args(), self.options.backend)
+        self._api = engine.start(self.options.sumo_args(), self.options.backend, owner=self)
         self._rng = rng
         self.city = self.base_city
         n = self.city.n_regions
@@ -127,10 +128,8 @@ class MesoSim:
     def close(self) -> None:
         """End the SUMO run (also called by reset); the simulator can be reset again later."""
         if self._api is not None:
-            try:
+            if self.options.backend != "libsumo" or engine.owns(self):
                 self._api.close()
-            except Exception:  # noqa: BLE001 - already closed by another simulator in this process
-                pass
             self._api = None
 
     def __getstate__(self) -> dict:
@@ -140,9 +139,22 @@ class MesoSim:
         return state
 
     @property
+    def sumo(self) -> Any:
+        """The live SUMO connection; libsumo runs one simulation per process, so a simulator
+        whose run was replaced by another's says so instead of driving the wrong simulation."""
+        if self._api is None:
+            raise RuntimeError("the SUMO simulation is not running; call reset()")
+        if self.options.backend == "libsumo" and not engine.owns(self):
+            raise RuntimeError(
+                "another MesoSim started libsumo in this process (one simulation per process); "
+                "reset this one again, or use backend 'traci' to run several side by side"
+            )
+        return self._api
+
+    @property
     def now(self) -> float:
         """Seconds since step 0 (the control clock; SUMO's is offset by ``begin_s``)."""
-        return self.t * self.step_s if self._api is None else self._api.simulation.getTime() - self.options.begin_s
+        return self.t * self.step_s if self._api is None else self.sumo.simulation.getTime() - self.options.begin_s
 
     @property
     def done(self) -> bool:
@@ -178,7 +190,7 @@ class MesoSim:
     def vehicles_in_sumo(self) -> int:
         """Fleet vehicles SUMO itself holds (driving or waiting for insertion); with the legs
         added since SUMO's last step it equals the number of driving legs (advance checks it)."""
-        api = self._api
+        api = self.sumo
         return int(api.vehicle.getIDCount() + len(api.simulation.getPendingVehicles()))
 
     # ------------------------------------------------------------------ transitions
@@ -237,7 +249,7 @@ class MesoSim:
         then requests past their maximum wait leave and the next step's requests appear."""
         if self.done:
             raise RuntimeError("the episode is over; call reset()")
-        api = self._api
+        api = self.sumo
         end = self.options.begin_s + (self.t + 1) * self.step_s
         while api.simulation.getTime() < end - 1e-6:
             api.simulationStep()
@@ -275,7 +287,7 @@ class MesoSim:
         """Region travel times (in steps) from SUMO's current edge travel times: one vectorised
         Dijkstra from a few sampled edges per region instead of N^2 routing calls. The city is
         replaced only when a rounded travel time changes, from the current step on."""
-        api = self._api
+        api = self.sumo
         edge_time = np.fromiter((api.edge.getTraveltime(e) for e in self.net.edges), float, self.net.n_edges)
         edge_time = np.where(np.isfinite(edge_time) & (edge_time > 0), edge_time, self.net.free_time)
         steps = np.maximum(np.ceil(region_travel(self.net, self._picks, edge_time) / self.step_s), 1).astype(np.int64)
@@ -289,7 +301,7 @@ class MesoSim:
     # ------------------------------------------------------------------ vehicles
     def _init_fleet(self) -> None:
         """Place the fleet on random edges of its initial regions (all idle)."""
-        rng = getattr(self, "_rng", np.random.default_rng(0))
+        rng = self._rng
         regions = np.repeat(np.arange(self.city.n_regions), self.city.initial_vehicles)
         m = len(regions)
         self.v_region = regions.astype(np.int64)
@@ -324,7 +336,7 @@ class MesoSim:
 
     def _drive(self, v: int, to_edge: int, state: int) -> None:
         """Start a SUMO leg from the vehicle's edge to ``to_edge`` (distinct edges)."""
-        api = self._api
+        api = self.sumo
         edges = self.net.edges
         route = api.simulation.findRoute(edges[self.v_edge[v]], edges[to_edge])
         if len(route.edges) < 2:
