@@ -6,6 +6,7 @@ target, rebalancing and bookkeeping identically:
 
     reset(seed):  draw demand -> dispatch step 0
     step(target): rebalance toward target -> advance -> dispatch the next step
+                  (a simulator with dispatch_rounds > 1 also dispatches inside the step)
 """
 
 from __future__ import annotations
@@ -68,9 +69,13 @@ class FleetSystem:
         flows = self.coordinator.rebalance(self.sim.idle, np.asarray(target))
         cost = self.sim.apply_rebalance(flows)
         applied = self.sim.last_rebalance
+        profit = 0.0
+        for _ in range(self.sim.dispatch_rounds - 1):  # matching more often than rebalancing
+            self.sim.advance_round()
+            profit += self._dispatch()
         self.sim.advance()
         self._follow_city()
-        profit = self._dispatch()
+        profit += self._dispatch()
         if self.sim.done:
             self.sim.finish()
         return StepOutcome(profit - cost, profit, cost, self.sim.last_dispatch, applied)

@@ -196,3 +196,11 @@ def test_meso_env_renders_the_region_map():
     env.reset(seed=0)
     env.step({a: np.array([1.0], dtype=np.float32) for a in env.agents})
     assert env.render().ndim == 3
+
+
+def test_meso_matches_more_often_than_it_rebalances():
+    system = _episode(0, tstep=3, horizon=5, dispatch_every_min=1)
+    assert system.sim.dispatch_rounds == 3
+    assert system.sim.totals.served.sum() > 0
+    with pytest.raises(ConfigError, match="divide"):
+        load_spec("sumo_grid", tstep=3, dispatch_every_min=2)

@@ -49,6 +49,8 @@ class EpisodeTotals:
 class MacroSim:
     """State of one episode on one city; reset with a seed, then apply flows step by step."""
 
+    dispatch_rounds = 1  # one dispatch per control step (the SUMO simulator may match more often)
+
     def __init__(self, city: City, *, max_wait: int = 0) -> None:
         if max_wait < 0:
             raise ValueError(f"max_wait must be >= 0 steps, got {max_wait}")

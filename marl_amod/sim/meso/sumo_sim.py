@@ -36,7 +36,7 @@ from marl_amod.sim.meso.network import read_network
 from marl_amod.sim.meso.regions import TRAVEL_SAMPLES, region_travel, sample_edges
 
 IDLE, PICKUP, OCCUPIED, REBALANCING = 0, 1, 2, 3
-OPEN, ASSIGNED, PICKED, LOST = 0, 1, 2, 3
+OPEN, ASSIGNED, PICKED, LOST, UPCOMING = 0, 1, 2, 3, 4
 
 
 @dataclass(frozen=True, eq=False)
@@ -53,6 +53,7 @@ class MesoOptions:
     begin_s: float = 0.0  # clock time of step 0, in seconds of the day
     time_to_teleport: float = 300.0
     refresh_travel_times: bool = True  # re-estimate region travel times from SUMO every step
+    dispatch_every_min: float | None = None  # match requests this often inside a step (None: once)
     region_seed: int = 0  # seeds the edges that region travel times average over
     quiet: bool = True  # silence SUMO's warnings (pass extra_args=("--log", file) to keep them)
     extra_args: tuple[str, ...] = ()
@@ -95,6 +96,11 @@ class MesoSim:
         self.members = [np.flatnonzero(options.of_edge == r) for r in range(n)]
         self.region_center = np.array([self.net.midpoint[m].mean(axis=0) for m in self.members])
         self.step_s = 60.0 * city.tstep
+        every = city.tstep if options.dispatch_every_min is None else options.dispatch_every_min
+        self.dispatch_rounds = int(round(city.tstep / every))
+        if self.dispatch_rounds < 1 or abs(self.dispatch_rounds * every - city.tstep) > 1e-9:
+            raise ValueError(f"dispatch_every_min={every} must divide the control step of {city.tstep} min")
+        self._round = 0  # dispatch rounds already run inside the current control step
         self._picks = sample_edges(options.of_edge, n, TRAVEL_SAMPLES, options.region_seed)
         self._api: Any = None
         self._rng = np.random.default_rng(options.sumo_seed)  # replaced by reset()'s generator
@@ -123,7 +129,9 @@ class MesoSim:
         self.demand = rng.poisson(self.city.demand_rate).astype(np.int64)
         self._init_fleet()
         self._init_requests()
+        self._round = 0
         self._new_requests(0)
+        self._reveal()
 
     def close(self) -> None:
         """End the SUMO run (also called by reset); the simulator can be reset again later."""
@@ -221,7 +229,7 @@ class MesoSim:
         self.totals.revenue += revenue
         self.totals.trip_cost += cost
         self.totals.served += x.sum(axis=1)
-        self.last_dispatch = x
+        self.last_dispatch = self.last_dispatch + x  # summed over the step's dispatch rounds
         return float(revenue.sum() - cost.sum())
 
     def apply_rebalance(self, y: np.ndarray) -> float:
@@ -244,13 +252,45 @@ class MesoSim:
         self.last_rebalance = y
         return float(cost.sum())
 
+    def advance_round(self) -> None:
+        """Run SUMO to the next dispatch round inside the control step (``dispatch_rounds`` - 1
+        of them per step): requests made meanwhile appear, those past their maximum wait leave."""
+        if self._round >= self.dispatch_rounds - 1:
+            raise RuntimeError(f"only {self.dispatch_rounds - 1} rounds run inside a control step")
+        self._start_interval()
+        self._round += 1
+        self._run_until(self.t * self.step_s + self._round * self.step_s / self.dispatch_rounds)
+        self._reveal()
+        self._expire(self.now - self.max_wait_s)
+
     def advance(self) -> None:
         """Run SUMO to the next control step, handling pickups and arrivals as they happen;
-        then requests past their maximum wait leave and the next step's requests appear."""
+        then travel times are refreshed, the step's requests appear and those past their
+        maximum wait leave."""
         if self.done:
             raise RuntimeError("the episode is over; call reset()")
+        self._start_interval()
+        self._run_until((self.t + 1) * self.step_s)
+        self.t += 1
+        self._round = 0
+        if self.options.refresh_travel_times:
+            self._refresh_travel_times()
+        self._reveal()
+        self._expire(self.now - self.max_wait_s)
+        self.last_rebalance = np.zeros_like(self.last_rebalance)
+
+    def _start_interval(self) -> None:
+        """First move inside a control step: draw its requests (they appear over the step) and
+        start summing its dispatch rounds."""
+        if self._round == 0:
+            self._new_requests(self.t + 1)
+            self.last_dispatch = np.zeros_like(self.last_dispatch)
+
+    def _run_until(self, when: float) -> None:
+        """Step SUMO to ``when`` seconds after step 0, reacting to every arrival as it happens;
+        then check that SUMO still holds every driving leg."""
         api = self.sumo
-        end = self.options.begin_s + (self.t + 1) * self.step_s
+        end = self.options.begin_s + when
         while api.simulation.getTime() < end - 1e-6:
             api.simulationStep()
             self._fresh.clear()
@@ -263,14 +303,6 @@ class MesoSim:
             known = set(api.vehicle.getIDList()) | set(api.simulation.getPendingVehicles()) | self._fresh
             lost = sorted(set(self._leg) - known)
             raise RuntimeError(f"SUMO lost fleet vehicles {lost[:5]} (holds {self.vehicles_in_sumo()}, {len(self._leg)} driving)")
-        self.t += 1
-        if self.options.refresh_travel_times:
-            self._refresh_travel_times()
-        self._expire(self.now - self.max_wait_s)
-        self._new_requests(self.t)
-        n = self.city.n_regions
-        self.last_dispatch = np.zeros((n, n), dtype=np.int64)
-        self.last_rebalance = np.zeros((n, n), dtype=np.int64)
 
     def finish(self) -> None:
         """End of episode: open requests are lost; busy time and waits so far are booked."""
@@ -381,7 +413,8 @@ class MesoSim:
         self.r_status = np.zeros(0, dtype=np.int64)
 
     def _new_requests(self, t: int) -> None:
-        """Requests of step t: the drawn OD counts, with edges and request times inside the step."""
+        """Requests of step t: the drawn OD counts, with edges and request times inside the step;
+        they stay upcoming until the clock passes their request time (see :meth:`_reveal`)."""
         rng = self._rng
         counts = self.demand[t]
         pi, pj = np.nonzero(counts)
@@ -398,8 +431,13 @@ class MesoSim:
         self.r_oe = np.concatenate([self.r_oe, oe[order]])
         self.r_de = np.concatenate([self.r_de, de[order]])
         self.r_time = np.concatenate([self.r_time, when[order]])
-        self.r_status = np.concatenate([self.r_status, np.full(len(o), OPEN, dtype=np.int64)])
-        self.totals.demand += np.bincount(o, minlength=self.city.n_regions)
+        self.r_status = np.concatenate([self.r_status, np.full(len(o), UPCOMING, dtype=np.int64)])
+
+    def _reveal(self) -> None:
+        """Upcoming requests whose time has come become open (and count as demand)."""
+        new = np.flatnonzero((self.r_status == UPCOMING) & (self.r_time <= self.now + 1e-6))
+        self.r_status[new] = OPEN
+        self.totals.demand += np.bincount(self.r_o[new], minlength=self.city.n_regions)
 
     def _open(self) -> np.ndarray:
         return np.flatnonzero(self.r_status == OPEN)
