@@ -85,7 +85,7 @@ def main() -> None:
     for r in rows:
         print(
             f"| {r['scenario']} | {r['mode']} | {r['backend']} | {r['simulated_h']:.2f} | {r['wall_s']:.1f} | "
-            f"{r['wall_s_per_sim_h']:.1f} | {r['simulator_share']:.0%} | {r['routing_share']:.0%} | {r['coordinator_share']:.0%} |"
+            f"{r['wall_s_per_sim_h']:.1f} | {r['simulator_share']:.0%} | {r['routing_share']:.0%} | {r['coordinator_share']:.1%} |"
         )
     if args.output:
         with open(args.output, "w") as fh:
