@@ -6,6 +6,7 @@ target, rebalancing and bookkeeping identically:
 
     reset(seed):  draw demand -> dispatch step 0
     step(target): rebalance toward target -> advance -> dispatch the next step
+                  (a simulator with dispatch_rounds > 1 also dispatches inside the step)
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import numpy as np
 
 from marl_amod.coordinator.coordinator import Backend, Coordinator, Objective
 from marl_amod.scenario.types import City
-from marl_amod.sim.macro import MacroSim
+from marl_amod.sim.base import Simulator, make_simulator
 
 
 @dataclass(frozen=True)
@@ -40,9 +41,11 @@ class FleetSystem:
         max_wait: int = 0,
         objective: Objective = "profit",
         solver: Backend = "fast",
+        sim: Simulator | None = None,
     ) -> None:
         self.city = city
-        self.sim = MacroSim(city, max_wait=max_wait)
+        # the city's own simulator (macro unless the scenario says otherwise), or one passed in
+        self.sim = sim if sim is not None else make_simulator(city, max_wait)
         self.coordinator = Coordinator(city, objective=objective, solver=solver)
 
     @property
@@ -56,6 +59,7 @@ class FleetSystem:
     def reset(self, seed: int | np.random.SeedSequence | None = None) -> StepOutcome:
         """New episode; returns the outcome of the first dispatch."""
         self.sim.reset(np.random.default_rng(seed))
+        self._follow_city()
         profit = self._dispatch()
         n = self.city.n_regions
         return StepOutcome(profit, profit, 0.0, self.sim.last_dispatch, np.zeros((n, n), dtype=np.int64))
@@ -65,8 +69,13 @@ class FleetSystem:
         flows = self.coordinator.rebalance(self.sim.idle, np.asarray(target))
         cost = self.sim.apply_rebalance(flows)
         applied = self.sim.last_rebalance
+        profit = 0.0
+        for _ in range(self.sim.dispatch_rounds - 1):  # matching more often than rebalancing
+            self.sim.advance_round()
+            profit += self._dispatch()
         self.sim.advance()
-        profit = self._dispatch()
+        self._follow_city()
+        profit += self._dispatch()
         if self.sim.done:
             self.sim.finish()
         return StepOutcome(profit - cost, profit, cost, self.sim.last_dispatch, applied)
@@ -74,6 +83,13 @@ class FleetSystem:
     def targets_from_weights(self, weights: np.ndarray) -> np.ndarray:
         """The paper's target floor(w_i / sum(w) * M) from non-negative per-region weights."""
         return self.coordinator.targets(weights, self.sim.idle)
+
+    def _follow_city(self) -> None:
+        """Adopt the simulator's region view when it changed (SUMO travel times follow congestion),
+        so the coordinator and observations price and time moves as the simulator now sees them."""
+        if self.sim.city is not self.city:
+            self.city = self.sim.city
+            self.coordinator = Coordinator(self.city, objective=self.coordinator.objective, solver=self.coordinator.solver)
 
     def _dispatch(self) -> float:
         x = self.coordinator.dispatch(self.sim.idle, self.sim.requests(), self.sim.t)

@@ -27,6 +27,14 @@ def has_data() -> bool:
 needs_data = pytest.mark.skipif(not has_data(), reason=f"set {ENV_VAR} to the data folder to run real-city tests")
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _private_network_cache(tmp_path_factory):
+    """SUMO networks built by tests go to a folder the test session owns, never the user's cache."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MARL_AMOD_CACHE", str(tmp_path_factory.mktemp("sumo_cache")))
+        yield
+
+
 @pytest.fixture
 def tiny_city() -> City:
     """A 3x3 grid with a 6-step horizon: fast enough for per-step property tests."""

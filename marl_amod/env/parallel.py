@@ -44,7 +44,8 @@ Global view: ``state()`` / ``state_space``, ``graph()`` -> ``{"x": (N, F) float3
 "edge_index": (2, E) int64, "edge_attr": (E, 2) float32 [rebalancing steps, cost]}`` and
 ``system`` (the underlying :class:`~marl_amod.system.FleetSystem`).
 
-Arguments: ``scenario`` (a name from ``marl-amod scenarios``, a YAML path or a ``City``),
+Arguments: ``scenario`` (a name from ``marl-amod scenarios``, a YAML path or a ``City``; a SUMO
+scenario such as ``sumo_grid`` or ``lux`` runs the same env in SUMO's mesoscopic model),
 ``reward_mode``, ``action_mode``, ``lookahead`` (T), ``max_wait`` (steps a request waits),
 ``objective`` (dispatch objective, ``"profit"`` or ``"revenue"``), ``render_mode``
 (``"human"`` or ``"rgb_array"``), and scenario overrides (e.g. ``horizon=10``; unknown keys raise).

@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, Literal, Union
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from marl_amod.data import resolve
 from marl_amod.errors import ConfigError, DataError
@@ -59,7 +59,48 @@ class SyntheticScenario(_Spec):
     vehicles_per_region: int = Field(12, ge=0)
 
 
-ScenarioSpec = Union[JsonScenario, SyntheticScenario]
+class SumoScenario(_Spec):
+    """A road network simulated in SUMO (mesoscopic by default): an OSM extract or a grid."""
+
+    source: Literal["sumo"]
+    network: Literal["osm", "grid"]
+    osm_file: str | None = Field(None, description="OpenStreetMap file relative to MARL_AMOD_DATA (network: osm)")
+    grid_size: int = Field(6, ge=2, description="junctions per side (network: grid)")
+    grid_length: float = Field(400.0, gt=0, description="metres between junctions (network: grid)")
+    seed: int = Field(0, description="seeds netgenerate, the k-means regions and SUMO")
+    regions: int = Field(10, ge=2)
+    tstep: float = Field(3.0, gt=0, description="minutes per control step (dispatch and rebalancing)")
+    start_hour: float = Field(16.0, ge=0, lt=24)
+    fleet: int = Field(gt=0)
+    requests_per_hour: float = Field(gt=0, description="expected requests per hour, whole city")
+    imbalance: float = Field(0.5, ge=0, description="centre-to-periphery skew of the evening peak")
+    mean_trip_min: float = Field(10.0, gt=0, description="gravity-model deterrence scale")
+    peak: float = Field(0.3, ge=0, description="demand mid-window is (1 + peak) x the base")
+    fare_base: float = Field(2.6, ge=0)
+    fare_per_km: float = Field(1.9, ge=0)
+    beta: float = Field(0.3, ge=0, description="operating cost per minute of driving")
+    max_wait_min: float = Field(10.0, ge=0, description="a request leaves after waiting this long")
+    mode: Literal["meso", "micro", "macro"] = Field("meso", description="macro: the same city in the macro model")
+    backend: Literal["libsumo", "traci"] = "libsumo"
+    step_length: float = Field(1.0, gt=0, description="SUMO seconds per simulation step")
+    refresh_travel_times: bool = Field(True, description="region travel times follow SUMO's edge times each step")
+    dispatch_every_min: float | None = Field(None, gt=0, description="match requests this often (divides tstep)")
+    sumo_args: list[str] = Field(default_factory=list, description="extra SUMO options, e.g. [--tripinfo-output, t.xml]")
+
+    @model_validator(mode="after")
+    def _network_source(self) -> "SumoScenario":
+        if self.network == "osm" and not self.osm_file:
+            raise ValueError("network 'osm' needs osm_file (a path under MARL_AMOD_DATA)")
+        if self.network == "grid" and self.osm_file:
+            raise ValueError("network 'grid' takes no osm_file")
+        if self.dispatch_every_min is not None:
+            rounds = self.tstep / self.dispatch_every_min
+            if abs(rounds - round(rounds)) > 1e-9 or rounds < 1:
+                raise ValueError(f"dispatch_every_min {self.dispatch_every_min} must divide tstep {self.tstep}")
+        return self
+
+
+ScenarioSpec = Union[JsonScenario, SyntheticScenario, SumoScenario]
 
 
 def scenario_dirs() -> list[Path]:
@@ -98,9 +139,9 @@ def load_spec(name_or_path: str, **overrides: Any) -> ScenarioSpec:
         raise ConfigError(f"{path}: expected a mapping of keys")
     raw.update({k: v for k, v in overrides.items() if v is not None})
     source = raw.get("source")
-    model = {"json": JsonScenario, "synthetic": SyntheticScenario}.get(source)
+    model = {"json": JsonScenario, "synthetic": SyntheticScenario, "sumo": SumoScenario}.get(source)
     if model is None:
-        raise ConfigError(f"{path}: 'source' must be 'json' or 'synthetic', got {source!r}")
+        raise ConfigError(f"{path}: 'source' must be 'json', 'synthetic' or 'sumo', got {source!r}")
     try:
         return model(**raw)
     except ValidationError as exc:
@@ -113,6 +154,8 @@ def build_city(spec: ScenarioSpec) -> City:
     if isinstance(spec, SyntheticScenario):
         params = spec.model_dump(exclude={"source", "description", "name"})
         return grid_city(name=spec.name, **params)
+    if isinstance(spec, SumoScenario):
+        return _build_sumo_city(spec)
     return load_json_city(
         resolve(spec.data_file),
         name=spec.name,
@@ -123,6 +166,24 @@ def build_city(spec: ScenarioSpec) -> City:
         horizon=spec.horizon,
         fleet=spec.fleet,
     )
+
+
+def _build_sumo_city(spec: SumoScenario) -> City:
+    from marl_amod.scenario.sumo_city import sumo_city
+    from marl_amod.sim.meso import network as nw
+
+    if spec.network == "osm":
+        net_file = nw.build_osm(resolve(spec.osm_file))
+    else:
+        net_file = nw.build_grid(spec.grid_size, spec.grid_length, spec.seed)
+    keys = ("regions", "horizon", "tstep", "start_hour", "fleet", "requests_per_hour", "imbalance",
+            "mean_trip_min", "peak", "fare_base", "fare_per_km", "beta")  # fmt: skip
+    options = {"max_wait_min": spec.max_wait_min, "backend": spec.backend, "step_length": spec.step_length,
+               "sumo_seed": spec.seed, "refresh_travel_times": spec.refresh_travel_times,
+               "dispatch_every_min": spec.dispatch_every_min,
+               "extra_args": tuple(spec.sumo_args)}  # fmt: skip
+    return sumo_city(name=spec.name, net_file=net_file, region_seed=spec.seed, mode=spec.mode, options=options,
+                     **{k: getattr(spec, k) for k in keys})  # fmt: skip
 
 
 @lru_cache(maxsize=32)

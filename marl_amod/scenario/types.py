@@ -7,8 +7,10 @@ and MPC can look ahead past the last control step.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 
@@ -33,6 +35,9 @@ class City:
     positions: np.ndarray  # (N, 2) float, a drawing position per region
     start_hour: float = 0.0  # clock time of step 0, for the time-of-day feature
     meta: dict = field(default_factory=dict)  # provenance (data file, parameters), shown to users
+    # builds the simulator, called as simulator(city, max_wait=...); None: the macro model.
+    # SUMO scenarios set it, so every consumer of a City gets their simulator unchanged.
+    simulator: Callable[..., Any] | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         s, n, n2 = self.demand_rate.shape

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from marl_amod.scenario.types import City
+from marl_amod.sim.flows import as_flows, check_dispatch, check_rebalance
 
 _TOL = 1e-9
 
@@ -47,6 +48,8 @@ class EpisodeTotals:
 
 class MacroSim:
     """State of one episode on one city; reset with a seed, then apply flows step by step."""
+
+    dispatch_rounds = 1  # one dispatch per control step (the SUMO simulator may match more often)
 
     def __init__(self, city: City, *, max_wait: int = 0) -> None:
         if max_wait < 0:
@@ -96,15 +99,9 @@ class MacroSim:
     # ------------------------------------------------------------------ transitions
     def apply_dispatch(self, x: np.ndarray) -> float:
         """Serve requests with passenger flows x (N, N); returns the step's dispatch profit."""
-        x = self._check_flows(x, "dispatch")
-        open_requests = self.requests()
-        if np.any(x > open_requests):
-            i, j = np.argwhere(x > open_requests)[0]
-            raise ValueError(f"dispatch serves {x[i, j]} requests {i}->{j} but only {open_requests[i, j]} are open")
+        x = as_flows(x, self.city.n_regions, "dispatch")
+        check_dispatch(x, self.requests(), self.idle)
         out = x.sum(axis=1)
-        if np.any(out > self.idle):
-            i = int(np.argmax(out - self.idle))
-            raise ValueError(f"dispatch sends {out[i]} vehicles from region {i} which has {self.idle[i]} idle")
         c, t = self.city, self.t
         duration = c.trip_time[t]
         self._depart(x, duration)
@@ -128,13 +125,9 @@ class MacroSim:
 
     def apply_rebalance(self, y: np.ndarray) -> float:
         """Move idle vehicles with flows y (N, N); returns the step's rebalancing cost."""
-        y = self._check_flows(y, "rebalancing")
-        if np.any(np.diag(y) != 0):
-            raise ValueError("rebalancing flows must be zero on the diagonal (staying is implicit)")
+        y = as_flows(y, self.city.n_regions, "rebalancing")
+        check_rebalance(y, self.idle)
         out = y.sum(axis=1)
-        if np.any(out > self.idle):
-            i = int(np.argmax(out - self.idle))
-            raise ValueError(f"rebalancing sends {out[i]} vehicles from region {i} which has {self.idle[i]} idle")
         self._depart(y, self.city.reb_time)
         cost = (y * self.city.reb_cost).sum(axis=1)
         self.totals.rebalancing_cost += cost
@@ -172,15 +165,3 @@ class MacroSim:
         np.add.at(self.arrivals, (arrive, j), flows[i, j])
         steps_left = self.city.horizon - self.t
         np.add.at(self.totals.busy_vehicle_steps, i, flows[i, j] * np.minimum(duration[i, j], steps_left))
-
-    def _check_flows(self, flows: np.ndarray, what: str) -> np.ndarray:
-        n = self.city.n_regions
-        flows = np.asarray(flows)
-        if flows.shape != (n, n):
-            raise ValueError(f"{what} flows must have shape {(n, n)}, got {flows.shape}")
-        if not np.all(np.isfinite(flows)):
-            raise ValueError(f"{what} flows contain NaN or inf")
-        rounded = np.rint(flows)
-        if np.any(np.abs(flows - rounded) > 1e-6) or np.any(rounded < 0):
-            raise ValueError(f"{what} flows must be non-negative integers")
-        return rounded.astype(np.int64)

@@ -1,0 +1,96 @@
+"""Wall time of the SUMO scenarios: meso vs micro, libsumo vs TraCI, and where the time goes.
+
+Runs one episode of equal-distribution rebalancing per configuration and prints a markdown
+table: simulated hours, wall seconds, wall seconds per simulated hour, and the shares spent in
+the simulator (SUMO start-up and stepping, bookkeeping, travel-time refresh), in routing and
+adding legs (part of the simulator's share) and in the coordinator (dispatch + min-cost flow).
+Run on one core:  OMP_NUM_THREADS=1 python benchmarks/meso_speed.py [--scenario lux]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import time
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+
+from marl_amod.coordinator.coordinator import Coordinator  # noqa: E402
+from marl_amod.scenario import load_city  # noqa: E402
+from marl_amod.system import FleetSystem  # noqa: E402
+
+CONFIGS = [("meso", "libsumo"), ("meso", "traci"), ("micro", "libsumo")]
+
+
+def _timed(obj, name: str, clock: dict) -> None:
+    """Wrap ``obj.name`` so that its wall time accumulates in ``clock[name]``."""
+    inner = getattr(obj, name)
+
+    def wrapper(*args, **kwargs):
+        t0 = time.perf_counter()
+        try:
+            return inner(*args, **kwargs)
+        finally:
+            clock[name] = clock.get(name, 0.0) + time.perf_counter() - t0
+
+    setattr(obj, name, wrapper)
+
+
+COORDINATOR_CLOCK: dict[str, float] = {}
+for _name in ("dispatch", "rebalance"):  # on the class, once: FleetSystem renews its coordinator
+    _timed(Coordinator, _name, COORDINATOR_CLOCK)
+
+
+def run(scenario: str, mode: str, backend: str, horizon: int | None) -> dict:
+    city = load_city(scenario, **({"horizon": horizon} if horizon else {}))
+    city = dataclasses.replace(city, simulator=dataclasses.replace(city.simulator, mode=mode, backend=backend))
+    system = FleetSystem(city)
+    clock = COORDINATOR_CLOCK
+    clock.clear()
+    for name in ("advance", "advance_round", "apply_dispatch", "apply_rebalance", "reset"):
+        _timed(system.sim, name, clock)
+    routing = {}
+    _timed(system.sim, "_drive", routing)  # route + insert a leg (SUMO's findRoute dominates)
+    t0 = time.perf_counter()
+    system.reset(0)
+    while not system.done:
+        system.step(system.targets_from_weights(np.ones(city.n_regions)))
+    wall = time.perf_counter() - t0
+    system.sim.close()
+    hours = (city.horizon - 1) * city.tstep / 60.0
+    sim = sum(clock.get(k, 0.0) for k in ("reset", "advance", "advance_round", "apply_dispatch", "apply_rebalance"))
+    coord = clock.get("dispatch", 0.0) + clock.get("rebalance", 0.0)
+    return {
+        "scenario": city.name, "mode": mode, "backend": backend, "simulated_h": hours, "wall_s": wall,
+        "wall_s_per_sim_h": wall / hours, "startup_s": clock["reset"], "simulator_share": sim / wall,
+        "routing_share": routing["_drive"] / wall, "coordinator_share": coord / wall,
+        "served": float(system.sim.totals.served.sum()),
+    }  # fmt: skip
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenario", default="lux")
+    parser.add_argument("--horizon", type=int, default=None, help="control steps (default: the scenario's)")
+    parser.add_argument("--configs", nargs="*", default=[f"{m}:{b}" for m, b in CONFIGS])
+    parser.add_argument("--output", default=None)
+    args = parser.parse_args()
+    rows = [run(args.scenario, *c.split(":"), args.horizon) for c in args.configs]
+    print("| scenario | mode | backend | simulated h | wall s | wall s / sim h | simulator | of which routing | coordinator |")
+    print("|---|---|---|---:|---:|---:|---:|---:|---:|")
+    for r in rows:
+        print(
+            f"| {r['scenario']} | {r['mode']} | {r['backend']} | {r['simulated_h']:.2f} | {r['wall_s']:.1f} | "
+            f"{r['wall_s_per_sim_h']:.1f} | {r['simulator_share']:.0%} | {r['routing_share']:.0%} | {r['coordinator_share']:.1%} |"
+        )
+    if args.output:
+        with open(args.output, "w") as fh:
+            json.dump(rows, fh, indent=2)
+
+
+if __name__ == "__main__":
+    main()

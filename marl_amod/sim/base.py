@@ -1,0 +1,46 @@
+"""What every simulator offers, so that one :class:`~marl_amod.system.FleetSystem` drives any of them.
+
+The macro model (``MacroSim``) and the SUMO model (``MesoSim``) both satisfy this protocol. A
+city picks its simulator through ``City.simulator`` (None means the macro model), so the env,
+the evaluation loop and training need no per-simulator branches.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+import numpy as np
+
+from marl_amod.scenario.types import City
+from marl_amod.sim.macro import EpisodeTotals, MacroSim
+
+
+class Simulator(Protocol):
+    city: City
+    t: int
+    totals: EpisodeTotals
+    demand: np.ndarray  # (S, N, N) requests drawn for every step
+    arrivals: np.ndarray  # (L, N) busy vehicles becoming idle after step k
+    last_dispatch: np.ndarray  # (N, N)
+    last_rebalance: np.ndarray  # (N, N)
+    dispatch_rounds: int  # dispatches per control step; > 1 needs advance_round()
+
+    @property
+    def done(self) -> bool: ...
+    @property
+    def idle(self) -> np.ndarray: ...  # (N,) int
+    def reset(self, rng: np.random.Generator) -> None: ...
+    def requests(self) -> np.ndarray: ...
+    def vehicles(self) -> int: ...
+    def apply_dispatch(self, x: np.ndarray) -> float: ...
+    def apply_rebalance(self, y: np.ndarray) -> float: ...
+    def advance(self) -> None: ...
+    def advance_round(self) -> None: ...  # only called when dispatch_rounds > 1
+    def finish(self) -> None: ...
+
+
+def make_simulator(city: City, max_wait: int = 0) -> Simulator:
+    """The simulator the city asks for (``city.simulator``), else the macro model."""
+    if city.simulator is None:
+        return MacroSim(city, max_wait=max_wait)
+    return city.simulator(city, max_wait=max_wait)

@@ -1,0 +1,206 @@
+"""The SUMO (meso) simulator behind the same system and env: conservation, accounting, determinism,
+the PettingZoo API, and configuration errors. A 14-minute grid episode takes well under a second."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("libsumo")
+
+from conftest import has_data  # noqa: E402
+from pettingzoo.test import parallel_api_test  # noqa: E402
+
+from marl_amod.env.parallel import AmodParallelEnv  # noqa: E402
+from marl_amod.errors import ConfigError, DataError  # noqa: E402
+from marl_amod.evaluation import evaluate  # noqa: E402
+from marl_amod.scenario import load_city, load_spec  # noqa: E402
+from marl_amod.sim.meso.sumo_sim import MesoSim  # noqa: E402
+from marl_amod.system import FleetSystem  # noqa: E402
+
+
+def _episode(seed: int, *, weights=None, **overrides):
+    """Run one grid episode, checking the invariants after every step; returns the system."""
+    city = load_city("sumo_grid", **overrides)
+    system = FleetSystem(city)
+    system.reset(seed)
+    sim = system.sim
+    assert isinstance(sim, MesoSim)
+    fleet = city.fleet_size
+    n = city.n_regions
+    rng = np.random.default_rng(seed)
+    while not system.done:
+        w = rng.random(n) if weights is None else weights
+        out = system.step(system.targets_from_weights(w))
+        tot = sim.totals
+        assert sim.vehicles() == fleet  # no vehicle created or lost
+        assert sim.idle.min() >= 0 and sim.idle.sum() <= fleet
+        assert out.rebalancing.sum(axis=1).min() >= 0 and np.all(np.diag(out.rebalancing) == 0)
+        # every request is served, still open, or gone after its maximum wait
+        assert tot.demand.sum() == tot.served.sum() + tot.lost.sum() + sim.requests().sum()
+    tot = sim.totals
+    assert tot.demand.sum() == tot.served.sum() + tot.lost.sum()  # finish() closed the books
+    assert sim.teleports == 0
+    return system
+
+
+def test_meso_grid_episode_conserves_fleet_and_accounts_for_every_request():
+    system = _episode(0)
+    tot = system.sim.totals
+    assert tot.served.sum() > 0 and tot.rebalanced.sum() > 0
+    assert 0 < tot.busy_vehicle_steps.sum() <= system.city.fleet_size * system.city.horizon
+    assert tot.wait_minutes.sum() > 0  # pickups take real driving time in SUMO
+
+
+def test_meso_same_seed_same_result_and_other_seed_differs():
+    a, b, c = (_episode(s).sim.totals for s in (3, 3, 4))
+    for name in a.__dataclass_fields__:
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert not np.array_equal(a.demand, c.demand)
+
+
+def test_meso_requests_leave_after_max_wait():
+    # one vehicle and heavy demand: most requests must time out rather than wait forever
+    city = load_city("sumo_grid", fleet=1, requests_per_hour=600, max_wait_min=2)
+    system = FleetSystem(city)
+    system.reset(0)
+    while not system.done:
+        system.step(np.full(city.n_regions, -1))
+    tot = system.sim.totals
+    assert tot.lost.sum() > tot.served.sum() > 0
+    assert tot.demand.sum() == tot.served.sum() + tot.lost.sum()
+
+
+def test_meso_env_passes_pettingzoo_parallel_api():
+    env = AmodParallelEnv("sumo_grid")
+    parallel_api_test(env, num_cycles=20)
+
+
+def test_meso_evaluate_gives_the_macro_json_schema():
+    res = evaluate("sumo_grid", "equal-distribution", episodes=1, seed=0)
+    macro = evaluate(load_city("synthetic", horizon=3), "equal-distribution", episodes=1, seed=0)
+    assert res["metrics"].keys() == macro["metrics"].keys()
+    assert res["per_region"].keys() == macro["per_region"].keys()
+    assert len(res["per_region"]["wait_time"]) == 4
+
+
+def test_meso_city_is_a_valid_region_view():
+    city = load_city("sumo_grid")
+    assert city.n_regions == 4 and city.fleet_size == 24
+    assert city.edge_index.shape[0] == 2 and city.edge_index.shape[1] > 0
+    assert np.all(city.price > 0) and np.all(city.trip_time >= 1)
+
+
+def test_meso_simulator_pickles_without_its_sumo_connection():
+    import pickle
+
+    system = FleetSystem(load_city("sumo_grid"))
+    system.reset(0)
+    copy = pickle.loads(pickle.dumps(system))
+    copy.reset(1)  # the copy restarts SUMO itself
+    copy.step(copy.targets_from_weights(np.ones(4)))
+
+
+def test_sumo_scenario_config_errors(tmp_path: Path):
+    with pytest.raises(ConfigError, match="osm_file"):
+        load_spec("sumo_grid", network="osm")
+    with pytest.raises(ConfigError, match="fleett"):
+        load_spec("sumo_grid", fleett=3)
+    with pytest.raises(ConfigError, match="mode"):
+        load_spec("sumo_grid", mode="nano")
+    bad = tmp_path / "nowhere.yaml"
+    bad.write_text("name: x\nsource: sumo\nnetwork: osm\nosm_file: lux/missing.osm\nfleet: 3\nrequests_per_hour: 10\n")
+    monkey_data = tmp_path / "data"
+    monkey_data.mkdir()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("MARL_AMOD_DATA", str(monkey_data))
+        with pytest.raises(DataError, match="missing.osm"):
+            load_city(str(bad))
+
+
+def test_missing_sumo_extra_names_the_install_command(monkeypatch):
+    import sys
+
+    from marl_amod.sim.meso import engine
+
+    monkeypatch.setitem(sys.modules, "sumo", None)  # import sumo now fails
+    with pytest.raises(ConfigError, match=r'pip install "marl-amod\[sumo\]"'):
+        engine.sumo_home()
+
+
+def test_meso_flows_are_validated():
+    system = FleetSystem(load_city("sumo_grid"))
+    system.reset(0)
+    with pytest.raises(ValueError, match="diagonal"):
+        system.sim.apply_rebalance(np.eye(4, dtype=int))
+    with pytest.raises(ValueError, match="open"):
+        system.sim.apply_dispatch(np.full((4, 4), 1000))
+
+
+def _has_lux() -> bool:
+    return has_data() and (Path(os.environ["MARL_AMOD_DATA"]) / "lux").is_dir()
+
+
+@pytest.mark.skipif(not _has_lux(), reason="set MARL_AMOD_DATA to a folder with lux/ to build Luxembourg")
+def test_lux_network_and_regions_build():
+    city = load_city("lux", horizon=2)
+    assert city.n_regions == 10 and city.fleet_size == load_spec("lux").fleet
+    sim = city.simulator
+    assert len(np.unique(sim.of_edge)) == 10
+    assert dataclasses.is_dataclass(sim)
+
+
+def test_meso_traci_backend_matches_libsumo():
+    a = _episode(5).sim.totals
+    b = _episode(5, backend="traci").sim.totals
+    for name in a.__dataclass_fields__:
+        np.testing.assert_allclose(getattr(a, name), getattr(b, name))
+
+
+def test_micro_mode_runs_the_same_episode_contract():
+    system = _episode(0, mode="micro")
+    assert system.sim.options.mode == "micro" and "--mesosim" not in system.sim.options.sumo_args()
+
+
+def test_macro_twin_is_the_same_city_without_sumo():
+    meso, macro = load_city("sumo_grid"), load_city("sumo_grid", mode="macro")
+    assert macro.simulator is None and isinstance(meso.simulator(meso), MesoSim)
+    np.testing.assert_array_equal(meso.demand_rate, macro.demand_rate)
+    np.testing.assert_array_equal(meso.reb_time, macro.reb_time)
+    assert type(FleetSystem(macro).sim).__name__ == "MacroSim"
+
+
+def test_meso_travel_times_follow_sumo_and_the_system_adopts_them():
+    system = _episode(0, requests_per_hour=600, fleet=60)
+    assert system.city is system.sim.city  # coordinator and observations read the simulator's view
+    assert np.all(system.city.trip_time >= 1)
+
+
+def test_a_second_libsumo_simulation_makes_the_first_refuse_to_continue():
+    first, second = FleetSystem(load_city("sumo_grid")), FleetSystem(load_city("sumo_grid"))
+    first.reset(0)
+    second.reset(0)  # libsumo: one simulation per process
+    with pytest.raises(RuntimeError, match="traci"):
+        first.step(first.targets_from_weights(np.ones(4)))
+    second.step(second.targets_from_weights(np.ones(4)))
+    first.reset(1)  # a reset takes the simulation back
+    first.step(first.targets_from_weights(np.ones(4)))
+
+
+def test_meso_env_renders_the_region_map():
+    env = AmodParallelEnv("sumo_grid", render_mode="rgb_array")
+    env.reset(seed=0)
+    env.step({a: np.array([1.0], dtype=np.float32) for a in env.agents})
+    assert env.render().ndim == 3
+
+
+def test_meso_matches_more_often_than_it_rebalances():
+    system = _episode(0, tstep=3, horizon=5, dispatch_every_min=1)
+    assert system.sim.dispatch_rounds == 3
+    assert system.sim.totals.served.sum() > 0
+    with pytest.raises(ConfigError, match="divide"):
+        load_spec("sumo_grid", tstep=3, dispatch_every_min=2)
