@@ -44,6 +44,14 @@ def test_rllib_config_rejects_unknown_keys_and_native_configs(tmp_path: Path) ->
     assert rl.load_rllib_config(Path(__file__).parents[1] / "configs" / "ppo_rllib_synthetic.yaml").scenario == "synthetic"
 
 
+def test_train_cli_keeps_rllib_options_to_the_rllib_backend() -> None:
+    native = str(Path(__file__).parents[1] / "configs" / "a2c_synthetic.yaml")
+    out = CliRunner().invoke(app, ["train", "--config", native, "--num-env-runners", "2"])
+    assert isinstance(out.exception, ConfigError) and "--backend rllib" in str(out.exception)
+    out = CliRunner().invoke(app, ["train", "--config", native, "--backend", "spark"])
+    assert isinstance(out.exception, ConfigError) and "native or rllib" in str(out.exception)
+
+
 def test_scaled_gamma_is_the_density_of_the_action_the_env_receives() -> None:
     import torch
 

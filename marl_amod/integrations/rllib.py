@@ -310,11 +310,15 @@ def actor_from_checkpoint(checkpoint: str | Path, hidden: int = 32, n_features: 
 def _iteration_stats(result: dict[str, Any], n_agents: int, reward_scale: float) -> dict[str, float]:
     """Flat numbers per iteration: env steps, episode profit (team return back in money)."""
     runners = result.get("env_runners", {})
+    timers = result.get("timers", {})
     ret = runners.get("episode_return_mean", float("nan"))
     return {
         "env_steps": float(runners.get("num_env_steps_sampled_lifetime", 0)),
         "env_steps_iter": float(runners.get("num_env_steps_sampled", 0)),
-        "train/profit": float(ret) / (n_agents * reward_scale),  # every agent gets the team reward
+        # every agent gets the team reward; the profit of the reset's dispatch (step 0) is not in it
+        "train/profit": float(ret) / (n_agents * reward_scale),
+        "sample_s": float(timers.get("env_runner_sampling_timer", float("nan"))),  # RLlib's smoothed timers
+        "learn_s": float(timers.get("learner_update_timer", float("nan"))),
     }
 
 
