@@ -79,7 +79,9 @@ def test_rllib_env_appends_the_global_state_for_the_central_critic() -> None:
     assert len(set(rew.values())) == 1  # the team reward, scaled
 
 
-def test_rllib_ppo_trains_saves_restores_converts_and_evaluates(tmp_path: Path, tmp_path_factory: pytest.TempPathFactory) -> None:
+def test_rllib_ppo_trains_saves_restores_converts_and_evaluates(
+    tmp_path: Path, tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch
+) -> None:
     import ray
     import torch
     from ray.rllib.core.columns import Columns
@@ -89,6 +91,9 @@ def test_rllib_ppo_trains_saves_restores_converts_and_evaluates(tmp_path: Path, 
     from marl_amod.integrations.rllib_module import ScaledGamma
     from marl_amod.scenario import load_city
 
+    home = tmp_path / "home"  # Ray would write ~/.ray/auth_token and RLlib ~/ray_results
+    home.mkdir()
+    monkeypatch.setenv("HOME", str(home))
     ray_tmp = tmp_path_factory.mktemp("ray")  # short: Ray's socket paths must stay under 107 bytes
     policy = tmp_path / "ppo.pt"
     config = tmp_path / "ppo.yaml"
@@ -102,6 +107,7 @@ def test_rllib_ppo_trains_saves_restores_converts_and_evaluates(tmp_path: Path, 
     out = runner.invoke(app, ["train", "--backend", "rllib", "--config", str(config), "--num-env-runners", "1"])
     assert out.exit_code == 0, out.output
     assert "iter    2" in out.output and not ray.is_initialized()
+    assert not list(home.iterdir()), "Ray or RLlib wrote into the home directory"
     card = json.loads(policy.with_suffix(".json").read_text())
     assert card["actor"] == "local" and card["algorithm"] == "rllib-ppo" and card["iterations"] == 2
 

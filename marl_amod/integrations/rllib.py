@@ -26,6 +26,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import secrets
 import shutil
 import tempfile
 import time
@@ -49,6 +50,9 @@ POLICY_ID = "shared"
 def require_ray() -> Any:
     """Import Ray (and the module classes) on first use; a missing backend names the extra."""
     os.environ.setdefault("RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER", "0")  # else Ray listens on every interface
+    if os.environ.get("RAY_AUTH_TOKEN") or os.environ.get("RAY_AUTH_TOKEN_PATH"):
+        # Ray 2.60 sends a token given by env var only in token mode, read when ray is imported
+        os.environ.setdefault("RAY_AUTH_MODE", "token")
     try:
         import ray
         import ray.rllib  # noqa: F401
@@ -209,7 +213,11 @@ def shared_policy(agent_id: str, episode: Any = None, **kwargs: Any) -> str:
 def ray_session(address: str | None = None, num_cpus: int = 2, temp_dir: str | Path | None = None) -> Iterator[Any]:
     """Local Ray on loopback (or join ``address``); always shut down, own temp dir removed.
 
-    Also points RLlib's results folder (otherwise ``~/ray_results``) into the temp dir.
+    Also points RLlib's results folder (otherwise ``~/ray_results``) into the temp dir. Ray 2.60
+    enables token authentication for a new local cluster and would write its token to
+    ``~/.ray/auth_token``; a local start gets a per-process token in ``RAY_AUTH_TOKEN`` instead
+    (inherited by Ray's own processes, no file). Joining a cluster needs that cluster's token, as
+    Ray documents (``RAY_AUTH_TOKEN``, ``RAY_AUTH_TOKEN_PATH`` or ``~/.ray/auth_token``).
     """
     ray = require_ray()
     import ray.tune.trainable.trainable as trainable_mod
@@ -223,6 +231,8 @@ def ray_session(address: str | None = None, num_cpus: int = 2, temp_dir: str | P
         if address:
             ray.init(address=address, log_to_driver=False, logging_level="ERROR")
         else:
+            if not (os.environ.get("RAY_AUTH_TOKEN") or os.environ.get("RAY_AUTH_TOKEN_PATH")):
+                os.environ["RAY_AUTH_TOKEN"] = secrets.token_hex(32)  # one per process: Ray caches it
             ray.init(
                 num_cpus=num_cpus, include_dashboard=False, _temp_dir=str(tmp.resolve()),
                 log_to_driver=False, logging_level="ERROR",
