@@ -79,6 +79,31 @@ def test_rllib_env_appends_the_global_state_for_the_central_critic() -> None:
     assert len(set(rew.values())) == 1  # the team reward, scaled
 
 
+@pytest.mark.parametrize("central_critic", [True, False])
+def test_shared_module_acts_from_the_local_part_and_values_what_it_is_given(central_critic: bool) -> None:
+    import torch
+    from ray.rllib.core.columns import Columns
+
+    from marl_amod.integrations.rllib_module import AmodGNNModule
+
+    env = rl.RllibAmodEnv("synthetic", central_critic=central_critic)
+    obs, _ = env.reset(seed=5)
+    batch = torch.as_tensor(np.stack([obs[a] for a in env.possible_agents]))  # (N, D[+S])
+    model = {"local_dim": env.local_dim, "n_features": 13, "hidden": 32, "critic_hidden": 16}
+    spaces = {"observation_space": env.observation_space("region_0"), "action_space": env.action_space("region_0")}
+    module = AmodGNNModule(**spaces, model_config=model)
+    out = module.forward_train({Columns.OBS: batch})
+    alpha = out[Columns.ACTION_DIST_INPUTS]
+    assert alpha.shape == (len(env.possible_agents), 1) and bool((alpha > 0).all())
+    assert module.compute_values({Columns.OBS: batch}).shape == (len(env.possible_agents),)
+    if central_critic:  # the actor ignores the appended state: changing it leaves the actions alone
+        shifted = batch.clone()
+        shifted[:, env.local_dim :] += 1.0
+        torch.testing.assert_close(module.forward_train({Columns.OBS: shifted})[Columns.ACTION_DIST_INPUTS], alpha)
+    actor_only = AmodGNNModule(**spaces, model_config=model, inference_only=True)
+    assert not hasattr(actor_only, "critic")  # env runners build the module without the critic
+
+
 def test_rllib_ppo_trains_saves_restores_converts_and_evaluates(
     tmp_path: Path, tmp_path_factory: pytest.TempPathFactory, monkeypatch: pytest.MonkeyPatch
 ) -> None:
