@@ -44,7 +44,8 @@ def write_card_markdown(path: str | Path, card: dict[str, Any]) -> Path:
             v = f"{v:,.2f}"
         lines.append(f"| {k} | {v} |")
     if "config" in card:
-        lines += ["", f"Reproduce: `marl-amod train --config {card['config']}`"]
+        backend = " --backend rllib" if str(card.get("algorithm", "")).startswith("rllib") else ""
+        lines += ["", f"Reproduce: `marl-amod train{backend} --config {card['config']}`"]
     lines += ["", f"Evaluate: `marl-amod evaluate --scenario {card['scenario']} --policy {Path(path).with_suffix('.pt')} --episodes 10`", ""]
     path.write_text("\n".join(lines))
     return path

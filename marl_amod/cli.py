@@ -20,7 +20,7 @@ from rich.progress import (
 from rich.table import Table
 
 from marl_amod.data import ENV_VAR
-from marl_amod.errors import MarlAmodError
+from marl_amod.errors import ConfigError, MarlAmodError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Robo-taxi fleet coordination as a multi-agent RL benchmark.")
 # wide enough for the metrics table when output is piped (rich would assume 80 columns)
@@ -153,12 +153,28 @@ def collect(
 def train(
     config: Annotated[Path, typer.Option(help="training config YAML (configs/<run>.yaml)")],
     resume: Annotated[Optional[Path], typer.Option(help="resume from a training state (runs/<run>/state.pt)")] = None,
+    backend: Annotated[str, typer.Option(help="native (A2C/SAC in-process) or rllib (PPO on Ray RLlib)")] = "native",
+    num_env_runners: Annotated[
+        Optional[int], typer.Option(min=0, help="rllib: remote env runners (default: the config's)", show_default=False)
+    ] = None,
+    address: Annotated[
+        Optional[str], typer.Option(help="rllib: join a Ray cluster (auto or ray://host:10001) instead of a local one", show_default=False)
+    ] = None,
     data_dir: DataDir = None,
 ) -> None:
-    """Train a policy (A2C or SAC, centralised or decentralised); logs under runs/, policy + card to policies/."""
+    """Train a policy (A2C or SAC, centralised or decentralised; or PPO on RLlib); logs under runs/, policy + card to policies/."""
+    _use_data_dir(data_dir)
+    if backend == "rllib":
+        if resume is not None:
+            raise ConfigError("--resume is for the native backend; RLlib runs keep their checkpoint under runs/")
+        _train_rllib(config, num_env_runners, address)
+        return
+    if backend != "native":
+        raise ConfigError(f"--backend must be native or rllib, got {backend!r}")
+    if num_env_runners is not None or address is not None:
+        raise ConfigError("--num-env-runners and --address need --backend rllib")
     from marl_amod.training import load_train_config, run_training
 
-    _use_data_dir(data_dir)
     algo, args = load_train_config(config)
     last_eval: dict[str, float] = {}
     with progress_bar() as bar:
@@ -182,6 +198,38 @@ def train(
         from marl_amod.checkpoints import update_card
 
         update_card(summary["policy"], config=str(config))
+        console.print(f"wrote {summary['policy']} (+ .json, .md); logs in {args.run_dir}")
+
+
+def _train_rllib(config: Path, num_env_runners: int | None, address: str | None) -> None:
+    """PPO with one shared GNN module on Ray RLlib; a log line per iteration, the policy in the native format."""
+    from marl_amod.integrations.rllib import load_rllib_config, train_rllib
+
+    args = load_rllib_config(config)
+    runners = args.num_env_runners if num_env_runners is None else num_env_runners
+    where = address or f"local Ray ({args.num_cpus} CPUs)"
+    with progress_bar() as bar:
+        task = bar.add_task(f"rllib ppo on {args.scenario}", total=args.iterations)
+
+        def progress(it: int, total: int, stats: dict) -> None:
+            line = (
+                f"iter {it:4d} | {stats['iter_s']:5.2f} s | {stats['env_steps_iter'] / stats['iter_s']:6.0f} env steps/s"
+                f" | train profit {stats['train/profit']:8,.0f}"
+            )
+            if "eval/profit" in stats:
+                line += f" | val profit {stats['eval/profit']:8,.0f}"
+            bar.console.print(line)
+            bar.update(task, completed=it)
+
+        console.print(f"rllib ppo on {args.scenario}: {runners} env runner(s) on {where}")
+        summary = train_rllib(args, runners, address, progress=progress, config_path=str(config))
+    card = summary["card"]
+    console.print(
+        f"{card['scenario']}: profit {card['profit_mean']:,.1f} ± {card['profit_std']:,.1f} over {card['eval_episodes']} episodes "
+        f"(seed {card['eval_seed']}), {card['iterations']} iterations, {card['env_steps']:,} env steps in "
+        f"{card['training_wall_s'] / 60:.1f} min; RLlib checkpoint {summary['checkpoint']}"
+    )
+    if "policy" in summary:
         console.print(f"wrote {summary['policy']} (+ .json, .md); logs in {args.run_dir}")
 
 

@@ -124,12 +124,20 @@ def test_compare_config_typo_is_a_clear_error(tmp_path):
 
 
 def test_bundled_configs_validate():
+    import yaml
+
     from marl_amod.comparison import load_compare_config
+    from marl_amod.integrations.rllib import load_rllib_config  # pydantic only: no Ray needed
     from marl_amod.training import load_train_config
 
     root = Path(__file__).resolve().parent.parent / "configs"
     for path in root.glob("*.yaml"):
-        (load_compare_config if path.stem.startswith("compare_") else load_train_config)(path)
+        if path.stem.startswith("compare_"):
+            load_compare_config(path)
+        elif yaml.safe_load(path.read_text()).get("algo") == "ppo":
+            load_rllib_config(path)
+        else:
+            load_train_config(path)
 
 
 def test_cli_train_and_compare_on_tiny_city(tmp_path, tiny_yaml):
