@@ -262,7 +262,6 @@ def build_ppo(args: RllibArgs, num_env_runners: int | None = None) -> Any:
     register_env(ENV_NAME, make_rllib_env)
     probe = RllibAmodEnv(**env_config(args))
     runners = args.num_env_runners if num_env_runners is None else num_env_runners
-    n_agents = len(probe.possible_agents)
     model = {"local_dim": probe.local_dim, "n_features": 1 + 2 * args.lookahead, "hidden": args.hidden, "critic_hidden": args.critic_hidden}
     config = (
         PPOConfig()
