@@ -72,3 +72,22 @@ def test_user_errors_exit_2_with_one_clear_line(args, message, capsys):
             sys.argv = argv
     assert exc.value.code == 2
     assert message in capsys.readouterr().out
+
+
+def test_error_messages_print_verbatim_including_brackets(monkeypatch, capsys):
+    """Errors name extras like `marl-amod[sumo]`; rich must not eat them as markup."""
+    import sys
+
+    import marl_amod.scenario
+    from marl_amod.cli import main
+    from marl_amod.errors import ConfigError
+
+    def missing_extra(*_a, **_k):
+        raise ConfigError('needs the extra: pip install "marl-amod[sumo]"')
+
+    monkeypatch.setattr(marl_amod.scenario, "load_city", missing_extra)
+    monkeypatch.setattr(sys, "argv", ["marl-amod", "evaluate", "--episodes", "1"])
+    with pytest.raises(SystemExit) as exc:
+        main()
+    assert exc.value.code == 2
+    assert 'pip install "marl-amod[sumo]"' in capsys.readouterr().out
