@@ -60,7 +60,7 @@ def scenarios(data_dir: DataDir = None) -> None:
             row = [str(s["regions"]), str(s["fleet"]), str(s["horizon"]), f"{s['tstep_min']:g}", f"{s['expected_requests']:.0f}"]
         except MarlAmodError as exc:
             row = ["-", "-", str(spec.horizon), "-", "-"]
-            spec_desc = f"[dim]unavailable: {exc}[/dim]"
+            spec_desc = f"[dim]unavailable: {escape(str(exc))}[/dim]"
             table.add_row(name, *row, spec_desc)
             continue
         table.add_row(name, *row, spec.description)
