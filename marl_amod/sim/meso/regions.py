@@ -70,15 +70,14 @@ def region_means(picks: list[np.ndarray], table: np.ndarray) -> np.ndarray:
     leaving out same-edge pairs (a trip needs distinct origin and destination edges)."""
     src = np.concatenate(picks)
     owner = np.repeat(np.arange(len(picks)), [len(p) for p in picks])
+    sub = table[:, src]  # (P, P) pick-to-pick times
+    off = ~np.equal.outer(src, src)
     n = len(picks)
-    out = np.zeros((n, n))
-    for j, p in enumerate(picks):
-        sub = table[:, p]
-        off = ~np.equal.outer(src, p)
-        for i in range(n):
-            rows = owner == i
-            out[i, j] = sub[rows][off[rows]].mean()
-    return out
+    sums = np.zeros((n, n))
+    counts = np.zeros((n, n))
+    np.add.at(sums, (owner[:, None], owner[None, :]), np.where(off, sub, 0.0))
+    np.add.at(counts, (owner[:, None], owner[None, :]), off)
+    return sums / counts
 
 
 def region_travel(net: RoadNetwork, picks: list[np.ndarray], edge_time: np.ndarray | None = None) -> np.ndarray:
