@@ -6,7 +6,7 @@ import pickle
 
 import numpy as np
 import pytest
-from pettingzoo.test import api_test, parallel_api_test, parallel_seed_test, render_test
+from pettingzoo.test import api_test, parallel_api_test, parallel_seed_test, render_test, state_test
 
 import marl_amod
 from marl_amod.env.parallel import AmodParallelEnv
@@ -31,6 +31,12 @@ def test_parallel_seed_conformance(kwargs: dict) -> None:
 @pytest.mark.parametrize("kwargs", SCENARIOS)
 def test_aec_api_conformance(kwargs: dict) -> None:
     api_test(marl_amod.env(**kwargs), num_cycles=20)
+
+
+@pytest.mark.parametrize("kwargs", SCENARIOS)
+def test_state_conformance(kwargs: dict) -> None:
+    """state() matches state_space in both the AEC and the parallel API, every step."""
+    state_test(marl_amod.env(**kwargs), marl_amod.parallel_env(**kwargs), num_cycles=20)
 
 
 @pytest.mark.parametrize("kwargs", SCENARIOS)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from marl_amod.scenario.types import City
 from marl_amod.system import FleetSystem
 
 FEATURE_SCALE = 0.01
@@ -36,3 +37,16 @@ def node_features(system: FleetSystem, lookahead: int = 6, scale: float = FEATUR
     value = (city.demand_rate[idx] * city.price[idx]).sum(axis=2) * valid[:, None]  # (T, N)
     feats = np.concatenate([sim.idle[None, :], supply, value], axis=0).T * scale
     return feats.astype(np.float32)
+
+
+def feature_high(city: City, lookahead: int = 6, scale: float = FEATURE_SCALE) -> np.ndarray:
+    """(1 + 2T,) finite upper bounds of :func:`node_features` on ``city``.
+
+    Idle and supply count disjoint vehicles, so neither exceeds the fleet; the request value is
+    a function of the city's tables alone. Finite bounds keep observation spaces usable by
+    learners that normalise or sample them.
+    """
+    fleet = city.fleet_size * scale
+    value = float((city.demand_rate * city.price).sum(axis=2).max()) * scale
+    high = np.concatenate([np.full(1 + lookahead, fleet), np.full(lookahead, value)])
+    return (high * (1 + 1e-6)).astype(np.float32)

@@ -101,11 +101,19 @@ def local_observations(
     return obs.astype(np.float32, copy=False)
 
 
-def local_bounds(lookahead: int, max_degree: int) -> tuple[np.ndarray, np.ndarray]:
-    """Lower and upper bounds of one local observation (features >= 0, time in [-1, 1], mask in [0, 1])."""
-    f = n_features(lookahead)
+def local_bounds(feature_high: np.ndarray, max_degree: int) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of one local observation: features in [0, feature_high], time in [-1, 1], mask in [0, 1]."""
+    f = len(feature_high)
     low = np.concatenate([np.zeros(f), [-1.0, -1.0, 0.0], np.zeros(max_degree * f), np.zeros(max_degree)])
-    high = np.concatenate([np.full(f, np.inf), [1.0, 1.0, 1.0], np.full(max_degree * f, np.inf), np.ones(max_degree)])
+    high = np.concatenate([feature_high, [1.0, 1.0, 1.0], np.tile(feature_high, max_degree), np.ones(max_degree)])
+    return low.astype(np.float32), high.astype(np.float32)
+
+
+def state_bounds(feature_high: np.ndarray, n_regions: int) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of the global state: every region's features, then time of day and step fraction."""
+    f = len(feature_high)
+    low = np.concatenate([np.zeros(n_regions * f), [-1.0, -1.0, 0.0]])
+    high = np.concatenate([np.tile(feature_high, n_regions), [1.0, 1.0, 1.0]])
     return low.astype(np.float32), high.astype(np.float32)
 
 

@@ -11,7 +11,7 @@ Import              ``from marl_amod import parallel_env, env`` (or ``marl_amod.
 Agents              ``region_0`` ... ``region_{N-1}``, all alive for the whole episode
 Parallel API        yes (``env()`` is the AEC version through ``parallel_to_aec``)
 Action space        ``Box(0, 1, (1,), float32)``, identical for every agent
-Observation space   ``Box(float32, (F + 3 + K(F + 1),))``, F = 1 + 2 * lookahead (13), K = max in-degree
+Observation space   ``Box(float32, (F + 3 + K(F + 1),))``, F = 1 + 2 * lookahead (13), K = max in-degree; finite bounds
 State space         ``Box(float32, (N * F + 3,))``
 Episode             ``horizon - 1`` steps (reset dispatches step 0), then every agent is truncated
 ==================  ===================================================================================
@@ -66,6 +66,7 @@ from pettingzoo import ParallelEnv
 from marl_amod.coordinator.coordinator import Objective
 from marl_amod.env import actions as act
 from marl_amod.env import observations as ob
+from marl_amod.env.features import feature_high as feature_bounds
 from marl_amod.env.rewards import REWARD_MODES, RewardMode, rewards
 from marl_amod.errors import ConfigError
 from marl_amod.metrics import episode_metrics
@@ -120,17 +121,12 @@ class AmodParallelEnv(ParallelEnv):
         self.agents: list[str] = []
         self.max_degree = ob.max_in_degree(city)
         self._table = ob.neighbour_table(city, self.max_degree)
-        low, high = ob.local_bounds(self.lookahead, self.max_degree)
-        self._observation_space = spaces.Box(low, high, dtype=np.float32)
+        feature_high = feature_bounds(city, self.lookahead)
+        self._observation_space = spaces.Box(*ob.local_bounds(feature_high, self.max_degree), dtype=np.float32)
         self._action_space = spaces.Box(0.0, 1.0, shape=(1,), dtype=np.float32)
         self.observation_spaces = {a: self._observation_space for a in self.possible_agents}
         self.action_spaces = {a: self._action_space for a in self.possible_agents}
-        f = ob.n_features(self.lookahead)
-        self.state_space = spaces.Box(
-            np.concatenate([np.zeros(n * f), [-1.0, -1.0, 0.0]]).astype(np.float32),
-            np.concatenate([np.full(n * f, np.inf), [1.0, 1.0, 1.0]]).astype(np.float32),
-            dtype=np.float32,
-        )
+        self.state_space = spaces.Box(*ob.state_bounds(feature_high, n), dtype=np.float32)
         self._seeds: np.random.SeedSequence | None = None
         self._last_rebalance = np.zeros((n, n), dtype=np.int64)
         self._last_reward: float | None = None
