@@ -13,9 +13,9 @@ from pathlib import Path
 from typing import Any, Callable, Literal
 
 import numpy as np
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from marl_amod.data import read_yaml
 from marl_amod.errors import ConfigError
 
 
@@ -44,11 +44,9 @@ class CompareConfig(BaseModel):
 def load_compare_config(path: str | Path) -> CompareConfig:
     from marl_amod.training import make_args
 
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"config {path} not found")
+    raw = read_yaml(path)
     try:
-        cfg = CompareConfig.model_validate(yaml.safe_load(path.read_text()) or {})
+        cfg = CompareConfig.model_validate(raw)
     except ValidationError as exc:
         raise ConfigError(f"{path}: {exc}") from None
     for run in cfg.runs:  # fail on a typo before any training starts

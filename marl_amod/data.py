@@ -13,7 +13,9 @@ import os
 from pathlib import Path
 from typing import Any
 
-from marl_amod.errors import DataError
+import yaml
+
+from marl_amod.errors import ConfigError, DataError
 
 ENV_VAR = "MARL_AMOD_DATA"
 
@@ -52,3 +54,18 @@ def read_json(path: Path) -> Any:
         raise DataError(f"malformed JSON in {path}: {exc.msg} at line {exc.lineno}, column {exc.colno}") from exc
     except OSError as exc:
         raise DataError(f"cannot read {path}: {exc}") from exc
+
+
+def read_yaml(path: str | Path, what: str = "config") -> dict[str, Any]:
+    """Parse a YAML mapping (a scenario or an experiment config); every failure is a
+    :class:`ConfigError` naming the file, never a parser traceback. An empty file is ``{}``."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{what} {path} not found")
+    try:
+        raw = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"malformed YAML in {path}: {exc}") from exc
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: expected a mapping of keys")
+    return raw

@@ -24,9 +24,9 @@ from typing import Any, Callable, Literal
 
 import numpy as np
 import torch
-import yaml
 from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
 
+from marl_amod.data import read_yaml
 from marl_amod.errors import ConfigError
 from marl_amod.scenario import City
 from marl_amod.system import FleetSystem
@@ -360,10 +360,7 @@ def make_args(algo: str, values: dict[str, Any], where: str = "config") -> Any:
 
 def load_train_config(path: str | Path) -> tuple[str, Any]:
     """(algo, Args) from a YAML training config."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"config {path} not found")
-    raw = yaml.safe_load(path.read_text()) or {}
+    raw = read_yaml(path)
     try:
         cfg = TrainConfig.model_validate(raw)
     except ValidationError as exc:

@@ -111,6 +111,23 @@ def test_train_config_typo_is_a_clear_error(tmp_path):
         load_train_config(bad)
 
 
+@pytest.mark.parametrize("loader", ["marl_amod.training:load_train_config", "marl_amod.comparison:load_compare_config"])
+def test_malformed_or_missing_config_is_a_config_error_naming_the_file(tmp_path, loader):
+    import importlib
+
+    module, name = loader.split(":")
+    load = getattr(importlib.import_module(module), name)
+    bad = tmp_path / "broken.yaml"
+    bad.write_text("algo: a2c\nargs: {episodes: [1, 2\n")
+    with pytest.raises(ConfigError, match="malformed YAML in .*broken.yaml"):
+        load(bad)
+    bad.write_text("- just\n- a list\n")
+    with pytest.raises(ConfigError, match="expected a mapping"):
+        load(bad)
+    with pytest.raises(ConfigError, match="not found"):
+        load(tmp_path / "missing.yaml")
+
+
 def test_compare_config_typo_is_a_clear_error(tmp_path):
     from marl_amod.comparison import load_compare_config
 

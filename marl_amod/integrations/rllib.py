@@ -35,11 +35,11 @@ from typing import Any, Callable, Iterator, Literal
 
 import numpy as np
 import torch
-import yaml
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from marl_amod.data import read_yaml
 from marl_amod.errors import ConfigError
 
 EXTRA = 'pip install "marl-amod[rllib]"'
@@ -120,11 +120,8 @@ class RllibConfig(BaseModel):
 
 def load_rllib_config(path: str | Path) -> RllibArgs:
     """Strictly validated RLlib training args from a YAML config."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"config {path} not found")
-    raw = yaml.safe_load(path.read_text()) or {}
-    if isinstance(raw, dict) and raw.get("algo") in ("a2c", "sac"):
+    raw = read_yaml(path)
+    if raw.get("algo") in ("a2c", "sac"):
         raise ConfigError(f"{path} is a native {raw['algo']} config; train it without --backend rllib")
     try:
         return RllibConfig.model_validate(raw).args

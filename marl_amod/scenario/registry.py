@@ -11,10 +11,9 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any, Literal, Union
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from marl_amod.data import resolve
+from marl_amod.data import read_yaml, resolve
 from marl_amod.errors import ConfigError, DataError
 from marl_amod.scenario.json_city import load_json_city
 from marl_amod.scenario.synthetic import grid_city
@@ -131,12 +130,7 @@ def _find(name_or_path: str) -> Path:
 def load_spec(name_or_path: str, **overrides: Any) -> ScenarioSpec:
     """Read and validate a scenario YAML; keyword overrides replace its keys."""
     path = _find(name_or_path)
-    try:
-        raw = yaml.safe_load(path.read_text()) or {}
-    except yaml.YAMLError as exc:
-        raise ConfigError(f"malformed YAML in {path}: {exc}") from exc
-    if not isinstance(raw, dict):
-        raise ConfigError(f"{path}: expected a mapping of keys")
+    raw = read_yaml(path, "scenario file")
     raw.update({k: v for k, v in overrides.items() if v is not None})
     source = raw.get("source")
     model = {"json": JsonScenario, "synthetic": SyntheticScenario, "sumo": SumoScenario}.get(source)
