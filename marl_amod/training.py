@@ -14,6 +14,7 @@ Modes
 
 from __future__ import annotations
 
+import copy
 import csv
 import dataclasses
 import json
@@ -248,9 +249,24 @@ def evaluate_actor(actor: torch.nn.Module, city: City, episodes: int, seed: int,
         actor.train(was_training)
 
 
-def validation_profit(actor: torch.nn.Module, city: City, args: RunArgs) -> float:
-    """Mean profit of the deterministic actor on the validation seeds (picks the kept actor)."""
-    return evaluate_actor(actor, city, args.eval_episodes, args.eval_seed, args.lookahead)["metrics"]["profit"]["mean"]
+@dataclass
+class BestActor:
+    """The actor with the best validation profit so far: what a run keeps and ships, not the last one."""
+
+    value: float
+    state: dict[str, torch.Tensor]
+
+    @classmethod
+    def of(cls, actor: torch.nn.Module) -> BestActor:
+        """Start from the untrained actor (kept if no validation ever beats -inf)."""
+        return cls(-np.inf, copy.deepcopy(actor.state_dict()))
+
+    def validate(self, actor: torch.nn.Module, city: City, args: RunArgs) -> float:
+        """Mean profit of the deterministic actor on the validation seeds; kept when it is the best yet."""
+        val = evaluate_actor(actor, city, args.eval_episodes, args.eval_seed, args.lookahead)["metrics"]["profit"]["mean"]
+        if val > self.value:
+            self.value, self.state = val, copy.deepcopy(actor.state_dict())
+        return val
 
 
 def close_episode(

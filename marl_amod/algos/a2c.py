@@ -14,7 +14,6 @@ Each update uses ``episodes_per_update`` whole episodes: discounted returns, adv
 
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass
 from typing import Any, Callable
 
@@ -91,12 +90,12 @@ def train(args: Args, resume: str | None = None, progress: Callable[[int, int, d
     opt_a = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
     opt_c = torch.optim.Adam(critic.parameters(), lr=args.lr_critic)
 
-    start_ep, best_val, best_actor, prior_wall = 0, -np.inf, copy.deepcopy(actor.state_dict()), 0.0
+    start_ep, prior_wall, best = 0, 0.0, T.BestActor.of(actor)
     if resume:
         st = T.load_state(resume)
         actor.load_state_dict(st["actor"]), critic.load_state_dict(st["critic"])
         opt_a.load_state_dict(st["opt_a"]), opt_c.load_state_dict(st["opt_c"])
-        start_ep, best_val, best_actor, prior_wall = st["episode"], st["best_val"], st["best_actor"], st["wall_s"]
+        start_ep, prior_wall, best = st["episode"], st["wall_s"], T.BestActor(st["best_val"], st["best_actor"])
     log = T.Logger(args.run_dir)
     timer = T.Timer()
 
@@ -138,17 +137,14 @@ def train(args: Args, resume: str | None = None, progress: Callable[[int, int, d
         stats = {"train/episode_reward": float(np.mean(ep_rewards)), "loss/policy": loss_pi.item(), "loss/value": loss_v.item()}
         # ---- periodic validation, best-actor selection, resumable state ----
         if ep // args.eval_every != (ep - args.episodes_per_update) // args.eval_every or ep >= args.episodes:
-            val = T.validation_profit(actor, city, args)
-            stats["eval/profit"] = val
-            if val > best_val:
-                best_val, best_actor = val, copy.deepcopy(actor.state_dict())
+            stats["eval/profit"] = best.validate(actor, city, args)
             T.save_state(
                 f"{args.run_dir}/state.pt", actor=actor.state_dict(), critic=critic.state_dict(), opt_a=opt_a.state_dict(),
-                opt_c=opt_c.state_dict(), episode=ep, best_val=best_val, best_actor=best_actor, wall_s=prior_wall + timer(),
+                opt_c=opt_c.state_dict(), episode=ep, best_val=best.value, best_actor=best.state, wall_s=prior_wall + timer(),
             )
         if T.close_episode(log, rollout, ep, stats, args, prior_wall + timer(), progress):
             break
 
     log.close()
-    actor.load_state_dict(best_actor)
+    actor.load_state_dict(best.state)
     return T.finish_run(args, "a2c", actor, city, prior_wall + timer(), ep)

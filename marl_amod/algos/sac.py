@@ -117,12 +117,12 @@ def train(args: Args, resume: str | None = None, progress: Callable[[int, int, d
     target_entropy = -float(city.n_regions)
     buffer = Replay(args.buffer_size)
 
-    start_ep, best_val, best_actor, prior_wall, n_steps = 0, -np.inf, copy.deepcopy(actor.state_dict()), 0.0, 0
+    start_ep, prior_wall, n_steps, best = 0, 0.0, 0, T.BestActor.of(actor)
     if resume:
         st = T.load_state(resume)
         actor.load_state_dict(st["actor"]), critic.load_state_dict(st["critic"]), critic_targ.load_state_dict(st["critic_targ"])
         opt_a.load_state_dict(st["opt_a"]), opt_c.load_state_dict(st["opt_c"])
-        start_ep, best_val, best_actor, prior_wall = st["episode"], st["best_val"], st["best_actor"], st["wall_s"]
+        start_ep, prior_wall, best = st["episode"], st["wall_s"], T.BestActor(st["best_val"], st["best_actor"])
         log_alpha.data.fill_(st["log_alpha"])
     log = T.Logger(args.run_dir)
     timer = T.Timer()
@@ -185,18 +185,15 @@ def train(args: Args, resume: str | None = None, progress: Callable[[int, int, d
         ep += 1
         stats["train/episode_reward"] = ep_reward
         if ep % args.eval_every == 0 or ep >= args.episodes:
-            val = T.validation_profit(actor, city, args)
-            stats["eval/profit"] = val
-            if val > best_val:
-                best_val, best_actor = val, copy.deepcopy(actor.state_dict())
+            stats["eval/profit"] = best.validate(actor, city, args)
             T.save_state(
                 f"{args.run_dir}/state.pt", actor=actor.state_dict(), critic=critic.state_dict(), critic_targ=critic_targ.state_dict(),
-                opt_a=opt_a.state_dict(), opt_c=opt_c.state_dict(), log_alpha=log_alpha.item(), episode=ep, best_val=best_val,
-                best_actor=best_actor, wall_s=prior_wall + timer(),
+                opt_a=opt_a.state_dict(), opt_c=opt_c.state_dict(), log_alpha=log_alpha.item(), episode=ep, best_val=best.value,
+                best_actor=best.state, wall_s=prior_wall + timer(),
             )
         if T.close_episode(log, rollout, ep, stats, args, prior_wall + timer(), progress):
             break
 
     log.close()
-    actor.load_state_dict(best_actor)
+    actor.load_state_dict(best.state)
     return T.finish_run(args, "sac", actor, city, prior_wall + timer(), ep)
