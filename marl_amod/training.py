@@ -21,7 +21,7 @@ import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Literal
+from typing import Any, Callable, Literal, Protocol
 
 import numpy as np
 import torch
@@ -249,6 +249,14 @@ def evaluate_actor(actor: torch.nn.Module, city: City, episodes: int, seed: int,
         actor.train(was_training)
 
 
+class ValidationArgs(Protocol):
+    """What validation reads from a run's args (native RunArgs and RLlib's args both have it)."""
+
+    eval_episodes: int
+    eval_seed: int
+    lookahead: int
+
+
 @dataclass
 class BestActor:
     """The actor with the best validation profit so far: what a run keeps and ships, not the last one."""
@@ -261,7 +269,7 @@ class BestActor:
         """Start from the untrained actor (kept if no validation ever beats -inf)."""
         return cls(-np.inf, copy.deepcopy(actor.state_dict()))
 
-    def validate(self, actor: torch.nn.Module, city: City, args: RunArgs) -> float:
+    def validate(self, actor: torch.nn.Module, city: City, args: ValidationArgs) -> float:
         """Mean profit of the deterministic actor on the validation seeds; kept when it is the best yet."""
         val = evaluate_actor(actor, city, args.eval_episodes, args.eval_seed, args.lookahead)["metrics"]["profit"]["mean"]
         if val > self.value:

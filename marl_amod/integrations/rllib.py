@@ -338,7 +338,8 @@ def train_rllib(
     """Train PPO on Ray, checkpoint under ``run_dir``, convert, evaluate; returns the run summary."""
     from marl_amod.checkpoints import save_policy, write_card_markdown
     from marl_amod.scenario import load_city
-    from marl_amod.training import Logger, evaluate_actor, seed_everything
+    from marl_amod.models import LocalActor
+    from marl_amod.training import BestActor, Logger, evaluate_actor, seed_everything
 
     seed_everything(args.seed)
     city = load_city(args.scenario)
@@ -348,7 +349,7 @@ def train_rllib(
     run_dir.mkdir(parents=True, exist_ok=True)
     log = Logger(run_dir, tensorboard=False)
     temp = args.ray_temp_dir or None
-    best: dict[str, Any] = {"profit": -np.inf, "state": None}
+    best, best_iteration = BestActor.of(LocalActor(n_features, args.hidden)), 0
     history: list[dict[str, float]] = []
     start = time.perf_counter()
     try:
@@ -365,10 +366,10 @@ def train_rllib(
                     last = it == args.iterations or (args.time_limit_s and stats["wall_s"] >= args.time_limit_s)
                     if last or (args.eval_every and it % args.eval_every == 0):
                         actor = module_to_actor(algo.get_module(POLICY_ID), args.hidden, n_features)
-                        res = evaluate_actor(actor, city, args.eval_episodes, args.eval_seed, args.lookahead)
-                        stats["eval/profit"] = res["metrics"]["profit"]["mean"]
-                        if stats["eval/profit"] > best["profit"]:
-                            best = {"profit": stats["eval/profit"], "state": actor.state_dict(), "iteration": it}
+                        before = best.value
+                        stats["eval/profit"] = best.validate(actor, city, args)
+                        if best.value > before:
+                            best_iteration = it
                         if args.target_profit and stats["eval/profit"] >= args.target_profit:
                             last = True
                     log.log(it, **stats)
@@ -384,10 +385,8 @@ def train_rllib(
         log.close()
     wall = time.perf_counter() - start
 
-    from marl_amod.models import LocalActor
-
     actor = LocalActor(n_features, args.hidden)
-    actor.load_state_dict(best["state"])  # the best validation actor, as the native trainers keep
+    actor.load_state_dict(best.state)  # the best validation actor, as the native trainers keep
     actor.eval()
     result = evaluate_actor(actor, city, args.final_eval_episodes, args.final_eval_seed, args.lookahead)
     profit = result["metrics"]["profit"]
@@ -404,7 +403,7 @@ def train_rllib(
         "seed": args.seed,
         "central_critic": args.central_critic,
         "iterations": len(history),
-        "best_iteration": best.get("iteration", 0),
+        "best_iteration": best_iteration,
         "env_steps": int(env_steps),
         "num_env_runners": runners,
         "eval_episodes": args.final_eval_episodes,
