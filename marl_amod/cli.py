@@ -6,7 +6,7 @@ import json
 import os
 import shutil
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 from rich.console import Console
@@ -28,7 +28,7 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, help="Robo-taxi fl
 console = Console(width=shutil.get_terminal_size((150, 24)).columns)
 
 DataDir = Annotated[
-    Optional[Path], typer.Option("--data-dir", help=f"data root (macro/, lux/); default: ${ENV_VAR}", show_default=False)
+    Path | None, typer.Option("--data-dir", help=f"data root (macro/, lux/); default: ${ENV_VAR}", show_default=False)
 ]
 
 
@@ -91,7 +91,7 @@ def evaluate(
     policy: Annotated[list[str], typer.Option(help="policy name or checkpoint; repeat to compare")] = ["equal-distribution"],  # noqa: B006
     episodes: Annotated[int, typer.Option(min=1)] = 10,
     seed: int = 0,
-    output: Annotated[Optional[Path], typer.Option(help="write the results JSON here")] = None,
+    output: Annotated[Path | None, typer.Option(help="write the results JSON here")] = None,
     max_wait: Annotated[int, typer.Option(min=0, help="steps a request waits before leaving")] = 0,
     objective: Annotated[str, typer.Option(help="dispatch objective: profit or revenue")] = "profit",
     solver: Annotated[str, typer.Option(help="fast (greedy + OR-Tools) or cvxpy")] = "fast",
@@ -153,13 +153,13 @@ def collect(
 @app.command()
 def train(
     config: Annotated[Path, typer.Option(help="training config YAML (configs/<run>.yaml)")],
-    resume: Annotated[Optional[Path], typer.Option(help="resume from a training state (runs/<run>/state.pt)")] = None,
+    resume: Annotated[Path | None, typer.Option(help="resume from a training state (runs/<run>/state.pt)")] = None,
     backend: Annotated[str, typer.Option(help="native (A2C/SAC in-process) or rllib (PPO on Ray RLlib)")] = "native",
     num_env_runners: Annotated[
-        Optional[int], typer.Option(min=0, help="rllib: remote env runners (default: the config's)", show_default=False)
+        int | None, typer.Option(min=0, help="rllib: remote env runners (default: the config's)", show_default=False)
     ] = None,
     address: Annotated[
-        Optional[str], typer.Option(help="rllib: join a Ray cluster (auto or ray://host:10001) instead of a local one", show_default=False)
+        str | None, typer.Option(help="rllib: join a Ray cluster (auto or ray://host:10001) instead of a local one", show_default=False)
     ] = None,
     data_dir: DataDir = None,
 ) -> None:

@@ -19,9 +19,10 @@ import csv
 import dataclasses
 import json
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Literal, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy as np
 import torch
@@ -167,7 +168,7 @@ class Rollout:
             # constant. Counted so a clipped (law-changing) action never goes unnoticed.
             sent = np.asarray(weights, dtype=np.float64) / WEIGHT_DIVISOR
             self.clipped += int((sent > 1.0).sum())
-            actions = {a: np.array([w], dtype=np.float32) for a, w in zip(self.agents, sent)}
+            actions = {a: np.array([w], dtype=np.float32) for a, w in zip(self.agents, sent, strict=True)}
             obs, rewards, terms, truncs, _ = self.env.step(actions)
             reward = float(rewards[self.agents[0]])
             self.done = not self.env.agents

@@ -122,7 +122,7 @@ def test_supersuit_sb3_ppo_trains_one_shared_policy() -> None:
     before = [p.detach().clone() for p in model.policy.parameters()]
     model.learn(total_timesteps=3 * 8 * vec.num_envs)
     assert model.num_timesteps >= 3 * 8 * vec.num_envs
-    changed = any(not torch.equal(a, b) for a, b in zip(before, model.policy.parameters()))
+    changed = any(not torch.equal(a, b) for a, b in zip(before, model.policy.parameters(), strict=True))
     assert changed
     obs = vec.reset()
     action, _ = model.predict(obs, deterministic=True)

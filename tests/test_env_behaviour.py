@@ -35,7 +35,7 @@ def _same(a, b) -> bool:
     if isinstance(a, dict):
         return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
     if isinstance(a, (tuple, list)):
-        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
     if isinstance(a, np.ndarray):
         return np.array_equal(a, b)
     return a == b
@@ -64,7 +64,7 @@ def test_unseeded_resets_continue_the_first_seed(tiny_city) -> None:
         return [env.system.sim.demand.copy() for _ in range(3) if env.reset() is not None]
 
     a, b = demands(marl_amod.parallel_env(tiny_city)), demands(marl_amod.parallel_env(tiny_city))
-    assert all(np.array_equal(x, y) for x, y in zip(a, b))
+    assert all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
     assert not np.array_equal(a[0], a[1])
 
 

@@ -136,6 +136,6 @@ def test_gradient_steps_change_parameters_and_reduce_loss(tiny_city):
         opt.step()
         losses.append(loss.item())
     assert losses[-1] < losses[0] - 1.0
-    assert any(not torch.equal(b, p) for b, p in zip(before, actor.parameters()))
+    assert any(not torch.equal(b, p) for b, p in zip(before, actor.parameters(), strict=True))
     alpha = actor(x, ei).detach()
     assert int(torch.argmax(alpha / alpha.sum())) == 4

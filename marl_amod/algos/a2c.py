@@ -14,8 +14,9 @@ Each update uses ``episodes_per_update`` whole episodes: discounted returns, adv
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch

@@ -16,8 +16,9 @@ a log pi(y|s) - min Q(s, y); Polyak-averaged targets; clipped gradients.
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -156,7 +157,7 @@ def train(args: Args, resume: str | None = None, progress: Callable[[int, int, d
             loss_alpha.backward()
             opt_alpha.step()
         with torch.no_grad():
-            for p, pt in zip(critic.parameters(), critic_targ.parameters()):
+            for p, pt in zip(critic.parameters(), critic_targ.parameters(), strict=True):
                 pt.mul_(args.polyak).add_((1 - args.polyak) * p)
         return {"loss/q": loss_q.item(), "loss/policy": loss_pi.item(), "alpha": a.item()}
 

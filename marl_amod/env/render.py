@@ -48,7 +48,7 @@ def draw(ax: Any, system: FleetSystem, rebalance: np.ndarray | None = None, step
         i, j = np.nonzero(rebalance)
         flow = rebalance[i, j].astype(float)
         keep = np.argsort(-flow)[:MAX_ARROWS]  # the largest flows; a huge city stays readable
-        for a, b, f in zip(i[keep], j[keep], flow[keep]):
+        for a, b, f in zip(i[keep], j[keep], flow[keep], strict=True):
             ax.annotate("", xy=pos[b], xytext=pos[a], zorder=3,
                         arrowprops={"arrowstyle": "-|>", "color": "tab:red", "alpha": 0.75, "shrinkA": 6, "shrinkB": 6,
                                     "lw": 0.8 + 3.0 * f / flow.max(), "connectionstyle": "arc3,rad=0.15"})

@@ -30,8 +30,9 @@ import secrets
 import shutil
 import tempfile
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any, Callable, Iterator, Literal
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -337,8 +338,8 @@ def train_rllib(
 ) -> dict[str, Any]:
     """Train PPO on Ray, checkpoint under ``run_dir``, convert, evaluate; returns the run summary."""
     from marl_amod.checkpoints import save_policy, write_card_markdown
-    from marl_amod.scenario import load_city
     from marl_amod.models import LocalActor
+    from marl_amod.scenario import load_city
     from marl_amod.training import BestActor, Logger, evaluate_actor, seed_everything
 
     seed_everything(args.seed)

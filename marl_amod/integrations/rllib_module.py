@@ -52,7 +52,7 @@ class ScaledGamma(TorchDistribution):
     def entropy(self) -> torch.Tensor:
         return (self._dist.entropy() - _LOG_C).sum(-1)
 
-    def kl(self, other: "ScaledGamma") -> torch.Tensor:
+    def kl(self, other: ScaledGamma) -> torch.Tensor:
         return torch.distributions.kl_divergence(self._dist, other._dist).sum(-1)  # scale-invariant
 
     def sample(self, *, sample_shape: Any = None) -> torch.Tensor:
@@ -66,7 +66,7 @@ class ScaledGamma(TorchDistribution):
         return 1
 
     @classmethod
-    def from_logits(cls, logits: torch.Tensor, **kwargs: Any) -> "ScaledGamma":
+    def from_logits(cls, logits: torch.Tensor, **kwargs: Any) -> ScaledGamma:
         """The module already emits concentrations (softplus + eps in :class:`LocalActor`)."""
         return cls(concentration=logits)
 

@@ -1,10 +1,10 @@
 """Policy and value networks: GNN (the paper's), local shared-parameter actor, MLP and CNN ablations."""
 
+from marl_amod.models.cnn import CNNActor
 from marl_amod.models.distributions import dirichlet, dirichlet_log_prob_from_gammas, dirichlet_mean, gamma, gamma_log_prob
 from marl_amod.models.gnn import GNNActor, GNNQCritic, GNNValueCritic, TwinQ, batch_edge_index
 from marl_amod.models.local import LocalActor, LocalValueCritic, local_from_global
 from marl_amod.models.mlp import MLPActor
-from marl_amod.models.cnn import CNNActor
 
 ACTORS = {"gnn": GNNActor, "local": LocalActor, "mlp": MLPActor, "cnn": CNNActor}
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, Literal, Union
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -87,7 +87,7 @@ class SumoScenario(_Spec):
     sumo_args: list[str] = Field(default_factory=list, description="extra SUMO options, e.g. [--tripinfo-output, t.xml]")
 
     @model_validator(mode="after")
-    def _network_source(self) -> "SumoScenario":
+    def _network_source(self) -> SumoScenario:
         if self.network == "osm" and not self.osm_file:
             raise ValueError("network 'osm' needs osm_file (a path under MARL_AMOD_DATA)")
         if self.network == "grid" and self.osm_file:
@@ -99,7 +99,7 @@ class SumoScenario(_Spec):
         return self
 
 
-ScenarioSpec = Union[JsonScenario, SyntheticScenario, SumoScenario]
+ScenarioSpec = JsonScenario | SyntheticScenario | SumoScenario
 
 
 def scenario_dirs() -> list[Path]:

@@ -216,7 +216,7 @@ class MesoSim:
             )
             chosen = chosen[np.argsort(self.r_time[chosen], kind="stable")]  # oldest first
             cars = self._nearest(np.flatnonzero((self.v_state == IDLE) & (self.v_region == i)), self.net.midpoint[self.r_oe[chosen]])
-            for k, v in zip(chosen, cars):
+            for k, v in zip(chosen, cars, strict=True):
                 self.r_status[k] = ASSIGNED
                 self.v_req[v] = k
                 self.v_dest[v] = self.r_d[k]
@@ -239,11 +239,11 @@ class MesoSim:
         y = as_flows(y, c.n_regions, "rebalancing")
         check_rebalance(y, self.idle)
         now = self.now
-        for i, j in zip(*np.nonzero(y)):
+        for i, j in zip(*np.nonzero(y), strict=True):
             pool = np.flatnonzero((self.v_state == IDLE) & (self.v_region == i))
             cars = self._nearest(pool, np.repeat(self.region_center[j][None], y[i, j], axis=0))
             targets = self._rng.choice(self.members[j], size=len(cars))
-            for v, e in zip(cars, targets):
+            for v, e in zip(cars, targets, strict=True):
                 self.v_dest[v] = j
                 self._go_busy(v, i, now + self.step_s * c.reb_time[i, j])
                 self._drive(v, e, REBALANCING)
