@@ -19,7 +19,8 @@ from marl_amod.env.parallel import AmodParallelEnv  # noqa: E402
 from marl_amod.errors import ConfigError, DataError  # noqa: E402
 from marl_amod.evaluation import evaluate  # noqa: E402
 from marl_amod.scenario import load_city, load_spec  # noqa: E402
-from marl_amod.sim.meso.sumo_sim import MesoSim  # noqa: E402
+from marl_amod.sim.meso.sumo_sim import LOST, MesoSim  # noqa: E402
+from marl_amod.sim.meso.taxi_sim import TaxiMesoSim  # noqa: E402
 from marl_amod.system import FleetSystem  # noqa: E402
 
 
@@ -48,31 +49,49 @@ def _episode(seed: int, *, weights=None, **overrides):
     return system
 
 
-def test_meso_grid_episode_conserves_fleet_and_accounts_for_every_request():
-    system = _episode(0)
+@pytest.mark.parametrize("taxi_device", [False, True], ids=["legs", "taxi_device"])
+def test_meso_grid_episode_conserves_fleet_and_accounts_for_every_request(taxi_device):
+    system = _episode(0, taxi_device=taxi_device)
     tot = system.sim.totals
     assert tot.served.sum() > 0 and tot.rebalanced.sum() > 0
     assert 0 < tot.busy_vehicle_steps.sum() <= system.city.fleet_size * system.city.horizon
     assert tot.wait_minutes.sum() > 0  # pickups take real driving time in SUMO
 
 
-def test_meso_same_seed_same_result_and_other_seed_differs():
-    a, b, c = (_episode(s).sim.totals for s in (3, 3, 4))
+@pytest.mark.parametrize("taxi_device", [False, True], ids=["legs", "taxi_device"])
+def test_meso_same_seed_same_result_and_other_seed_differs(taxi_device):
+    a, b, c = (_episode(s, taxi_device=taxi_device).sim.totals for s in (3, 3, 4))
     for name in a.__dataclass_fields__:
         np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
     assert not np.array_equal(a.demand, c.demand)
 
 
-def test_meso_requests_leave_after_max_wait():
+@pytest.mark.parametrize("taxi_device", [False, True], ids=["legs", "taxi_device"])
+def test_meso_requests_leave_after_max_wait(taxi_device):
     # one vehicle and heavy demand: most requests must time out rather than wait forever
-    city = load_city("sumo_grid", fleet=1, requests_per_hour=600, max_wait_min=2)
+    city = load_city("sumo_grid", fleet=1, requests_per_hour=600, max_wait_min=2, taxi_device=taxi_device)
     system = FleetSystem(city)
     system.reset(0)
     while not system.done:
         system.step(np.full(city.n_regions, -1))
+        if taxi_device:  # a request that left is no longer a person waiting in SUMO
+            sim = system.sim
+            lost = {f"req{k}" for k in np.flatnonzero(sim.r_status == LOST)}
+            assert not lost & set(sim.sumo.person.getIDList())
     tot = system.sim.totals
     assert tot.lost.sum() > tot.served.sum() > 0
     assert tot.demand.sum() == tot.served.sum() + tot.lost.sum()
+
+
+def test_taxi_device_fleet_is_sumo_taxis_and_serves_like_the_leg_model():
+    legs = _episode(0, requests_per_hour=600, fleet=40)
+    taxi = _episode(0, requests_per_hour=600, fleet=40, taxi_device=True)
+    assert isinstance(taxi.sim, TaxiMesoSim) and not isinstance(legs.sim, TaxiMesoSim)
+    assert len(taxi.sim.sumo.vehicle.getTaxiFleet(-1)) == 40  # every fleet vehicle is one SUMO taxi
+    a, b = legs.sim.totals, taxi.sim.totals
+    np.testing.assert_array_equal(a.demand, b.demand)  # same requests; only the driving differs
+    assert b.served.sum() > 0 and abs(b.served.sum() - a.served.sum()) <= 0.15 * a.served.sum()
+    assert 0 < b.wait_minutes.sum() / b.served.sum() < taxi.city.tstep * 5  # boarding happens in SUMO
 
 
 def test_meso_env_passes_pettingzoo_parallel_api():
@@ -154,9 +173,10 @@ def test_lux_network_and_regions_build():
     assert dataclasses.is_dataclass(sim)
 
 
-def test_meso_traci_backend_matches_libsumo():
-    a = _episode(5).sim.totals
-    b = _episode(5, backend="traci").sim.totals
+@pytest.mark.parametrize("taxi_device", [False, True], ids=["legs", "taxi_device"])
+def test_meso_traci_backend_matches_libsumo(taxi_device):
+    a = _episode(5, taxi_device=taxi_device).sim.totals
+    b = _episode(5, backend="traci", taxi_device=taxi_device).sim.totals
     for name in a.__dataclass_fields__:
         np.testing.assert_allclose(getattr(a, name), getattr(b, name))
 

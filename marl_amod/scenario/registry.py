@@ -84,6 +84,7 @@ class SumoScenario(_Spec):
     step_length: float = Field(1.0, gt=0, description="SUMO seconds per simulation step")
     refresh_travel_times: bool = Field(True, description="region travel times follow SUMO's edge times each step")
     dispatch_every_min: float | None = Field(None, gt=0, description="match requests this often (divides tstep)")
+    taxi_device: bool = Field(False, description="fleet as SUMO taxis, requests as persons (else one vehicle per leg)")
     sumo_args: list[str] = Field(default_factory=list, description="extra SUMO options, e.g. [--tripinfo-output, t.xml]")
 
     @model_validator(mode="after")
@@ -174,7 +175,7 @@ def _build_sumo_city(spec: SumoScenario) -> City:
             "mean_trip_min", "peak", "fare_base", "fare_per_km", "beta")  # fmt: skip
     options = {"max_wait_min": spec.max_wait_min, "backend": spec.backend, "step_length": spec.step_length,
                "sumo_seed": spec.seed, "refresh_travel_times": spec.refresh_travel_times,
-               "dispatch_every_min": spec.dispatch_every_min,
+               "dispatch_every_min": spec.dispatch_every_min, "taxi_device": spec.taxi_device,
                "extra_args": tuple(spec.sumo_args)}  # fmt: skip
     return sumo_city(name=spec.name, net_file=net_file, region_seed=spec.seed, mode=spec.mode, options=options,
                      **{k: getattr(spec, k) for k in keys})  # fmt: skip

@@ -54,6 +54,7 @@ class MesoOptions:
     time_to_teleport: float = 300.0
     refresh_travel_times: bool = True  # re-estimate region travel times from SUMO every step
     dispatch_every_min: float | None = None  # match requests this often inside a step (None: once)
+    taxi_device: bool = False  # the fleet as SUMO taxis and requests as persons (TaxiMesoSim); else legs
     region_seed: int = 0  # seeds the edges that region travel times average over
     quiet: bool = True  # silence SUMO's warnings (pass extra_args=("--log", file) to keep them)
     extra_args: tuple[str, ...] = ()
@@ -61,6 +62,10 @@ class MesoOptions:
     def __call__(self, city: City, max_wait: int = 0) -> MesoSim:
         """The simulator for ``city``; a positive ``max_wait`` (steps) overrides ``max_wait_min``."""
         minutes = max_wait * city.tstep if max_wait > 0 else self.max_wait_min
+        if self.taxi_device:
+            from marl_amod.sim.meso.taxi_sim import TaxiMesoSim
+
+            return TaxiMesoSim(city, self, max_wait_min=minutes)
         return MesoSim(city, self, max_wait_min=minutes)
 
     def sumo_args(self) -> list[str]:
@@ -77,6 +82,8 @@ class MesoOptions:
         ]  # fmt: skip
         if self.mode == "meso":
             args += ["--mesosim", "true"]
+        if self.taxi_device:  # we dispatch; idle taxis park off the road where they drop off
+            args += ["--device.taxi.dispatch-algorithm", "traci", "--device.taxi.idle-algorithm", "stop"]
         return [*args, *self.extra_args]
 
 
@@ -130,6 +137,7 @@ class MesoSim:
         self.demand = rng.poisson(self.city.demand_rate).astype(np.int64)
         self._init_fleet()
         self._init_requests()
+        self._place_fleet()
         self._round = 0
         self._new_requests(0)
         self._reveal()
@@ -221,10 +229,7 @@ class MesoSim:
                 self.v_req[v] = k
                 self.v_dest[v] = self.r_d[k]
                 self._go_busy(v, i, now + self.step_s * c.trip_time[t, i, self.r_d[k]])
-                if self.v_edge[v] == self.r_oe[k]:
-                    self._pickup(v)
-                else:
-                    self._drive(v, self.r_oe[k], PICKUP)
+                self._send_to_pickup(v, k)
         revenue = (x * c.price[t]).sum(axis=1)
         cost = (x * c.trip_cost[t]).sum(axis=1)
         self.totals.revenue += revenue
@@ -246,7 +251,7 @@ class MesoSim:
             for v, e in zip(cars, targets, strict=True):
                 self.v_dest[v] = j
                 self._go_busy(v, i, now + self.step_s * c.reb_time[i, j])
-                self._drive(v, e, REBALANCING)
+                self._send_rebalancing(v, e)
         cost = (y * c.reb_cost).sum(axis=1)
         self.totals.rebalancing_cost += cost
         self.totals.rebalanced += y.sum(axis=1)
@@ -294,12 +299,20 @@ class MesoSim:
         end = self.options.begin_s + when
         while api.simulation.getTime() < end - 1e-6:
             api.simulationStep()
-            self._fresh.clear()
-            for vid in api.simulation.getArrivedIDList():
-                v = self._leg.pop(vid, None)
-                if v is not None:
-                    self._arrive(v)
-            self.teleports += sum(vid in self._leg for vid in api.simulation.getStartingTeleportIDList())
+            self._after_sumo_step(api)
+        self._check_fleet(api)
+
+    def _after_sumo_step(self, api: Any) -> None:
+        """React to what SUMO did in one simulation step: legs that arrived."""
+        self._fresh.clear()
+        for vid in api.simulation.getArrivedIDList():
+            v = self._leg.pop(vid, None)
+            if v is not None:
+                self._arrive(v)
+        self.teleports += sum(vid in self._leg for vid in api.simulation.getStartingTeleportIDList())
+
+    def _check_fleet(self, api: Any) -> None:
+        """SUMO holds exactly the driving legs we think it does (none lost, none extra)."""
         if self.vehicles_in_sumo() + len(self._fresh) != len(self._leg):
             known = set(api.vehicle.getIDList()) | set(api.simulation.getPendingVehicles()) | self._fresh
             lost = sorted(set(self._leg) - known)
@@ -367,6 +380,20 @@ class MesoSim:
         self.v_since[v] = self.now
         self.v_eta[v] = eta
 
+    def _place_fleet(self) -> None:
+        """Put the fleet into a fresh SUMO run; with legs, idle vehicles are off-road (nothing to add)."""
+
+    def _send_to_pickup(self, v: int, k: int) -> None:
+        """Vehicle v, just assigned request k, goes to its pickup edge."""
+        if self.v_edge[v] == self.r_oe[k]:
+            self._pickup(v)
+        else:
+            self._drive(v, self.r_oe[k], PICKUP)
+
+    def _send_rebalancing(self, v: int, to_edge: int) -> None:
+        """Idle vehicle v drives empty to ``to_edge`` in its target region."""
+        self._drive(v, to_edge, REBALANCING)
+
     def _drive(self, v: int, to_edge: int, state: int) -> None:
         """Start a SUMO leg from the vehicle's edge to ``to_edge`` (distinct edges)."""
         api = self.sumo
@@ -391,10 +418,13 @@ class MesoSim:
         if self.v_state[v] == PICKUP:
             self._pickup(v)
             return
+        self._become_idle(v)
+
+    def _become_idle(self, v: int) -> None:
+        """A trip or a rebalancing move ended at the vehicle's edge: book its busy time; idle there."""
         if self.v_state[v] == OCCUPIED:
             self.v_req[v] = -1
-        now = self.now
-        self.totals.busy_vehicle_steps[self.v_origin[v]] += (now - self.v_since[v]) / self.step_s
+        self.totals.busy_vehicle_steps[self.v_origin[v]] += (self.now - self.v_since[v]) / self.step_s
         self.v_state[v] = IDLE
         self.v_region[v] = self.options.of_edge[self.v_edge[v]]
 
@@ -439,6 +469,13 @@ class MesoSim:
         new = np.flatnonzero((self.r_status == UPCOMING) & (self.r_time <= self.now + 1e-6))
         self.r_status[new] = OPEN
         self.totals.demand += np.bincount(self.r_o[new], minlength=self.city.n_regions)
+        self._on_open(new)
+
+    def _on_open(self, new: np.ndarray) -> None:
+        """Requests ``new`` just opened (legs: nothing for SUMO to know)."""
+
+    def _on_lost(self, gone: np.ndarray) -> None:
+        """Requests ``gone`` just left unserved (legs: nothing for SUMO to know)."""
 
     def _open(self) -> np.ndarray:
         return np.flatnonzero(self.r_status == OPEN)
@@ -448,3 +485,4 @@ class MesoSim:
         gone = np.flatnonzero((self.r_status == OPEN) & (self.r_time < cutoff))
         self.r_status[gone] = LOST
         self.totals.lost += np.bincount(self.r_o[gone], minlength=self.city.n_regions)
+        self._on_lost(gone)

@@ -1,0 +1,163 @@
+"""The fleet as SUMO taxis: requests are persons with a taxi stage, dispatched through the taxi device.
+
+Same region-level contract as :class:`~marl_amod.sim.meso.sumo_sim.MesoSim` (which it extends):
+the coordinator's flows choose *which* vehicle serves *which* request, nearest first; SUMO's
+taxi device then does the driving, the boarding and the drop-off. Differences from the
+plain-leg mechanism, all SUMO's own behaviour rather than ours:
+
+- every fleet vehicle is one SUMO taxi for the whole episode (``has.taxi.device``), so the fleet
+  size SUMO reports must equal ours after every step; idle taxis park off the road where they
+  dropped off (``--device.taxi.idle-algorithm stop``);
+- an open request is a SUMO person waiting at the middle of its origin edge with a driving stage
+  ``lines="taxi"`` to its destination; SUMO turns it into a reservation after one simulation
+  step, so a dispatch is sent to SUMO (``vehicle.dispatchTaxi``) at the next step (1 s later);
+  a request that leaves after its maximum wait is removed from SUMO;
+- rebalancing uses a placeholder person at the target edge with a ride to the nearest other edge
+  of the target region: a parked taxi in meso cannot be moved by ``changeTarget``/``setStop``,
+  but it does answer a reservation. The vehicle is idle again when the placeholder gets out;
+- pickups and drop-offs are read from SUMO's taxi fleet states (empty / occupied) once per
+  simulation step, as set differences, not per-vehicle calls.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from marl_amod.sim.meso.sumo_sim import OCCUPIED, PICKED, PICKUP, REBALANCING, MesoSim
+
+TAXI_TYPE = "marl_amod_taxi"
+EMPTY, OCCUPIED_FLEET, PICKUP_AND_OCCUPIED, ALL = 0, 2, 3, -1  # vehicle.getTaxiFleet filters
+
+
+class TaxiMesoSim(MesoSim):
+    """One episode with the fleet as SUMO taxis (``taxi_device: true`` in a SUMO scenario)."""
+
+    # ------------------------------------------------------------------ fleet
+    def _init_fleet(self) -> None:
+        super()._init_fleet()
+        self._taxi = [f"taxi{v}" for v in range(len(self.v_state))]
+        self._index = {tid: v for v, tid in enumerate(self._taxi)}
+        self._edge_index = {e: k for k, e in enumerate(self.net.edges)}
+        self._pending: list[tuple[int, str]] = []  # (vehicle, person) dispatches waiting for a reservation
+        self._to_pickup: set[str] = set()  # taxis driving to a passenger
+        self._carrying: set[str] = set()  # taxis with a passenger or on a rebalancing move
+        self._placeholders = 0
+
+    def _place_fleet(self) -> None:
+        """Add every vehicle as a taxi on its edge; its first route has two edges (a one-edge route
+        silently leaves the network in meso), after which it parks and waits, idle."""
+        api = self.sumo
+        api.vehicletype.copy("DEFAULT_VEHTYPE", TAXI_TYPE)
+        api.vehicletype.setParameter(TAXI_TYPE, "has.taxi.device", "true")
+        edges = self.net.edges
+        for v, tid in enumerate(self._taxi):
+            start = self.v_edge[v]
+            route = api.simulation.findRoute(edges[start], edges[self._other_edge(start, self.v_region[v])])
+            first = list(route.edges[:2])
+            api.route.add(tid, first)
+            api.vehicle.add(tid, tid, typeID=TAXI_TYPE, depart="now", departSpeed="max")
+            self.v_edge[v] = self._edge_index[first[-1]]
+            self.v_region[v] = self.options.of_edge[self.v_edge[v]]
+
+    def _other_edge(self, edge: int, region: int) -> int:
+        """The edge of ``region`` nearest to ``edge`` other than itself (a short, real hop)."""
+        members = self.members[region]
+        d = np.linalg.norm(self.net.midpoint[members] - self.net.midpoint[edge], axis=1)
+        d[members == edge] = np.inf
+        if not np.isfinite(d).any():
+            raise RuntimeError(f"region {region} has a single edge; taxis need two")
+        return int(members[np.argmin(d)])
+
+    def vehicles(self) -> int:
+        """Fleet taxis SUMO holds, driving, parked or waiting for insertion (conservation)."""
+        return self.vehicles_in_sumo()
+
+    def vehicles_in_sumo(self) -> int:
+        api = self.sumo
+        return len(api.vehicle.getTaxiFleet(ALL)) + len(api.simulation.getPendingVehicles())
+
+    def _check_fleet(self, api) -> None:
+        held = self.vehicles_in_sumo()
+        if held != len(self._taxi):
+            raise RuntimeError(f"SUMO holds {held} of the {len(self._taxi)} fleet taxis")
+
+    # ------------------------------------------------------------------ requests as persons
+    def _on_open(self, new: np.ndarray) -> None:
+        api, edges = self.sumo, self.net.edges
+        for k in new:
+            pid = f"req{k}"
+            e = self.r_oe[k]
+            api.person.add(pid, edges[e], float(self.net.length[e]) / 2.0, depart=-3)  # -3: now
+            api.person.appendDrivingStage(pid, edges[self.r_de[k]], "taxi")
+
+    def _on_lost(self, gone: np.ndarray) -> None:
+        if self._api is None:
+            return
+        api = self.sumo
+        for k in gone:
+            api.person.remove(f"req{k}")
+
+    # ------------------------------------------------------------------ moves
+    def _send_to_pickup(self, v: int, k: int) -> None:
+        self.v_state[v] = PICKUP
+        self.v_target[v] = self.r_de[k]
+        self._pending.append((v, f"req{k}"))
+
+    def _send_rebalancing(self, v: int, to_edge: int) -> None:
+        """A placeholder person at ``to_edge`` rides one hop inside the target region."""
+        api, edges = self.sumo, self.net.edges
+        hop = self._other_edge(to_edge, self.options.of_edge[to_edge])
+        self._placeholders += 1
+        pid = f"reb{self._placeholders}"
+        api.person.add(pid, edges[to_edge], float(self.net.length[to_edge]) / 2.0, depart=-3)
+        api.person.appendDrivingStage(pid, edges[hop], "taxi")
+        self.v_state[v] = REBALANCING
+        self.v_target[v] = hop
+        self.v_eta[v] = self.now + api.simulation.findRoute(edges[self.v_edge[v]], edges[to_edge]).travelTime
+        self._pending.append((v, pid))
+
+    def _after_sumo_step(self, api) -> None:
+        """Pickups (a taxi sent to a passenger is now occupied), drop-offs (a carrying taxi is
+        empty again), then the dispatches whose reservations SUMO has opened meanwhile."""
+        self.teleports += len(api.simulation.getStartingTeleportIDList())
+        if self._to_pickup or self._carrying:
+            empty = set(api.vehicle.getTaxiFleet(EMPTY))
+            occupied = set(api.vehicle.getTaxiFleet(OCCUPIED_FLEET)) | set(api.vehicle.getTaxiFleet(PICKUP_AND_OCCUPIED))
+            for tid in sorted((occupied | empty) & self._to_pickup):
+                self._to_pickup.discard(tid)
+                self._taxi_pickup(self._index[tid])
+                self._carrying.add(tid)
+            for tid in sorted(empty & self._carrying):
+                self._carrying.discard(tid)
+                self._taxi_dropoff(self._index[tid], api)
+        if self._pending:
+            self._dispatch_pending(api)
+
+    def _dispatch_pending(self, api) -> None:
+        reservation = {r.persons[0]: r.id for r in api.person.getTaxiReservations(0)}
+        inserted = set(api.vehicle.getTaxiFleet(ALL))
+        waiting = []
+        for v, pid in self._pending:
+            tid = self._taxi[v]
+            if pid not in reservation or tid not in inserted:
+                waiting.append((v, pid))
+                continue
+            api.vehicle.dispatchTaxi(tid, [reservation[pid]])
+            (self._to_pickup if self.v_state[v] == PICKUP else self._carrying).add(tid)
+        self._pending = waiting
+
+    def _taxi_pickup(self, v: int) -> None:
+        """The passenger is in: the wait ends; the ride's ETA comes from SUMO's router."""
+        k = self.v_req[v]
+        self.r_status[k] = PICKED
+        self.totals.wait_minutes[self.r_o[k]] += (self.now - self.r_time[k]) / 60.0
+        self.v_state[v] = OCCUPIED
+        edges = self.net.edges
+        self.v_eta[v] = self.now + self.sumo.simulation.findRoute(edges[self.r_oe[k]], edges[self.r_de[k]]).travelTime
+
+    def _taxi_dropoff(self, v: int, api) -> None:
+        """Empty again: idle on the edge SUMO has it on (its drop-off edge)."""
+        road = api.vehicle.getRoadID(self._taxi[v])
+        self.v_edge[v] = self._edge_index.get(road, self.v_target[v])
+        self._become_idle(v)
+
