@@ -10,7 +10,7 @@ from conftest import REAL_CITIES, needs_data
 
 from marl_amod.errors import ConfigError, DataError
 from marl_amod.evaluation import evaluate
-from marl_amod.scenario import available, grid_city, load_city
+from marl_amod.scenario import available, grid_city, load_city, load_spec
 from marl_amod.scenario.json_city import load_json_city
 
 
@@ -118,6 +118,25 @@ def test_user_yaml_scenario(tmp_path):
     mine.write_text("name: mine\nsource: synthetic\nrows: 2\ncols: 3\nhorizon: 5\n")
     city = load_city(str(mine))
     assert (city.name, city.n_regions, city.horizon) == ("mine", 6, 5)
+
+
+def test_a_scenario_extends_another_and_changes_only_what_it_names(tmp_path):
+    (tmp_path / "base.yaml").write_text("name: base\nsource: synthetic\nrows: 2\ncols: 3\nhorizon: 5\n")
+    (tmp_path / "variant.yaml").write_text("extends: base.yaml\nname: variant\nhorizon: 7\n")
+    city = load_city(str(tmp_path / "variant.yaml"))
+    assert (city.name, city.n_regions, city.horizon) == ("variant", 6, 7)
+    (tmp_path / "synth7.yaml").write_text("extends: synthetic\nname: synth7\nhorizon: 7\n")  # a bundled base, by name
+    assert load_spec(str(tmp_path / "synth7.yaml")).model_dump(exclude={"name", "horizon"}) == load_spec(
+        "synthetic"
+    ).model_dump(exclude={"name", "horizon"})
+    lux, twin, taxi = load_spec("lux"), load_spec("lux_macro"), load_spec("lux_taxi")  # YAML only: no data needed
+    assert (twin.mode, twin.osm_file, twin.fleet) == ("macro", lux.osm_file, lux.fleet) and taxi.taxi_device
+    (tmp_path / "base.yaml").write_text("extends: variant.yaml\nname: base\n")
+    with pytest.raises(ConfigError, match="cycle"):
+        load_spec(str(tmp_path / "variant.yaml"))
+    (tmp_path / "orphan.yaml").write_text("extends: atlantis\nname: orphan\n")
+    with pytest.raises(ConfigError, match="unknown scenario 'atlantis'"):
+        load_spec(str(tmp_path / "orphan.yaml"))
 
 
 @pytest.mark.parametrize("rows, cols", [(2, 2), (5, 10), (20, 20), (21, 21)])

@@ -128,10 +128,25 @@ def _find(name_or_path: str) -> Path:
     raise ConfigError(f"unknown scenario {name_or_path!r}; known: {', '.join(available())} (or give a .yaml path)")
 
 
+def _read_scenario(path: Path, chain: tuple[Path, ...]) -> dict[str, Any]:
+    """A scenario's keys; ``extends: <scenario>`` starts from another scenario's keys (so a
+    variant names only what it changes instead of copying its base)."""
+    raw = read_yaml(path, "scenario file")
+    base = raw.pop("extends", None)
+    if base is None:
+        return raw
+    if not isinstance(base, str):
+        raise ConfigError(f"{path}: 'extends' must name one scenario, got {base!r}")
+    base_path = _find(str(path.parent / base) if base.endswith((".yaml", ".yml")) else base)
+    if base_path.resolve() in (*chain, path.resolve()):
+        raise ConfigError(f"{path}: 'extends: {base}' makes a cycle")
+    return {**_read_scenario(base_path, (*chain, path.resolve())), **raw}
+
+
 def load_spec(name_or_path: str, **overrides: Any) -> ScenarioSpec:
     """Read and validate a scenario YAML; keyword overrides replace its keys."""
     path = _find(name_or_path)
-    raw = read_yaml(path, "scenario file")
+    raw = _read_scenario(path, ())
     raw.update({k: v for k, v in overrides.items() if v is not None})
     source = raw.get("source")
     model = {"json": JsonScenario, "synthetic": SyntheticScenario, "sumo": SumoScenario}.get(source)
