@@ -224,3 +224,17 @@ def test_meso_matches_more_often_than_it_rebalances():
     assert system.sim.totals.served.sum() > 0
     with pytest.raises(ConfigError, match="divide"):
         load_spec("sumo_grid", tstep=3, dispatch_every_min=2)
+
+
+
+@pytest.mark.skipif(not _has_lux(), reason="set MARL_AMOD_DATA to a folder with lux/ to build Luxembourg")
+def test_lux_taxi_sent_to_a_pickup_on_the_edge_it_is_driving_is_not_lost():
+    # Found on Luxembourg (episode (0, 1)): a taxi still driving from its insertion was sent to a
+    # pickup on that same edge; meso skips a stop added on the segment a vehicle is in, so it drove
+    # past and left the network. The simulator now waits until such a taxi parks.
+    city = load_city("lux_taxi")
+    system = FleetSystem(city)
+    system.reset(np.random.SeedSequence([0, 1]))
+    for _ in range(3):
+        system.step(np.full(city.n_regions, -1))  # raises if SUMO lost a taxi
+    assert system.sim.vehicles() == city.fleet_size

@@ -38,14 +38,14 @@ class TaxiMesoSim(MesoSim):
         self._taxi = [f"taxi{v}" for v in range(len(self.v_state))]
         self._index = {tid: v for v, tid in enumerate(self._taxi)}
         self._edge_index = {e: k for k, e in enumerate(self.net.edges)}
-        self._pending: list[tuple[int, str]] = []  # (vehicle, person) dispatches waiting for a reservation
+        self._pending: list[tuple[int, str, int]] = []  # (vehicle, person, pickup edge) not yet sent to SUMO
         self._to_pickup: set[str] = set()  # taxis driving to a passenger
         self._carrying: set[str] = set()  # taxis with a passenger or on a rebalancing move
         self._placeholders = 0
 
     def _place_fleet(self) -> None:
         """Add every vehicle as a taxi on its edge; its first route has two edges (a one-edge route
-        silently leaves the network in meso), after which it parks and waits, idle."""
+        silently leaves the network in meso); the idle algorithm parks it soon after insertion."""
         api = self.sumo
         api.vehicletype.copy("DEFAULT_VEHTYPE", TAXI_TYPE)
         api.vehicletype.setParameter(TAXI_TYPE, "has.taxi.device", "true")
@@ -56,8 +56,6 @@ class TaxiMesoSim(MesoSim):
             first = list(route.edges[:2])
             api.route.add(tid, first)
             api.vehicle.add(tid, tid, typeID=TAXI_TYPE, depart="now", departSpeed="max")
-            self.v_edge[v] = self._edge_index[first[-1]]
-            self.v_region[v] = self.options.of_edge[self.v_edge[v]]
 
     def _other_edge(self, edge: int, region: int) -> int:
         """The edge of ``region`` nearest to ``edge`` other than itself (a short, real hop)."""
@@ -101,7 +99,7 @@ class TaxiMesoSim(MesoSim):
     def _send_to_pickup(self, v: int, k: int) -> None:
         self.v_state[v] = PICKUP
         self.v_target[v] = self.r_de[k]
-        self._pending.append((v, f"req{k}"))
+        self._pending.append((v, f"req{k}", self.r_oe[k]))
 
     def _send_rebalancing(self, v: int, to_edge: int) -> None:
         """A placeholder person at ``to_edge`` rides one hop inside the target region."""
@@ -114,7 +112,7 @@ class TaxiMesoSim(MesoSim):
         self.v_state[v] = REBALANCING
         self.v_target[v] = hop
         self.v_eta[v] = self.now + api.simulation.findRoute(edges[self.v_edge[v]], edges[to_edge]).travelTime
-        self._pending.append((v, pid))
+        self._pending.append((v, pid, to_edge))
 
     def _after_sumo_step(self, api) -> None:
         """Pickups (a taxi sent to a passenger is now occupied), drop-offs (a carrying taxi is
@@ -134,13 +132,19 @@ class TaxiMesoSim(MesoSim):
             self._dispatch_pending(api)
 
     def _dispatch_pending(self, api) -> None:
+        """Send the assignments whose reservation exists and whose taxi can take it now. A taxi
+        still moving on the pickup edge waits until it parks: meso skips a stop added on the
+        segment a vehicle is already driving, and the taxi would then leave the network."""
         reservation = {r.persons[0]: r.id for r in api.person.getTaxiReservations(0)}
         inserted = set(api.vehicle.getTaxiFleet(ALL))
         waiting = []
-        for v, pid in self._pending:
+        for v, pid, edge in self._pending:
             tid = self._taxi[v]
-            if pid not in reservation or tid not in inserted:
-                waiting.append((v, pid))
+            ready = pid in reservation and tid in inserted
+            if ready and api.vehicle.getRoadID(tid) == self.net.edges[edge]:
+                ready = api.vehicle.isStopped(tid)
+            if not ready:
+                waiting.append((v, pid, edge))
                 continue
             api.vehicle.dispatchTaxi(tid, [reservation[pid]])
             (self._to_pickup if self.v_state[v] == PICKUP else self._carrying).add(tid)
