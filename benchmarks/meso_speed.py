@@ -1,9 +1,11 @@
 """Wall time of the SUMO scenarios: meso vs micro, libsumo vs TraCI, and where the time goes.
 
-Runs one episode of equal-distribution rebalancing per configuration and prints a markdown
-table: simulated hours, wall seconds, wall seconds per simulated hour, and the shares spent in
-the simulator (SUMO start-up and stepping, bookkeeping, travel-time refresh), in routing and
-adding legs (part of the simulator's share) and in the coordinator (dispatch + min-cost flow).
+Runs one episode of equal-distribution rebalancing per configuration (mode:backend:fleet, the
+fleet as plain SUMO vehicles per leg or as SUMO taxis) and prints a markdown table: simulated
+hours, wall seconds, wall seconds per simulated hour, and the shares spent in the simulator (SUMO
+start-up and stepping, bookkeeping, travel-time refresh), in SUMO's simulation steps and in
+starting moves (our routing calls, adding legs or persons, dispatching taxis), both part of the
+simulator's share, and in the coordinator (dispatch + min-cost flow).
 Run on one core:  OMP_NUM_THREADS=1 python benchmarks/meso_speed.py [--scenario lux]
 """
 
@@ -23,7 +25,11 @@ from marl_amod.coordinator.coordinator import Coordinator  # noqa: E402
 from marl_amod.scenario import load_city  # noqa: E402
 from marl_amod.system import FleetSystem  # noqa: E402
 
-CONFIGS = [("meso", "libsumo"), ("meso", "traci"), ("micro", "libsumo")]
+CONFIGS = ["meso:libsumo:legs", "meso:traci:legs", "micro:libsumo:legs", "meso:libsumo:taxi"]
+MOVES = {  # the methods that start vehicle moves, per fleet mechanism
+    "legs": ("_drive",),
+    "taxi": ("_on_open", "_send_rebalancing", "_taxi_pickup", "_dispatch_pending"),
+}
 
 
 def _timed(obj, name: str, clock: dict) -> None:
@@ -45,18 +51,21 @@ for _name in ("dispatch", "rebalance"):  # on the class, once: FleetSystem renew
     _timed(Coordinator, _name, COORDINATOR_CLOCK)
 
 
-def run(scenario: str, mode: str, backend: str, horizon: int | None) -> dict:
+def run(scenario: str, mode: str, backend: str, fleet: str, horizon: int | None) -> dict:
     city = load_city(scenario, **({"horizon": horizon} if horizon else {}))
-    city = dataclasses.replace(city, simulator=dataclasses.replace(city.simulator, mode=mode, backend=backend))
+    options = dataclasses.replace(city.simulator, mode=mode, backend=backend, taxi_device=fleet == "taxi")
+    city = dataclasses.replace(city, simulator=options)
     system = FleetSystem(city)
     clock = COORDINATOR_CLOCK
     clock.clear()
     for name in ("advance", "advance_round", "apply_dispatch", "apply_rebalance", "reset"):
         _timed(system.sim, name, clock)
-    routing = {}
-    _timed(system.sim, "_drive", routing)  # route + insert a leg (SUMO's findRoute dominates)
+    moves: dict[str, float] = {}
+    for name in MOVES[fleet]:
+        _timed(system.sim, name, moves)
     t0 = time.perf_counter()
     system.reset(0)
+    _timed(system.sim.sumo, "simulationStep", clock)  # libsumo module or TraCI connection
     while not system.done:
         system.step(system.targets_from_weights(np.ones(city.n_regions)))
     wall = time.perf_counter() - t0
@@ -65,9 +74,10 @@ def run(scenario: str, mode: str, backend: str, horizon: int | None) -> dict:
     sim = sum(clock.get(k, 0.0) for k in ("reset", "advance", "advance_round", "apply_dispatch", "apply_rebalance"))
     coord = clock.get("dispatch", 0.0) + clock.get("rebalance", 0.0)
     return {
-        "scenario": city.name, "mode": mode, "backend": backend, "simulated_h": hours, "wall_s": wall,
-        "wall_s_per_sim_h": wall / hours, "startup_s": clock["reset"], "simulator_share": sim / wall,
-        "routing_share": routing["_drive"] / wall, "coordinator_share": coord / wall,
+        "scenario": city.name, "mode": mode, "backend": backend, "fleet": fleet, "simulated_h": hours,
+        "wall_s": wall, "wall_s_per_sim_h": wall / hours, "startup_s": clock["reset"], "simulator_share": sim / wall,
+        "sumo_step_share": clock["simulationStep"] / wall, "moves_share": sum(moves.values()) / wall,
+        "coordinator_share": coord / wall,
         "served": float(system.sim.totals.served.sum()),
     }  # fmt: skip
 
@@ -76,16 +86,20 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenario", default="lux")
     parser.add_argument("--horizon", type=int, default=None, help="control steps (default: the scenario's)")
-    parser.add_argument("--configs", nargs="*", default=[f"{m}:{b}" for m, b in CONFIGS])
+    parser.add_argument("--configs", nargs="*", default=CONFIGS, help="mode:backend:fleet, fleet legs|taxi")
     parser.add_argument("--output", default=None)
     args = parser.parse_args()
     rows = [run(args.scenario, *c.split(":"), args.horizon) for c in args.configs]
-    print("| scenario | mode | backend | simulated h | wall s | wall s / sim h | simulator | of which routing | coordinator |")
-    print("|---|---|---|---:|---:|---:|---:|---:|---:|")
+    print(
+        "| scenario | mode | backend | fleet | simulated h | wall s | wall s / sim h | SUMO start | simulator "
+        "| of which SUMO steps | of which starting moves | coordinator | served |"
+    )
+    print("|---|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         print(
-            f"| {r['scenario']} | {r['mode']} | {r['backend']} | {r['simulated_h']:.2f} | {r['wall_s']:.1f} | "
-            f"{r['wall_s_per_sim_h']:.1f} | {r['simulator_share']:.0%} | {r['routing_share']:.0%} | {r['coordinator_share']:.1%} |"
+            f"| {r['scenario']} | {r['mode']} | {r['backend']} | {r['fleet']} | {r['simulated_h']:.2f} | {r['wall_s']:.1f} "
+            f"| {r['wall_s_per_sim_h']:.1f} | {r['startup_s']:.1f} s | {r['simulator_share']:.0%} | {r['sumo_step_share']:.0%} "
+            f"| {r['moves_share']:.0%} | {r['coordinator_share']:.1%} | {r['served']:,.0f} |"
         )
     if args.output:
         with open(args.output, "w") as fh:

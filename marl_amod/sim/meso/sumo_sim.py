@@ -9,9 +9,10 @@ Region-level flows from the coordinator become concrete moves here:
   region i; the vehicle drives to the pickup edge (the wait ends there), then to the drop-off;
 - rebalancing y[i, j] sends the idle vehicles of i nearest to j's centre to random edges of j.
 
-Mechanism (a documented simplification of SUMO's taxi device): every driving leg is a plain
-SUMO vehicle added with a router-computed route of at least two edges (single-edge routes
-vanish in meso); its arrival is read back from SUMO each simulation step. Idle vehicles wait
+Mechanism (the default; ``taxi_device: true`` selects SUMO's taxi device instead, see
+:mod:`marl_amod.sim.meso.taxi_sim`): every driving leg is a plain SUMO vehicle added with a
+router-computed route of at least two edges (single-edge routes vanish in meso); its arrival is
+read back from SUMO each simulation step. Idle vehicles wait
 off-road at their last edge (parked meso vehicles cannot be re-routed anyway), so the fleet
 is conserved by construction and checked against SUMO's own vehicle count. Travel times, and
 so vehicle availability and waits, come from SUMO's mesoscopic queues, not from a table.
