@@ -238,3 +238,14 @@ def test_lux_taxi_sent_to_a_pickup_on_the_edge_it_is_driving_is_not_lost():
     for _ in range(3):
         system.step(np.full(city.n_regions, -1))  # raises if SUMO lost a taxi
     assert system.sim.vehicles() == city.fleet_size
+
+
+@pytest.mark.parametrize("taxi_device", [False, True], ids=["legs", "taxi_device"])
+def test_background_traffic_shares_the_roads_and_the_fleet_is_still_conserved(taxi_device):
+    system = _episode(0, background_per_hour=3000, taxi_device=taxi_device)  # checks conservation every step
+    api = system.sim.sumo
+    others = [v for v in api.vehicle.getIDList() if v.startswith("bg")]
+    assert len(others) > 50  # randomTrips' cars are on the roads next to the fleet
+    routes = system.sim.options.route_files
+    assert routes and load_city("sumo_grid", background_per_hour=3000).simulator.route_files == routes  # cached
+    assert load_city("sumo_grid", background_per_hour=3000, mode="macro").simulator is None

@@ -85,6 +85,7 @@ class SumoScenario(_Spec):
     refresh_travel_times: bool = Field(True, description="region travel times follow SUMO's edge times each step")
     dispatch_every_min: float | None = Field(None, gt=0, description="match requests this often (divides tstep)")
     taxi_device: bool = Field(False, description="fleet as SUMO taxis, requests as persons (else one vehicle per leg)")
+    background_per_hour: float = Field(0.0, ge=0, description="random background cars per hour (SUMO's randomTrips.py)")
     sumo_args: list[str] = Field(default_factory=list, description="extra SUMO options, e.g. [--tripinfo-output, t.xml]")
 
     @model_validator(mode="after")
@@ -181,6 +182,7 @@ def build_city(spec: ScenarioSpec) -> City:
 def _build_sumo_city(spec: SumoScenario) -> City:
     from marl_amod.scenario.sumo_city import sumo_city
     from marl_amod.sim.meso import network as nw
+    from marl_amod.sim.meso.traffic import background_routes
 
     if spec.network == "osm":
         net_file = nw.build_osm(resolve(spec.osm_file))
@@ -192,6 +194,10 @@ def _build_sumo_city(spec: SumoScenario) -> City:
                "sumo_seed": spec.seed, "refresh_travel_times": spec.refresh_travel_times,
                "dispatch_every_min": spec.dispatch_every_min, "taxi_device": spec.taxi_device,
                "extra_args": tuple(spec.sumo_args)}  # fmt: skip
+    if spec.background_per_hour > 0 and spec.mode != "macro":
+        begin = 3600.0 * spec.start_hour
+        routes = background_routes(net_file, spec.background_per_hour, begin, begin + 60.0 * spec.tstep * spec.horizon, spec.seed)
+        options["route_files"] = (str(routes),)
     return sumo_city(name=spec.name, net_file=net_file, region_seed=spec.seed, mode=spec.mode, options=options,
                      **{k: getattr(spec, k) for k in keys})  # fmt: skip
 

@@ -37,6 +37,7 @@ from marl_amod.sim.meso.network import read_network
 from marl_amod.sim.meso.regions import TRAVEL_SAMPLES, region_travel, sample_edges
 
 IDLE, PICKUP, OCCUPIED, REBALANCING = 0, 1, 2, 3
+FLEET_PREFIX = "fleet"  # SUMO ids of the fleet's legs; other traffic has other ids
 OPEN, ASSIGNED, PICKED, LOST, UPCOMING = 0, 1, 2, 3, 4
 
 
@@ -56,6 +57,7 @@ class MesoOptions:
     refresh_travel_times: bool = True  # re-estimate region travel times from SUMO every step
     dispatch_every_min: float | None = None  # match requests this often inside a step (None: once)
     taxi_device: bool = False  # the fleet as SUMO taxis and requests as persons (TaxiMesoSim); else legs
+    route_files: tuple[str, ...] = ()  # other traffic SUMO loads next to the fleet (ids not "fleet*"/"taxi*")
     region_seed: int = 0  # seeds the edges that region travel times average over
     quiet: bool = True  # silence SUMO's warnings (pass extra_args=("--log", file) to keep them)
     extra_args: tuple[str, ...] = ()
@@ -83,6 +85,8 @@ class MesoOptions:
         ]  # fmt: skip
         if self.mode == "meso":
             args += ["--mesosim", "true"]
+        if self.route_files:
+            args += ["--route-files", ",".join(self.route_files)]
         if self.taxi_device:  # we dispatch; idle taxis park off the road where they drop off
             args += ["--device.taxi.dispatch-algorithm", "traci", "--device.taxi.idle-algorithm", "stop"]
         return [*args, *self.extra_args]
@@ -209,7 +213,10 @@ class MesoSim:
         """Fleet vehicles SUMO itself holds (driving or waiting for insertion); with the legs
         added since SUMO's last step it equals the number of driving legs (advance checks it)."""
         api = self.sumo
-        return int(api.vehicle.getIDCount() + len(api.simulation.getPendingVehicles()))
+        if not self.options.route_files:  # the fleet alone: SUMO's counts are ours
+            return int(api.vehicle.getIDCount() + len(api.simulation.getPendingVehicles()))
+        held = (*api.vehicle.getIDList(), *api.simulation.getPendingVehicles())
+        return sum(vid.startswith(FLEET_PREFIX) for vid in held)
 
     # ------------------------------------------------------------------ transitions
     def apply_dispatch(self, x: np.ndarray) -> float:
@@ -403,7 +410,7 @@ class MesoSim:
         if len(route.edges) < 2:
             raise RuntimeError(f"no route of >= 2 edges from {edges[self.v_edge[v]]} to {edges[to_edge]}")
         self._legs_started += 1
-        leg = f"fleet{v}.{self._legs_started}"
+        leg = f"{FLEET_PREFIX}{v}.{self._legs_started}"
         api.route.add(leg, list(route.edges))
         api.vehicle.add(leg, leg, depart="now", departSpeed="max")
         self._leg[leg] = v

@@ -72,7 +72,8 @@ class TaxiMesoSim(MesoSim):
 
     def vehicles_in_sumo(self) -> int:
         api = self.sumo
-        return len(api.vehicle.getTaxiFleet(ALL)) + len(api.simulation.getPendingVehicles())
+        pending = sum(vid in self._index for vid in api.simulation.getPendingVehicles())
+        return len(api.vehicle.getTaxiFleet(ALL)) + pending
 
     def _check_fleet(self, api) -> None:
         held = self.vehicles_in_sumo()
@@ -117,7 +118,7 @@ class TaxiMesoSim(MesoSim):
     def _after_sumo_step(self, api) -> None:
         """Pickups (a taxi sent to a passenger is now occupied), drop-offs (a carrying taxi is
         empty again), then the dispatches whose reservations SUMO has opened meanwhile."""
-        self.teleports += len(api.simulation.getStartingTeleportIDList())
+        self.teleports += sum(vid in self._index for vid in api.simulation.getStartingTeleportIDList())
         if self._to_pickup or self._carrying:
             empty = set(api.vehicle.getTaxiFleet(EMPTY))
             occupied = set(api.vehicle.getTaxiFleet(OCCUPIED_FLEET)) | set(api.vehicle.getTaxiFleet(PICKUP_AND_OCCUPIED))
