@@ -6,6 +6,8 @@ fails, when a SUMO scenario is asked for, with the command that fixes it.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import itertools
 import os
 from pathlib import Path
@@ -65,7 +67,10 @@ def start(args: list[str], backend: Backend, owner: object = None) -> Any:
     cmd = [binary("sumo"), *args]
     if backend == "libsumo":
         try:
-            import libsumo
+            # libsumo prints a pyarrow version warning on import when Ray's pyarrow is installed;
+            # it concerns SUMO's parquet output, which marl_amod never writes
+            with contextlib.redirect_stdout(io.StringIO()):
+                import libsumo
         except ImportError as exc:
             raise ConfigError(f"backend 'libsumo' needs the SUMO extra: {INSTALL_HINT}") from exc
         if libsumo.simulation.isLoaded():
