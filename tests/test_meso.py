@@ -107,6 +107,25 @@ def test_meso_evaluate_gives_the_macro_json_schema():
     assert len(res["per_region"]["wait_time"]) == 4
 
 
+@pytest.mark.parametrize("taxi_device", [False, True], ids=["legs", "taxi_device"])
+def test_mpc_plans_on_meso_with_the_requests_that_will_still_wait(taxi_device):
+    city = load_city("sumo_grid", fleet=6, requests_per_hour=900, max_wait_min=3, taxi_device=taxi_device)
+    for policy in ("mpc-oracle", "mpc-forecast"):
+        assert evaluate(city, policy, episodes=1, seed=0)["metrics"]["served_demand"]["mean"] > 0
+    system = FleetSystem(city)
+    system.reset(0)
+    sim, leaving = system.sim, 0
+    while not system.done:
+        sim.apply_rebalance(np.zeros((4, 4), dtype=np.int64))
+        carried, open_now = sim.carried_over(), sim.requests()
+        assert np.all(carried <= open_now)
+        leaving += int((open_now - carried).sum())
+        sim.advance()
+        assert np.all(sim.requests() >= carried)  # nothing carried over has left
+        sim.apply_dispatch(system.coordinator.dispatch(sim.idle, sim.requests(), sim.t))
+    assert leaving > 0  # some open requests were not carried: they left at their maximum wait
+
+
 def test_meso_city_is_a_valid_region_view():
     city = load_city("sumo_grid")
     assert city.n_regions == 4 and city.fleet_size == 24

@@ -257,15 +257,16 @@ class MPCPolicy:
 
     def believed_demand(self, system: FleetSystem) -> np.ndarray:
         """(H, N, N) requests the plan may serve: the forecast, plus, when requests wait
-        (``max_wait`` > 0), those still open after this step's dispatch, added to step t + 1.
+        (``max_wait`` > 0), those still open after this step's dispatch that will not have left by
+        the next step (the simulator's ``carried_over``), added to step t + 1.
 
         A waiting request could also be served later than t + 1; offering it once, at the
         first chance, keeps the LP a plain network flow and is where the dispatch takes it.
         """
         sim = system.sim
         demand = self.forecast(system, sim.t + np.arange(self.horizon)).astype(float)
-        if sim.max_wait > 0 and self.horizon > 1 and sim.t + 1 < system.city.horizon:
-            demand[1] += sim.backlog[: sim.max_wait].sum(axis=0)  # the oldest age leaves at advance()
+        if self.horizon > 1 and sim.t + 1 < system.city.horizon:
+            demand[1] += sim.carried_over()
         return demand
 
     def plan(self, system: FleetSystem) -> FlowPlan:

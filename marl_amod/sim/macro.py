@@ -92,6 +92,11 @@ class MacroSim:
         """(N, N) open requests right now: new ones plus those still willing to wait."""
         return self.backlog.sum(axis=0)
 
+    def carried_over(self) -> np.ndarray:
+        """(N, N) requests open now that will still wait at the next step if not served (the
+        oldest age leaves at :meth:`advance`); zero with ``max_wait`` 0."""
+        return self.backlog[: self.max_wait].sum(axis=0)
+
     def vehicles(self) -> int:
         """Idle plus in-transit vehicles; constant over an episode (conservation)."""
         return int(self.idle.sum() + self.arrivals[self.t :].sum())

@@ -198,9 +198,16 @@ class MesoSim:
 
     def requests(self) -> np.ndarray:
         """(N, N) open requests right now."""
+        return self._od_counts(self._open())
+
+    def carried_over(self) -> np.ndarray:
+        """(N, N) requests open now that will not have left by the next control step."""
+        k = self._open()
+        return self._od_counts(k[self.r_time[k] + self.max_wait_s >= (self.t + 1) * self.step_s])
+
+    def _od_counts(self, k: np.ndarray) -> np.ndarray:
         n = self.city.n_regions
         out = np.zeros((n, n), dtype=np.int64)
-        k = self._open()
         np.add.at(out, (self.r_o[k], self.r_d[k]), 1)
         return out
 
