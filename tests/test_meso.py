@@ -43,6 +43,7 @@ def _episode(seed: int, *, weights=None, **overrides):
         assert out.rebalancing.sum(axis=1).min() >= 0 and np.all(np.diag(out.rebalancing) == 0)
         # every request is served, still open, or gone after its maximum wait
         assert tot.demand.sum() == tot.served.sum() + tot.lost.sum() + sim.requests().sum()
+        assert getattr(sim, "longest_dispatch_wait_s", 0.0) < 60  # taxis: every assignment reaches SUMO
     tot = sim.totals
     assert tot.demand.sum() == tot.served.sum() + tot.lost.sum()  # finish() closed the books
     assert sim.teleports == 0
@@ -256,6 +257,8 @@ def test_lux_taxi_sent_to_a_pickup_on_the_edge_it_is_driving_is_not_lost():
     system.reset(np.random.SeedSequence([0, 1]))
     for _ in range(3):
         system.step(np.full(city.n_regions, -1))  # raises if SUMO lost a taxi
+        # and none waits for ever: meso reports a parked taxi as neither stopped nor moving
+        assert system.sim.longest_dispatch_wait_s < 60
     assert system.sim.vehicles() == city.fleet_size
 
 

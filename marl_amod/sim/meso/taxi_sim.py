@@ -38,7 +38,7 @@ class TaxiMesoSim(MesoSim):
         self._taxi = [f"taxi{v}" for v in range(len(self.v_state))]
         self._index = {tid: v for v, tid in enumerate(self._taxi)}
         self._edge_index = {e: k for k, e in enumerate(self.net.edges)}
-        self._pending: list[tuple[int, str, int]] = []  # (vehicle, person, pickup edge) not yet sent to SUMO
+        self._pending: list[tuple[int, str, int, float]] = []  # (vehicle, person, pickup edge, since) not yet sent
         self._to_pickup: set[str] = set()  # taxis driving to a passenger
         self._carrying: set[str] = set()  # taxis with a passenger or on a rebalancing move
         self._placeholders = 0
@@ -100,7 +100,7 @@ class TaxiMesoSim(MesoSim):
     def _send_to_pickup(self, v: int, k: int) -> None:
         self.v_state[v] = PICKUP
         self.v_target[v] = self.r_de[k]
-        self._pending.append((v, f"req{k}", self.r_oe[k]))
+        self._pending.append((v, f"req{k}", self.r_oe[k], self.now))
 
     def _send_rebalancing(self, v: int, to_edge: int) -> None:
         """A placeholder person at ``to_edge`` rides one hop inside the target region."""
@@ -113,7 +113,7 @@ class TaxiMesoSim(MesoSim):
         self.v_state[v] = REBALANCING
         self.v_target[v] = hop
         self.v_eta[v] = self.now + api.simulation.findRoute(edges[self.v_edge[v]], edges[to_edge]).travelTime
-        self._pending.append((v, pid, to_edge))
+        self._pending.append((v, pid, to_edge, self.now))
 
     def _after_sumo_step(self, api) -> None:
         """Pickups (a taxi sent to a passenger is now occupied), drop-offs (a carrying taxi is
@@ -139,17 +139,30 @@ class TaxiMesoSim(MesoSim):
         reservation = {r.persons[0]: r.id for r in api.person.getTaxiReservations(0)}
         inserted = set(api.vehicle.getTaxiFleet(ALL))
         waiting = []
-        for v, pid, edge in self._pending:
+        for v, pid, edge, since in self._pending:
             tid = self._taxi[v]
             ready = pid in reservation and tid in inserted
             if ready and api.vehicle.getRoadID(tid) == self.net.edges[edge]:
-                ready = api.vehicle.isStopped(tid)
+                ready = self._parked(api, tid)
             if not ready:
-                waiting.append((v, pid, edge))
+                waiting.append((v, pid, edge, since))
                 continue
             api.vehicle.dispatchTaxi(tid, [reservation[pid]])
             (self._to_pickup if self.v_state[v] == PICKUP else self._carrying).add(tid)
         self._pending = waiting
+
+    @property
+    def longest_dispatch_wait_s(self) -> float:
+        """Seconds the oldest assignment not yet sent to SUMO has waited (for its reservation, and
+        on its own pickup edge for the taxi to park): a few seconds, never minutes."""
+        return max((self.now - since for *_, since in self._pending), default=0.0)
+
+    @staticmethod
+    def _parked(api, tid: str) -> bool:
+        """Whether the taxi has reached its stop (parked, off the road). Meso reports a parked taxi
+        with speed 0 and no stop state, so this reads whether its next stop has an arrival time."""
+        stops = api.vehicle.getStops(tid, 1)
+        return bool(stops) and stops[0].arrival >= 0
 
     def _taxi_pickup(self, v: int) -> None:
         """The passenger is in: the wait ends; the ride's ETA comes from SUMO's router."""
