@@ -65,9 +65,14 @@ def run(scenario: str, mode: str, backend: str, fleet: str, horizon: int | None)
         _timed(system.sim, name, moves)
     t0 = time.perf_counter()
     system.reset(0)
-    _timed(system.sim.sumo, "simulationStep", clock)  # libsumo module or TraCI connection
-    while not system.done:
-        system.step(system.targets_from_weights(np.ones(city.n_regions)))
+    api = system.sim.sumo  # the libsumo module (shared by every run in this process) or a TraCI connection
+    step = api.simulationStep
+    _timed(api, "simulationStep", clock)
+    try:
+        while not system.done:
+            system.step(system.targets_from_weights(np.ones(city.n_regions)))
+    finally:
+        api.simulationStep = step  # the next run must not count its steps twice
     wall = time.perf_counter() - t0
     system.sim.close()
     hours = (city.horizon - 1) * city.tstep / 60.0
