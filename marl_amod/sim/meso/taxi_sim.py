@@ -21,6 +21,8 @@ plain-leg mechanism, all SUMO's own behaviour rather than ours:
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from marl_amod.sim.meso.sumo_sim import OCCUPIED, PICKED, PICKUP, REBALANCING, MesoSim
@@ -75,7 +77,7 @@ class TaxiMesoSim(MesoSim):
         pending = sum(vid in self._index for vid in api.simulation.getPendingVehicles())
         return len(api.vehicle.getTaxiFleet(ALL)) + pending
 
-    def _check_fleet(self, api) -> None:
+    def _check_fleet(self, api: Any) -> None:
         held = self.vehicles_in_sumo()
         if held != len(self._taxi):
             raise RuntimeError(f"SUMO holds {held} of the {len(self._taxi)} fleet taxis")
@@ -115,7 +117,7 @@ class TaxiMesoSim(MesoSim):
         self.v_eta[v] = self.now + api.simulation.findRoute(edges[self.v_edge[v]], edges[to_edge]).travelTime
         self._pending.append((v, pid, to_edge, self.now))
 
-    def _after_sumo_step(self, api) -> None:
+    def _after_sumo_step(self, api: Any) -> None:
         """Pickups (a taxi sent to a passenger is now occupied), drop-offs (a carrying taxi is
         empty again), then the dispatches whose reservations SUMO has opened meanwhile."""
         self.teleports += sum(vid in self._index for vid in api.simulation.getStartingTeleportIDList())
@@ -132,7 +134,7 @@ class TaxiMesoSim(MesoSim):
         if self._pending:
             self._dispatch_pending(api)
 
-    def _dispatch_pending(self, api) -> None:
+    def _dispatch_pending(self, api: Any) -> None:
         """Send the assignments whose reservation exists and whose taxi can take it now. A taxi
         still moving on the pickup edge waits until it parks: meso skips a stop added on the
         segment a vehicle is already driving, and the taxi would then leave the network."""
@@ -158,7 +160,7 @@ class TaxiMesoSim(MesoSim):
         return max((self.now - since for *_, since in self._pending), default=0.0)
 
     @staticmethod
-    def _parked(api, tid: str) -> bool:
+    def _parked(api: Any, tid: str) -> bool:
         """Whether the taxi has reached its stop (parked, off the road). Meso reports a parked taxi
         with speed 0 and no stop state, so this reads whether its next stop has an arrival time."""
         stops = api.vehicle.getStops(tid, 1)
@@ -173,7 +175,7 @@ class TaxiMesoSim(MesoSim):
         edges = self.net.edges
         self.v_eta[v] = self.now + self.sumo.simulation.findRoute(edges[self.r_oe[k]], edges[self.r_de[k]]).travelTime
 
-    def _taxi_dropoff(self, v: int, api) -> None:
+    def _taxi_dropoff(self, v: int, api: Any) -> None:
         """Empty again: idle on the edge SUMO has it on (its drop-off edge)."""
         road = api.vehicle.getRoadID(self._taxi[v])
         self.v_edge[v] = self._edge_index.get(road, self.v_target[v])
