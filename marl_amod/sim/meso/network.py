@@ -15,9 +15,11 @@ from __future__ import annotations
 import hashlib
 import os
 import subprocess
+import tempfile
 import xml.etree.ElementTree as ET
+from collections.abc import Callable
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -55,23 +57,33 @@ def cache_dir() -> Path:
     return path
 
 
-def _build(tool: str, args: list[str], key_parts: list[str], stem: str) -> Path:
-    key = hashlib.sha1("\0".join([tool, engine.version(), *args, *key_parts]).encode()).hexdigest()[:16]
-    out = cache_dir() / f"{stem}-{key}.net.xml"
+def cached_output(stem: str, suffix: str, key_parts: list[str], command: Callable[[Path], list[str]], what: str) -> Path:
+    """The cached file ``<stem>-<key><suffix>``, made by ``command(target)`` the first time.
+
+    The key hashes ``key_parts`` (which name the SUMO version). The command runs with SUMO_HOME set, in a
+    scratch folder inside the cache that is removed afterwards, and writes ``target`` there; the
+    result is moved into place atomically, so concurrent runs share one file."""
+    key = hashlib.sha1("\0".join(key_parts).encode()).hexdigest()[:16]
+    out = cache_dir() / f"{stem}-{key}{suffix}"
     if out.is_file():
         return out
-    tmp = out.with_name(f"{out.name}.{os.getpid()}.tmp.xml")
-    proc = subprocess.run(
-        [engine.binary(tool), *args, "--output-file", str(tmp), "--no-warnings"],
-        capture_output=True,
-        text=True,
-        env={**os.environ, "SUMO_HOME": str(engine.sumo_home())},
-    )
-    if proc.returncode != 0 or not tmp.is_file():
-        tmp.unlink(missing_ok=True)
-        raise DataError(f"{tool} failed ({proc.returncode}) building {out.name}: {proc.stderr.strip()[-2000:]}")
-    tmp.replace(out)
+    with tempfile.TemporaryDirectory(dir=cache_dir(), prefix=f".{stem}-") as work:
+        target = Path(work) / f"out{suffix}"
+        proc = subprocess.run(
+            command(target), capture_output=True, text=True, cwd=work, env={**os.environ, "SUMO_HOME": str(engine.sumo_home())}
+        )
+        if proc.returncode != 0 or not target.is_file():
+            raise DataError(f"{what} failed ({proc.returncode}) building {out.name}: {proc.stderr.strip()[-2000:]}")
+        target.replace(out)
     return out
+
+
+def _build(tool: str, args: list[str], key_parts: list[str], stem: str) -> Path:
+    """A network built by a SUMO tool (``netconvert``, ``netgenerate``); its name is its content key."""
+    return cached_output(
+        stem, ".net.xml", [tool, engine.version(), *args, *key_parts],
+        lambda target: [engine.binary(tool), *args, "--output-file", str(target), "--no-warnings"], tool,
+    )  # fmt: skip
 
 
 def build_osm(osm_file: Path) -> Path:
@@ -109,6 +121,11 @@ class RoadNetwork:
     @property
     def n_edges(self) -> int:
         return len(self.edges)
+
+    @cached_property
+    def index(self) -> dict[str, int]:
+        """Position of every usable edge id in ``edges`` (SUMO reports edges by id)."""
+        return {e: k for k, e in enumerate(self.edges)}
 
     def travel_times(self, sources: np.ndarray, edge_time: np.ndarray | None = None) -> np.ndarray:
         """(len(sources), E) seconds from the start of each source edge to the end of every edge

@@ -39,7 +39,6 @@ class TaxiMesoSim(MesoSim):
         super()._init_fleet()
         self._taxi = [f"taxi{v}" for v in range(len(self.v_state))]
         self._index = {tid: v for v, tid in enumerate(self._taxi)}
-        self._edge_index = {e: k for k, e in enumerate(self.net.edges)}
         self._pending: list[tuple[int, str, int, float]] = []  # (vehicle, person, pickup edge, since) not yet sent
         self._to_pickup: set[str] = set()  # taxis driving to a passenger
         self._carrying: set[str] = set()  # taxis with a passenger or on a rebalancing move
@@ -178,6 +177,6 @@ class TaxiMesoSim(MesoSim):
     def _taxi_dropoff(self, v: int, api: Any) -> None:
         """Empty again: idle on the edge SUMO has it on (its drop-off edge)."""
         road = api.vehicle.getRoadID(self._taxi[v])
-        self.v_edge[v] = self._edge_index.get(road, self.v_target[v])
+        self.v_edge[v] = self.net.index.get(road, self.v_target[v])
         self._become_idle(v)
 
