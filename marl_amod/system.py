@@ -22,13 +22,36 @@ from marl_amod.sim.base import Simulator, make_simulator
 
 @dataclass(frozen=True)
 class StepOutcome:
-    """What one control step produced (money in the data's units)."""
+    """What one control step produced, money as the simulator booked it (data's units).
 
-    reward: float  # dispatch profit of the new step minus the rebalancing cost
-    dispatch_profit: float
-    rebalancing_cost: float
-    dispatch: np.ndarray  # (N, N) passenger flows of the new step
+    The simulator is the one source of money: ``region_profit`` and ``region_rebalancing_cost``
+    are the changes of its per-region episode totals over the step, so they hold whatever prices
+    and travel times it used, however many matching rounds ran and whichever region view it held
+    at each. Rewards, infos, metrics and datasets only select from these arrays.
+    """
+
+    region_profit: np.ndarray  # (N,) dispatch profit (fares - trip costs) of trips leaving each region
+    region_rebalancing_cost: np.ndarray  # (N,) cost of the rebalancing moves that left each region
+    dispatch: np.ndarray  # (N, N) passenger flows of the new step (last matching round)
     rebalancing: np.ndarray  # (N, N) rebalancing flows applied before moving on (zeros at reset)
+
+    @property
+    def dispatch_profit(self) -> float:
+        return float(self.region_profit.sum())
+
+    @property
+    def rebalancing_cost(self) -> float:
+        return float(self.region_rebalancing_cost.sum())
+
+    @property
+    def region_reward(self) -> np.ndarray:
+        """(N,) each region's share of the step reward; sums to :attr:`reward`."""
+        return self.region_profit - self.region_rebalancing_cost
+
+    @property
+    def reward(self) -> float:
+        """Dispatch profit of the new step minus the rebalancing cost just paid."""
+        return self.dispatch_profit - self.rebalancing_cost
 
 
 class FleetSystem:
@@ -60,25 +83,26 @@ class FleetSystem:
         """New episode; returns the outcome of the first dispatch."""
         self.sim.reset(np.random.default_rng(seed))
         self._follow_city()
-        profit = self._dispatch()
+        before = self._booked()
+        self._dispatch()
         n = self.city.n_regions
-        return StepOutcome(profit, profit, 0.0, self.sim.last_dispatch, np.zeros((n, n), dtype=np.int64))
+        return self._outcome(before, np.zeros((n, n), dtype=np.int64))
 
     def step(self, target: np.ndarray) -> StepOutcome:
         """Rebalance toward ``target`` (N,) idle vehicles per region (-1: no wish), then move on."""
+        before = self._booked()
         flows = self.coordinator.rebalance(self.sim.idle, np.asarray(target))
-        cost = self.sim.apply_rebalance(flows)
+        self.sim.apply_rebalance(flows)
         applied = self.sim.last_rebalance
-        profit = 0.0
         for _ in range(self.sim.dispatch_rounds - 1):  # matching more often than rebalancing
             self.sim.advance_round()
-            profit += self._dispatch()
+            self._dispatch()
         self.sim.advance()
         self._follow_city()
-        profit += self._dispatch()
+        self._dispatch()
         if self.sim.done:
             self.sim.finish()
-        return StepOutcome(profit - cost, profit, cost, self.sim.last_dispatch, applied)
+        return self._outcome(before, applied)
 
     def targets_from_weights(self, weights: np.ndarray) -> np.ndarray:
         """The paper's target floor(w_i / sum(w) * M) from non-negative per-region weights."""
@@ -91,6 +115,15 @@ class FleetSystem:
             self.city = self.sim.city
             self.coordinator = Coordinator(self.city, objective=self.coordinator.objective, solver=self.coordinator.solver)
 
-    def _dispatch(self) -> float:
+    def _dispatch(self) -> None:
         x = self.coordinator.dispatch(self.sim.idle, self.sim.requests(), self.sim.t)
-        return self.sim.apply_dispatch(x)
+        self.sim.apply_dispatch(x)
+
+    def _booked(self) -> tuple[np.ndarray, np.ndarray]:
+        """Copies of the simulator's per-region money totals (dispatch profit, rebalancing cost)."""
+        totals = self.sim.totals
+        return totals.revenue - totals.trip_cost, totals.rebalancing_cost.copy()
+
+    def _outcome(self, before: tuple[np.ndarray, np.ndarray], rebalancing: np.ndarray) -> StepOutcome:
+        profit, cost = self._booked()
+        return StepOutcome(profit - before[0], cost - before[1], self.sim.last_dispatch, rebalancing)

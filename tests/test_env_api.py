@@ -49,7 +49,7 @@ def test_rgb_array_frames_show_the_state(tiny_city) -> None:
     env.reset(seed=0)
     first = env.render()
     env.step({a: np.array([1.0 if a == "region_0" else 0.0], dtype=np.float32) for a in env.agents})
-    assert env._last_rebalance.sum() > 0  # everything was asked into region 0: arrows to draw
+    assert env.last_outcome.rebalancing.sum() > 0  # everything was asked into region 0: arrows to draw
     second = env.render()
     assert first.dtype == np.uint8 and first.ndim == 3 and first.shape[2] == 3
     assert first.shape == second.shape and not np.array_equal(first, second)

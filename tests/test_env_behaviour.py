@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -10,9 +12,9 @@ from hypothesis import strategies as st
 import marl_amod
 from marl_amod.env import actions as act
 from marl_amod.env.observations import local_observations, neighbour_table, split_local
-from marl_amod.env.rewards import local_rewards
 from marl_amod.errors import ActionError, ConfigError
 from marl_amod.scenario import grid_city
+from marl_amod.sim.macro import MacroSim
 from marl_amod.system import FleetSystem
 from tests.conftest import needs_data
 
@@ -123,7 +125,7 @@ def test_all_zero_weights_mean_no_rebalancing(small_city) -> None:
     env.reset(seed=0)
     for _ in range(4):
         _, _, _, _, infos = env.step(_const(env, 0.0))
-        assert env._last_rebalance.sum() == 0
+        assert env.last_outcome.rebalancing.sum() == 0
         assert infos["region_0"]["system_rebalancing_cost"] == 0.0
 
 
@@ -136,7 +138,7 @@ def test_logit_mode_all_zero_is_uniform_and_a_high_action_attracts_vehicles(smal
     env.reset(seed=0)
     idle = env.system.sim.idle.sum()
     env.step({a: np.array([1.0 if a == "region_5" else 0.0], dtype=np.float32) for a in env.agents})
-    assert env._last_rebalance[:, 5].sum() > 0.5 * idle - env.system.sim.idle[5]
+    assert env.last_outcome.rebalancing[:, 5].sum() > 0.5 * idle - env.system.sim.idle[5]
 
 
 def test_local_rewards_sum_to_the_team_reward_and_match_region_profit(small_city) -> None:
@@ -155,7 +157,52 @@ def test_local_rewards_sum_to_the_team_reward_and_match_region_profit(small_city
         assert np.allclose(r_local, delta)
         assert np.isclose(r_local.sum(), rt["region_0"])
         assert len(set(rt.values())) == 1
-    assert local_rewards(small_city, 0, np.zeros((16, 16)), np.zeros((16, 16))).sum() == 0
+
+
+class _SwappingSim(MacroSim):
+    """A simulator that replaces its region view before every matching round (as SUMO does when
+    travel times change) and matches three times per control step, booking each round's money
+    with the city it holds at that moment."""
+
+    dispatch_rounds = 3
+
+    def _swap(self) -> None:
+        k = len(self.swaps) % 4 + 1
+        base = self.swaps[0] if self.swaps else self.city
+        self.city = dataclasses.replace(base, price=base.price * (1.0 + 0.3 * k), trip_time=base.trip_time + k % 3)
+        self.swaps.append(self.city)
+
+    def reset(self, rng: np.random.Generator) -> None:
+        self.swaps: list = []
+        super().reset(rng)
+        self._swap()
+
+    def advance_round(self) -> None:
+        self._swap()
+
+    def advance(self) -> None:
+        super().advance()
+        self._swap()
+
+
+def test_local_rewards_are_the_booked_money_when_the_simulator_replaces_its_city(small_city) -> None:
+    env = marl_amod.parallel_env(small_city, reward_mode="local")
+    env.system = FleetSystem(small_city, sim=_SwappingSim(small_city))
+    env.reset(seed=3)
+    rng = np.random.default_rng(1)
+    steps_with_money = 0
+    while env.agents:
+        totals = env.system.sim.totals
+        before = totals.revenue - totals.trip_cost - totals.rebalancing_cost
+        _, rew, *_ = env.step({a: rng.random(1).astype(np.float32) for a in env.agents})
+        booked = totals.revenue - totals.trip_cost - totals.rebalancing_cost - before
+        r_local = np.array([rew[a] for a in env.possible_agents])
+        np.testing.assert_allclose(r_local, booked, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(r_local.sum(), env.last_outcome.reward, rtol=1e-12)
+        assert env.city is env.system.sim.city is not small_city
+        steps_with_money += bool(np.any(booked != 0))
+    assert len(env.system.sim.swaps) > 2 * small_city.horizon  # the view changed before every round
+    assert steps_with_money > 0
 
 
 def test_local_observation_layout_matches_features_and_neighbours(small_city) -> None:
@@ -265,7 +312,7 @@ def test_flows_stay_feasible_under_any_valid_actions(episode, mode, seed) -> Non
         idle_before = sim.idle.copy()
         target = env.system.targets_from_weights(act.weights(a, mode))
         env.step({f"region_{i}": np.array([v], dtype=np.float32) for i, v in enumerate(values)})
-        y = env._last_rebalance
+        y = env.last_outcome.rebalancing
         assert y.dtype == np.int64 and (y >= 0).all() and (np.diag(y) == 0).all()
         assert (y.sum(axis=1) <= idle_before).all()  # nobody sends more than it had idle
         if target.min() >= 0:  # a wish: each region ends with at least its target (own + incoming)

@@ -71,7 +71,7 @@ from marl_amod.env.rewards import REWARD_MODES, RewardMode, rewards
 from marl_amod.errors import ConfigError
 from marl_amod.metrics import episode_metrics
 from marl_amod.scenario import City, load_city
-from marl_amod.system import FleetSystem
+from marl_amod.system import FleetSystem, StepOutcome
 
 RENDER_MODES = ["human", "rgb_array"]
 
@@ -109,7 +109,6 @@ class AmodParallelEnv(ParallelEnv):
             city = load_city(scenario, **scenario_overrides)
         if city.horizon < 2:
             raise ConfigError(f"{city.name}: the env needs a horizon of at least 2 steps, got {city.horizon}")
-        self.city = city
         self.reward_mode = reward_mode
         self.action_mode = action_mode
         self.lookahead = int(lookahead)
@@ -128,9 +127,18 @@ class AmodParallelEnv(ParallelEnv):
         self.action_spaces = {a: self._action_space for a in self.possible_agents}
         self.state_space = spaces.Box(*ob.state_bounds(feature_high, n), dtype=np.float32)
         self._seeds: np.random.SeedSequence | None = None
-        self._last_rebalance = np.zeros((n, n), dtype=np.int64)
-        self._last_reward: float | None = None
+        self._last_outcome: StepOutcome | None = None
         self._viewer: Any = None
+
+    @property
+    def city(self) -> City:
+        """The region view the simulator holds now (SUMO scenarios update travel times during an episode)."""
+        return self.system.city
+
+    @property
+    def last_outcome(self) -> StepOutcome | None:
+        """The last reset's or step's :class:`~marl_amod.system.StepOutcome` (flows, booked money per region)."""
+        return self._last_outcome
 
     # ------------------------------------------------------------------ spaces
     def observation_space(self, agent: str) -> spaces.Box:
@@ -149,12 +157,9 @@ class AmodParallelEnv(ParallelEnv):
             if self._seeds is None:
                 self._seeds = np.random.SeedSequence()
             demand_seed = self._seeds.spawn(1)[0]
-        outcome = self.system.reset(demand_seed)
+        self._last_outcome = self.system.reset(demand_seed)
         self.agents = list(self.possible_agents)
-        n = self.city.n_regions
-        self._last_rebalance = np.zeros((n, n), dtype=np.int64)
-        self._last_reward = outcome.reward
-        infos = self._infos(np.zeros(n))
+        infos = self._infos(self._last_outcome)
         if self.render_mode == "human":
             self.render()
         return self._observations(), infos
@@ -164,15 +169,12 @@ class AmodParallelEnv(ParallelEnv):
             raise RuntimeError("the episode is over (all agents truncated); call reset()")
         joint = act.joint_action(actions, self.agents)
         target = self.system.targets_from_weights(act.weights(joint, self.action_mode))
-        outcome = self.system.step(target)
-        self._last_rebalance = outcome.rebalancing
-        self._last_reward = outcome.reward
-        sim = self.system.sim
-        r = rewards(self.reward_mode, self.city, sim.t, sim.last_dispatch, self._last_rebalance, outcome.reward)
+        outcome = self._last_outcome = self.system.step(target)
+        r = rewards(self.reward_mode, outcome)
         agents = self.agents
         obs = self._observations()
         rew = {a: float(r[i]) for i, a in enumerate(agents)}
-        infos = self._infos((self._last_rebalance * self.city.reb_cost).sum(axis=1))
+        infos = self._infos(outcome)
         done = self.system.done
         terminations = {a: False for a in agents}
         truncations = {a: done for a in agents}
@@ -199,10 +201,10 @@ class AmodParallelEnv(ParallelEnv):
         from marl_amod.env import render as rd
 
         if self.render_mode == "rgb_array":
-            return rd.render_rgb(self.system, self._last_rebalance, self._last_reward)
+            return rd.render_rgb(self.system, *self._render_args())
         if self._viewer is None:
             self._viewer = rd.HumanViewer()
-        self._viewer.show(self.system, self._last_rebalance, self._last_reward)
+        self._viewer.show(self.system, *self._render_args())
         return None
 
     def close(self) -> None:
@@ -215,9 +217,16 @@ class AmodParallelEnv(ParallelEnv):
         obs = ob.local_observations(self.system, self.lookahead, table=self._table)
         return {a: obs[i] for i, a in enumerate(self.possible_agents)}
 
-    def _infos(self, reb_cost: np.ndarray) -> dict[str, dict]:
-        sim, city = self.system.sim, self.city
-        served = sim.last_dispatch.sum(axis=1)
+    def _render_args(self) -> tuple[np.ndarray, float | None]:
+        n = self.system.city.n_regions
+        if self._last_outcome is None:
+            return np.zeros((n, n), dtype=np.int64), None
+        return self._last_outcome.rebalancing, self._last_outcome.reward
+
+    def _infos(self, outcome: StepOutcome) -> dict[str, dict]:
+        sim, city = self.system.sim, self.system.city
+        served = outcome.dispatch.sum(axis=1)
+        reb_cost = outcome.region_rebalancing_cost
         new = sim.demand[sim.t].sum(axis=1)
         metrics = episode_metrics(sim.totals, city.fleet_size, city.horizon)
         system = {f"system_{k}": v for k, v in metrics.items() if k != "revenue"}
