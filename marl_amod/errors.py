@@ -19,3 +19,7 @@ class ActionError(MarlAmodError, ValueError):
 
 class SolverError(MarlAmodError):
     """An optimisation problem could not be solved; never silently replaced by a wrong action."""
+
+
+class OutputError(MarlAmodError):
+    """A result cannot be written where it was asked to go (a folder, a read-only place, a full disk)."""

@@ -1,0 +1,85 @@
+"""Writing results so that nothing computed is lost and nothing is half-written.
+
+Every file marl_amod writes (policies, cards, training state, evaluation JSON, datasets, tables)
+goes through :func:`atomic_write`: the bytes go to a temporary file in the destination's folder,
+are flushed to disk, and replace the destination in one ``os.replace``. A reader therefore sees
+the previous file or the new one, never a truncated mix, even if the process is interrupted.
+:func:`check_destination` runs *before* long work, so a bad ``--output`` fails in a second, not
+after an hour of training.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import os
+import tempfile
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import IO, Any
+
+from marl_amod.errors import OutputError
+
+
+def check_destination(path: str | Path, *, what: str = "output") -> Path:
+    """The resolved ``path`` if a file can be written there (parent folders are created), else an
+    :class:`OutputError` naming the path and the reason."""
+    path = Path(path).expanduser()
+    if path.is_dir():
+        raise OutputError(f"{what} {path} is a directory; give a file name")
+    parent = path.parent
+    for ancestor in (parent, *parent.parents):
+        if ancestor.exists():
+            if not ancestor.is_dir():
+                raise OutputError(f"{what} {path}: {ancestor} is a file, not a folder")
+            break
+    try:
+        parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{what} {path}: cannot create folder {parent} ({exc.strerror or exc})") from exc
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise OutputError(f"{what} {path}: folder {parent} is not writable")
+    return path
+
+
+@contextlib.contextmanager
+def atomic_open(path: str | Path, mode: str = "wb") -> Iterator[IO[Any]]:
+    """A file handle whose content replaces ``path`` only when the ``with`` block succeeds."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, mode) as fh:
+            yield fh
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write(path: str | Path, data: bytes | str | Callable[[IO[bytes]], None]) -> Path:
+    """Write ``data`` (bytes, text, or a function writing to a binary handle) to ``path`` atomically."""
+    path = Path(path)
+    with atomic_open(path, "wb") as fh:
+        if callable(data):
+            data(fh)
+        else:
+            fh.write(data.encode() if isinstance(data, str) else data)
+    return path
+
+
+def write_json(path: str | Path, payload: Any) -> Path:
+    """Indented JSON (numpy scalars as floats), written atomically."""
+    return atomic_write(path, json.dumps(payload, indent=2, default=float) + "\n")
+
+
+def torch_save(path: str | Path, obj: Any) -> Path:
+    """``torch.save`` through a buffer, so an interrupt never leaves a truncated checkpoint."""
+    import torch
+
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)
+    return atomic_write(path, buffer.getvalue())
