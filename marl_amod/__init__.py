@@ -13,10 +13,11 @@ from typing import TYPE_CHECKING, Any
 from marl_amod import env
 
 __version__ = "0.1.0"
-__all__ = ["amod_v0", "env", "parallel_env"]
+__all__ = ["amod_v0", "env", "parallel_env", "vector_env"]
 
 if TYPE_CHECKING:
     from marl_amod.env.parallel import AmodParallelEnv
+    from marl_amod.env.vector import AmodVectorEnv
     from marl_amod.scenario.types import City
 
 
@@ -29,6 +30,17 @@ def parallel_env(scenario: str | City = "synthetic", **kwargs: Any) -> AmodParal
     from marl_amod.amod_v0 import parallel_env as make
 
     return make(scenario, **kwargs)
+
+
+def vector_env(scenario: str | City = "synthetic", num_envs: int = 16, **kwargs: Any) -> AmodVectorEnv:
+    """B episodes of one city in lockstep, arrays (B, N, ...) in and out (:mod:`marl_amod.env.vector`).
+
+    Takes the ParallelEnv's keywords (reward_mode, action_mode, lookahead, max_wait, objective and
+    scenario overrides); ``reset(seed=s)`` gives episode b the ParallelEnv's episode of seed s + b.
+    """
+    from marl_amod.env.vector import AmodVectorEnv
+
+    return AmodVectorEnv(scenario, num_envs, **kwargs)
 
 
 def __getattr__(name: str) -> Any:

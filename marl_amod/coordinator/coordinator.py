@@ -71,4 +71,4 @@ class Coordinator:
 
     def targets(self, weights: np.ndarray, idle: np.ndarray) -> np.ndarray:
         """Global target u = floor(w / sum(w) * M) from per-region non-negative weights."""
-        return desired_targets(np.asarray(weights, dtype=float), int(idle.sum()))
+        return desired_targets(np.asarray(weights, dtype=float), np.asarray(idle).sum(axis=-1))

@@ -21,16 +21,18 @@ def margin_order(margin: np.ndarray) -> np.ndarray:
 def greedy_dispatch(
     idle: np.ndarray, demand: np.ndarray, margin: np.ndarray, order: np.ndarray | None = None
 ) -> np.ndarray:
-    """Optimal integral passenger flows x (N, N) for idle (N,), demand (N, N) and margin (N, N).
+    """Optimal integral passenger flows x (..., N, N) for idle (..., N), demand (..., N, N) and margin (N, N).
 
     ``order`` is :func:`margin_order` of ``margin``; pass it when margins repeat across calls.
+    Leading axes are independent instances (a batch of episodes at the same step).
     """
     if order is None:
         order = margin_order(margin)
     servable = np.where(margin > 0, demand, 0)
-    d_sorted = np.take_along_axis(servable, order, axis=1)
-    before = np.cumsum(d_sorted, axis=1) - d_sorted
-    x_sorted = np.clip(idle[:, None] - before, 0, d_sorted)
+    order = np.broadcast_to(order, servable.shape)
+    d_sorted = np.take_along_axis(servable, order, axis=-1)
+    before = np.cumsum(d_sorted, axis=-1) - d_sorted
+    x_sorted = np.clip(idle[..., None] - before, 0, d_sorted)
     x = np.empty_like(x_sorted)
-    np.put_along_axis(x, order, x_sorted, axis=1)
+    np.put_along_axis(x, order, x_sorted, axis=-1)
     return x

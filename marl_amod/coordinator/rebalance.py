@@ -28,12 +28,16 @@ def satisfies_triangle_inequality(cost: np.ndarray, chunk: int = 64) -> bool:
     return True
 
 
-def desired_targets(weights: np.ndarray, total_idle: int) -> np.ndarray:
-    """The paper's target u_i = floor(w_i / sum(w) * M); all-zero weights mean 'stay' (-1s)."""
-    s = weights.sum()
-    if s <= 0:
-        return np.full(weights.shape, -1, dtype=np.int64)
-    return np.floor(weights / s * total_idle + 1e-9).astype(np.int64)
+def desired_targets(weights: np.ndarray, total_idle: int | np.ndarray) -> np.ndarray:
+    """The paper's target u_i = floor(w_i / sum(w) * M); all-zero weights mean 'stay' (-1s).
+
+    Leading axes of ``weights`` (..., N) are independent instances with ``total_idle`` (...,).
+    """
+    s = weights.sum(axis=-1, keepdims=True)
+    positive = s > 0
+    total = np.asarray(total_idle)[..., None]
+    u = np.floor(weights / np.where(positive, s, 1.0) * total + 1e-9).astype(np.int64)
+    return np.where(positive, u, -1)
 
 
 def min_cost_rebalance(idle: np.ndarray, target: np.ndarray, cost: np.ndarray, metric: bool = False) -> np.ndarray:

@@ -12,6 +12,8 @@ Steps past the tabulated horizon count as zero.
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 
 from marl_amod.scenario.types import City
@@ -27,16 +29,44 @@ def feature_names(lookahead: int = 6) -> list[str]:
 
 def node_features(system: FleetSystem, lookahead: int = 6, scale: float = FEATURE_SCALE) -> np.ndarray:
     """(N, 1 + 2T) float32 features of every region (the paper's GNN input)."""
-    sim, city = system.sim, system.city
-    t = sim.t
+    sim = system.sim
+    return state_features(system.city, sim.t, sim.idle, sim.arrivals, lookahead, scale)
+
+
+def state_features(
+    city: City, t: int, idle: np.ndarray, arrivals: np.ndarray, lookahead: int = 6, scale: float = FEATURE_SCALE
+) -> np.ndarray:
+    """(..., N, 1 + 2T) float32 features from idle (..., N) and arrivals (..., L, N) at step t.
+
+    The leading axes are a batch of episodes in lockstep (:mod:`marl_amod.sim.batch`); the single
+    env passes none, so both paths run this one function.
+    """
     steps = np.arange(t + 1, t + lookahead + 1)
-    valid = steps < city.n_steps
-    idx = np.minimum(steps, city.n_steps - 1)
-    arriving = sim.arrivals[np.minimum(steps, sim.arrivals.shape[0] - 1)]  # (T, N)
-    supply = sim.idle[None, :] + arriving
-    value = (city.demand_rate[idx] * city.price[idx]).sum(axis=2) * valid[:, None]  # (T, N)
-    feats = np.concatenate([sim.idle[None, :], supply, value], axis=0).T * scale
-    return feats.astype(np.float32)
+    arriving = arrivals[..., np.minimum(steps, arrivals.shape[-2] - 1), :]  # (..., T, N)
+    supply = idle[..., None, :] + arriving
+    value = np.broadcast_to(_value_table(city, lookahead)[t], supply.shape)  # (..., T, N)
+    feats = np.concatenate([idle[..., None, :], supply, value], axis=-2)  # (..., 1 + 2T, N)
+    return (np.swapaxes(feats, -1, -2) * scale).astype(np.float32)
+
+
+_VALUES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _value_table(city: City, lookahead: int) -> np.ndarray:
+    """(S, T, N) expected request value out of each region in steps t+1..t+T (zero past the table).
+
+    Depends on the city's tables alone, so it is computed once per city and look-ahead instead of
+    every step (the same products and sums as before, so the same numbers).
+    """
+    per_city = _VALUES.setdefault(city, {})
+    if lookahead not in per_city:
+        s = city.n_steps
+        value = (city.demand_rate * city.price).sum(axis=2)  # (S, N)
+        steps = np.arange(s)[:, None] + np.arange(1, lookahead + 1)[None, :]  # (S, T)
+        table = value[np.minimum(steps, s - 1)] * (steps < s)[:, :, None]
+        table.setflags(write=False)
+        per_city[lookahead] = table
+    return per_city[lookahead]
 
 
 def feature_high(city: City, lookahead: int = 6, scale: float = FEATURE_SCALE) -> np.ndarray:
