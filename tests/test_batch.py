@@ -151,3 +151,26 @@ def test_vector_env_rejects_bad_actions() -> None:
     bad[1, 3] = -0.5
     with pytest.raises(ActionError, match="negative"):
         venv.step(bad)
+
+
+def test_rebalancer_reusing_its_network_equals_a_fresh_solve_and_pickles() -> None:
+    """The coordinator keeps one OR-Tools network per city; reusing it must not change any flow."""
+    import pickle
+
+    from marl_amod.coordinator.rebalance import Rebalancer, desired_targets, min_cost_rebalance
+    from marl_amod.scenario import grid_city
+
+    city = grid_city(4, 4, seed=2)
+    rng = np.random.default_rng(7)
+    cost = city.reb_time.copy()
+    cost[0, 5] = cost[0, 5] + 3  # break the triangle inequality: the full network is reused
+    for metric, c in ((False, cost), (True, city.reb_time)):
+        solver = Rebalancer(c, metric)
+        for _ in range(60):
+            idle = rng.multinomial(rng.integers(0, 200), rng.dirichlet(np.full(16, 0.5)))
+            target = desired_targets(rng.random(16) * (rng.random(16) > 0.3), idle.sum())
+            flows = solver(idle, target)
+            np.testing.assert_array_equal(flows, min_cost_rebalance(idle, target, c, metric=metric))
+            assert ((idle - flows.sum(axis=1) + flows.sum(axis=0)) >= np.maximum(target, 0)).all()
+        copy = pickle.loads(pickle.dumps(solver))
+        np.testing.assert_array_equal(copy(idle, target), flows)

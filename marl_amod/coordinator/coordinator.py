@@ -12,11 +12,7 @@ from typing import Literal
 import numpy as np
 
 from marl_amod.coordinator.dispatch import greedy_dispatch, margin_order
-from marl_amod.coordinator.rebalance import (
-    desired_targets,
-    min_cost_rebalance,
-    satisfies_triangle_inequality,
-)
+from marl_amod.coordinator.rebalance import Rebalancer, desired_targets, satisfies_triangle_inequality
 from marl_amod.errors import ConfigError
 from marl_amod.scenario.types import City
 
@@ -37,6 +33,7 @@ class Coordinator:
         self.solver = solver
         self._orders: dict[int, np.ndarray] = {}
         self._metric: bool | None = None
+        self._rebalancer: Rebalancer | None = None
 
     def margin(self, t: int) -> np.ndarray:
         """(N, N) value of serving one request i->j in step t under the dispatch objective."""
@@ -67,7 +64,9 @@ class Coordinator:
             from marl_amod.coordinator.reference import lp_rebalance
 
             return lp_rebalance(idle, target, self.city.reb_cost)
-        return min_cost_rebalance(idle, target, self.city.reb_time, metric=self.metric)
+        if self._rebalancer is None:
+            self._rebalancer = Rebalancer(self.city.reb_time, metric=self.metric)
+        return self._rebalancer(idle, target)
 
     def targets(self, weights: np.ndarray, idle: np.ndarray) -> np.ndarray:
         """Global target u = floor(w / sum(w) * M) from per-region non-negative weights."""

@@ -48,38 +48,73 @@ def min_cost_rebalance(idle: np.ndarray, target: np.ndarray, cost: np.ndarray, m
     :func:`satisfies_triangle_inequality`). Targets above what the fleet can reach are
     infeasible and raise; targets summing to at most sum(idle) never are.
     """
+    return Rebalancer(cost, metric)(idle, target)
+
+
+class Rebalancer:
+    """:func:`min_cost_rebalance` for one cost matrix, called every step.
+
+    Without the triangle inequality the network is the same every call (all N x N arcs), so it is
+    built once and only capacities and supplies change between solves: the same network handed
+    to the same solver, hence the same flows, without rebuilding it (tested against a fresh build).
+    The OR-Tools object is not picklable; a copy rebuilds it on first use.
+    """
+
+    def __init__(self, cost: np.ndarray, metric: bool = False) -> None:
+        self.cost = np.asarray(cost, dtype=np.int64)
+        self.metric = metric
+        self._full: tuple | None = None  # (solver, arc ids, node ids) of the full network
+
+    def __call__(self, idle: np.ndarray, target: np.ndarray) -> np.ndarray:
+        idle = np.asarray(idle, dtype=np.int64)
+        need = np.maximum(np.asarray(target, dtype=np.int64), 0)
+        n = idle.shape[0]
+        if need.sum() > idle.sum():
+            raise SolverError(f"rebalancing targets sum to {need.sum()} but only {idle.sum()} vehicles are idle")
+        flows = np.zeros((n, n), dtype=np.int64)
+        if self.metric:
+            senders = np.flatnonzero(idle > need)
+            receivers = np.flatnonzero(need > idle)
+            if receivers.size == 0:
+                return flows
+            supply = idle[senders] - need[senders]
+            demand = need[receivers] - idle[receivers]
+            smcf, arcs, nodes = _network(self.cost[np.ix_(senders, receivers)])
+        else:
+            senders = receivers = slice(None)
+            supply, demand = idle, need
+            if self._full is None:
+                self._full = _network(self.cost)
+            smcf, arcs, nodes = self._full
+        s, r = supply.size, demand.size
+        smcf.set_arc_capacities(arcs, np.concatenate([np.repeat(supply, r), supply]))
+        smcf.set_nodes_supplies(nodes, np.concatenate([supply, -demand, [demand.sum() - supply.sum()]]))
+        status = smcf.solve()
+        if status != smcf.OPTIMAL:
+            raise SolverError(f"min-cost rebalancing flow failed with OR-Tools status {status}")
+        f = smcf.flows(arcs)[: s * r].reshape(s, r)
+        if self.metric:
+            flows[np.ix_(senders, receivers)] = f
+        else:
+            flows[:] = f
+        np.fill_diagonal(flows, 0)  # a region 'sending' to itself keeps its vehicles
+        return flows
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_full": None}
+
+
+def _network(cost: np.ndarray) -> tuple:
+    """An OR-Tools network for senders x receivers with unit costs ``cost`` (s, r), capacities unset.
+
+    Nodes: senders 0..s-1, receivers s..s+r-1, slack sink s+r (absorbs vehicles that stay anywhere).
+    """
     from ortools.graph.python import min_cost_flow
 
-    idle = np.asarray(idle, dtype=np.int64)
-    need = np.maximum(np.asarray(target, dtype=np.int64), 0)
-    n = idle.shape[0]
-    if need.sum() > idle.sum():
-        raise SolverError(f"rebalancing targets sum to {need.sum()} but only {idle.sum()} vehicles are idle")
-    flows = np.zeros((n, n), dtype=np.int64)
-    if metric:
-        senders = np.flatnonzero(idle > need)
-        receivers = np.flatnonzero(need > idle)
-        if receivers.size == 0:
-            return flows
-        supply = idle[senders] - need[senders]
-        demand = need[receivers] - idle[receivers]
-    else:
-        senders = receivers = np.arange(n)
-        supply, demand = idle, need
-    s, r = senders.size, receivers.size
-    # nodes: senders 0..s-1, receivers s..s+r-1, slack sink s+r (absorbs vehicles that stay anywhere)
+    s, r = cost.shape
     tail = np.concatenate([np.repeat(np.arange(s), r), np.arange(s)])
     head = np.concatenate([np.tile(np.arange(s, s + r), s), np.full(s, s + r)])
-    unit = np.concatenate([cost[np.ix_(senders, receivers)].ravel(), np.zeros(s, dtype=np.int64)])
-    cap = np.concatenate([np.repeat(supply, r), supply])
+    unit = np.concatenate([cost.ravel(), np.zeros(s, dtype=np.int64)]).astype(np.int64)
     smcf = min_cost_flow.SimpleMinCostFlow()
-    arcs = smcf.add_arcs_with_capacity_and_unit_cost(tail, head, cap, unit.astype(np.int64))
-    supplies = np.concatenate([supply, -demand, [demand.sum() - supply.sum()]])
-    smcf.set_nodes_supplies(np.arange(s + r + 1), supplies)
-    status = smcf.solve()
-    if status != smcf.OPTIMAL:
-        raise SolverError(f"min-cost rebalancing flow failed with OR-Tools status {status}")
-    f = smcf.flows(arcs)[: s * r].reshape(s, r)
-    flows[np.ix_(senders, receivers)] = f
-    np.fill_diagonal(flows, 0)  # a region 'sending' to itself keeps its vehicles
-    return flows
+    arcs = smcf.add_arcs_with_capacity_and_unit_cost(tail, head, np.zeros(tail.size, dtype=np.int64), unit)
+    return smcf, arcs, np.arange(s + r + 1)
