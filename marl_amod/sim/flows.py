@@ -15,6 +15,10 @@ def as_flows(flows: np.ndarray, n: int, what: str, batch: tuple[int, ...] = ()) 
     flows = np.asarray(flows)
     if flows.shape != (*batch, n, n):
         raise ValueError(f"{what} flows must have shape {(*batch, n, n)}, got {flows.shape}")
+    if flows.dtype.kind in "iu":  # the coordinator's own output: only the sign can be wrong
+        if flows.dtype.kind == "i" and (flows < 0).any():
+            raise ValueError(f"{what} flows must be non-negative integers")
+        return flows.astype(np.int64)  # a copy: the simulator keeps it as last_dispatch/last_rebalance
     if not np.all(np.isfinite(flows)):
         raise ValueError(f"{what} flows contain NaN or inf")
     rounded = np.rint(flows)
