@@ -71,8 +71,8 @@ class Rebalancer:
         n = idle.shape[0]
         if need.sum() > idle.sum():
             raise SolverError(f"rebalancing targets sum to {need.sum()} but only {idle.sum()} vehicles are idle")
-        flows = np.zeros((n, n), dtype=np.int64)
         if self.metric:
+            flows = np.zeros((n, n), dtype=np.int64)
             senders = np.flatnonzero(idle > need)
             receivers = np.flatnonzero(need > idle)
             if receivers.size == 0:
@@ -81,7 +81,6 @@ class Rebalancer:
             demand = need[receivers] - idle[receivers]
             smcf, arcs, nodes = _network(self.cost[np.ix_(senders, receivers)])
         else:
-            senders = receivers = slice(None)
             supply, demand = idle, need
             if self._full is None:
                 self._full = _network(self.cost)
@@ -96,8 +95,8 @@ class Rebalancer:
         if self.metric:
             flows[np.ix_(senders, receivers)] = f
         else:
-            flows[:] = f
-        np.fill_diagonal(flows, 0)  # a region 'sending' to itself keeps its vehicles
+            flows = f.astype(np.int64)
+        flows.flat[:: n + 1] = 0  # a region 'sending' to itself keeps its vehicles
         return flows
 
     def __getstate__(self) -> dict:
