@@ -174,3 +174,24 @@ def test_rebalancer_reusing_its_network_equals_a_fresh_solve_and_pickles() -> No
             assert ((idle - flows.sum(axis=1) + flows.sum(axis=0)) >= np.maximum(target, 0)).all()
         copy = pickle.loads(pickle.dumps(solver))
         np.testing.assert_array_equal(copy(idle, target), flows)
+
+
+def test_torchrl_vector_env_passes_check_env_specs_and_replays_the_vector_env() -> None:
+    pytest.importorskip("torchrl")
+    from torchrl.envs.utils import check_env_specs
+
+    from marl_amod.integrations.torchrl import torchrl_vector_env
+
+    env = torchrl_vector_env("synthetic", num_envs=3, reward_mode="local")
+    check_env_specs(env)
+    env.set_seed(8)
+    td = env.rollout(100, break_when_any_done=True)  # stops at the horizon: all episodes end together
+    horizon = env.vector.city.horizon
+    assert td.batch_size == (3, horizon - 1) and td["next", "truncated"][:, -1].all()
+    venv = marl_amod.vector_env("synthetic", num_envs=3, reward_mode="local")
+    obs, _ = venv.reset(seed=8)
+    np.testing.assert_array_equal(td["agents", "observation"][:, 0].numpy(), obs)
+    for k in range(horizon - 1):
+        obs, rew, *_ = venv.step(td["agents", "action"][:, k].numpy())
+        np.testing.assert_array_equal(td["next", "agents", "observation"][:, k].numpy(), obs)
+        np.testing.assert_allclose(td["next", "agents", "reward"][:, k, :, 0].numpy(), rew.astype(np.float32))
