@@ -28,11 +28,13 @@ def greedy_dispatch(
     """
     if order is None:
         order = margin_order(margin)
-    servable = np.where(margin > 0, demand, 0)
-    order = np.broadcast_to(order, servable.shape)
-    d_sorted = np.take_along_axis(servable, order, axis=-1)
+    n = margin.shape[-1]
+    flat = order + np.arange(0, n * n, n)[:, None]  # (N, N) positions of the sorted entries in a flat row-major (N, N)
+    lead = demand.shape[:-2]
+    servable = np.where(margin > 0, demand, 0).reshape(*lead, n * n)
+    d_sorted = servable[..., flat]  # (..., N, N), each origin's requests by decreasing margin
     before = np.cumsum(d_sorted, axis=-1) - d_sorted
-    x_sorted = np.clip(idle[..., None] - before, 0, d_sorted)
-    x = np.empty_like(x_sorted)
-    np.put_along_axis(x, order, x_sorted, axis=-1)
-    return x
+    x_sorted = np.minimum(np.maximum(idle[..., None] - before, 0), d_sorted)
+    x = np.empty_like(servable)
+    x[..., flat] = x_sorted
+    return x.reshape(demand.shape)

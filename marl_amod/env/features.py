@@ -43,10 +43,12 @@ def state_features(
     """
     steps = np.arange(t + 1, t + lookahead + 1)
     arriving = arrivals[..., np.minimum(steps, arrivals.shape[-2] - 1), :]  # (..., T, N)
-    supply = idle[..., None, :] + arriving
-    value = np.broadcast_to(_value_table(city, lookahead)[t], supply.shape)  # (..., T, N)
-    feats = np.concatenate([idle[..., None, :], supply, value], axis=-2)  # (..., 1 + 2T, N)
-    return (np.swapaxes(feats, -1, -2) * scale).astype(np.float32)
+    feats = np.empty((*idle.shape, 1 + 2 * lookahead))  # (..., N, 1 + 2T), float64 until scaled
+    feats[..., 0] = idle
+    feats[..., 1 : 1 + lookahead] = np.swapaxes(idle[..., None, :] + arriving, -1, -2)  # supply
+    feats[..., 1 + lookahead :] = _value_table(city, lookahead)[t].T  # value, the same in every episode
+    feats *= scale
+    return feats.astype(np.float32)
 
 
 _VALUES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()

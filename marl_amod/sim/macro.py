@@ -166,7 +166,7 @@ class MacroSim:
         if not moving.any():
             return
         i, j = np.nonzero(moving)
-        arrive = self.t + duration[i, j]
-        np.add.at(self.arrivals, (arrive, j), flows[i, j])
+        np.add.at(self.arrivals, (self.t + duration[i, j], j), flows[i, j])
         steps_left = self.city.horizon - self.t
-        np.add.at(self.totals.busy_vehicle_steps, i, flows[i, j] * np.minimum(duration[i, j], steps_left))
+        # integer vehicle-steps: summing per origin first gives the same float totals as adding one by one
+        self.totals.busy_vehicle_steps += (flows * np.minimum(duration, steps_left)).sum(axis=1)
