@@ -7,6 +7,8 @@ of one episode, every region acting; a batch of B episodes stepping once counts 
 * ``aec``: ``pettingzoo.test.performance_benchmark``'s loop over the AEC env (cycles per second);
 * ``system``: FleetSystem alone (Dirichlet targets, no observations);
 * ``batch B``: ``marl_amod.vector_env(num_envs=B)`` with uniform random actions (B, N);
+* ``stay B``: the batched env at the largest B with all-zero actions ("stay": no rebalancing to
+  solve), i.e. the batched machinery without the per-episode min-cost flows;
 * ``step ms``: median milliseconds of one ParallelEnv.step.
 
 Run on one core:  python benchmarks/env_speed.py [--seconds 2] [--scenarios nyc_brooklyn synthetic]
@@ -95,13 +97,14 @@ def system_loop(scenario: str, seconds: float) -> float:
     return rate(step, seconds)
 
 
-def batch_loop(scenario: str, b: int, seconds: float) -> float:
+def batch_loop(scenario: str, b: int, seconds: float, stay: bool = False) -> float:
     venv = marl_amod.vector_env(scenario, num_envs=b)
     rng = np.random.default_rng(0)
     venv.reset(seed=0)
 
     def step() -> int:
-        *_, trunc, _ = venv.step(rng.random((b, venv.num_agents), dtype=np.float32))
+        actions = rng.random((b, venv.num_agents), dtype=np.float32) * (not stay)
+        *_, trunc, _ = venv.step(actions)
         if trunc.all():
             venv.reset()
         return b
@@ -121,11 +124,11 @@ def main() -> None:
     except ImportError:  # pragma: no cover - torch is a core dependency today
         pass
     batch_cols = " | ".join(f"batch {b}" for b in BATCHES)
-    print(f"| scenario | regions | parallel | aec | system | {batch_cols} | step ms |")
-    print("|---|---:|---:|---:|---:|" + "---:|" * len(BATCHES) + "---:|")
+    print(f"| scenario | regions | parallel | aec | system | {batch_cols} | stay B | step ms |")
+    print("|---|---:|---:|---:|---:|" + "---:|" * len(BATCHES) + "---:|---:|")
     for scenario in args.scenarios:
         city = load_city(scenario)
-        per_episode = city.demand_rate.size * 8
+        per_episode = city.demand_rate[: city.horizon].size * 8  # the batch keeps each episode's drawn demand
         parallel, step_ms = parallel_loop(scenario, args.seconds)
         aec = aec_loop(scenario, args.seconds)
         system = system_loop(scenario, args.seconds)
@@ -135,6 +138,8 @@ def main() -> None:
                 cells.append("-")
             else:
                 cells.append(f"{batch_loop(scenario, b, args.seconds):,.0f}")
+        largest = max(b for b in BATCHES if b == 1 or b * per_episode <= MEMORY_LIMIT)
+        cells.append(f"{batch_loop(scenario, largest, args.seconds, stay=True):,.0f} (B={largest})")
         print(
             f"| {scenario} | {city.n_regions} | {parallel:,.0f} | {aec:,.0f} | {system:,.0f} | "
             + " | ".join(cells)

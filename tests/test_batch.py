@@ -35,6 +35,7 @@ def test_batch_system_equals_fleet_system_episode_for_episode(scenario: str, max
     outs = [batch.reset(seeds)] + [None]
     firsts = [s.reset(seed) for s, seed in zip(singles, seeds)]
     for b, first in enumerate(firsts):
+        np.testing.assert_array_equal(batch.sim.demand[b], singles[b].sim.demand[: city.horizon])  # same draws
         np.testing.assert_array_equal(outs[0].region_profit[b], first.region_profit)
         np.testing.assert_array_equal(outs[0].dispatch[b], first.dispatch)
     rng = np.random.default_rng(0)

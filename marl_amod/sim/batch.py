@@ -37,7 +37,7 @@ class BatchMacroSim:
         self.t = 0
         self.idle = np.broadcast_to(city.initial_vehicles.astype(np.int64), (b, n)).copy()  # (B, N)
         self.arrivals = np.zeros((b, self._arrival_len, n), dtype=np.int64)  # (B, L, N)
-        self.demand = np.zeros((b, city.n_steps, n, n), dtype=np.int64)  # (B, S, N, N)
+        self.demand = np.zeros((b, city.horizon, n, n), dtype=np.int64)  # (B, H, N, N): the steps an episode sees
         self.backlog = np.zeros((b, max_wait + 1, n, n), dtype=np.int64)  # (B, W + 1, N, N), by age
         self.totals = _zero_totals(b, n)  # fields (B, N)
         self.last_dispatch = np.zeros((b, n, n), dtype=np.int64)
@@ -52,8 +52,11 @@ class BatchMacroSim:
         self.t = 0
         self.idle[:] = city.initial_vehicles
         self.arrivals[:] = 0
+        rate = city.demand_rate[: city.horizon]
         for k, rng in enumerate(rngs):
-            self.demand[k] = rng.poisson(city.demand_rate)
+            # Poisson draws fill an array in C order, so the first H steps of MacroSim's (S, N, N)
+            # draw are exactly this (H, N, N) draw; the steps past the horizon are never used
+            self.demand[k] = rng.poisson(rate)
         self.backlog[:] = 0
         self.backlog[:, 0] = self.demand[:, 0]
         self.totals = _zero_totals(b, n)

@@ -30,14 +30,14 @@ def as_flows(flows: np.ndarray, n: int, what: str, batch: tuple[int, ...] = ()) 
 def check_supply(flows: np.ndarray, idle: np.ndarray, what: str) -> None:
     """No region sends away more vehicles than it has idle."""
     out = flows.sum(axis=-1)
-    if np.any(out > idle):
+    if (out > idle).any():
         at = np.unravel_index(np.argmax(out - idle), out.shape)  # (region,) or (episode, region)
         raise ValueError(f"{what} sends {out[at]} vehicles from region {at[-1]} which has {idle[at]} idle" + _episode(at))
 
 
 def check_dispatch(x: np.ndarray, open_requests: np.ndarray, idle: np.ndarray) -> None:
     """Passenger flows serve only open requests, with idle vehicles."""
-    if np.any(x > open_requests):
+    if (x > open_requests).any():
         at = tuple(np.argwhere(x > open_requests)[0])
         i, j = at[-2:]
         raise ValueError(f"dispatch serves {x[at]} requests {i}->{j} but only {open_requests[at]} are open" + _episode(at[:-1]))
@@ -46,7 +46,7 @@ def check_dispatch(x: np.ndarray, open_requests: np.ndarray, idle: np.ndarray) -
 
 def check_rebalance(y: np.ndarray, idle: np.ndarray) -> None:
     """Rebalancing flows move idle vehicles between distinct regions."""
-    if np.any(np.diagonal(y, axis1=-2, axis2=-1) != 0):
+    if np.diagonal(y, axis1=-2, axis2=-1).any():
         raise ValueError("rebalancing flows must be zero on the diagonal (staying is implicit)")
     check_supply(y, idle, "rebalancing")
 
