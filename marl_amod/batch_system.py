@@ -5,8 +5,8 @@ targets -> advance -> dispatch), applied to a :class:`~marl_amod.sim.batch.Batch
 
 * dispatch is the coordinator's exact greedy, vectorised over the batch (one sort per step,
   cached, shared by every episode);
-* rebalancing is the coordinator's exact min-cost flow solved per episode (OR-Tools; an LP per
-  episode has no batched exact counterpart that returns the same optimal vertex on ties), skipped
+* rebalancing is the coordinator's exact min-cost flow solved per episode (OR-Tools, one network
+  per city reused; solving the B networks as one returns other optimal vertices on ties), skipped
   where every region already holds its target (then no move is the unique optimum: moves cost > 0).
 
 Episode b reset with seed s_b equals ``FleetSystem.reset(s_b)`` driven by the same targets,
@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from marl_amod.coordinator.coordinator import Backend, Coordinator, Objective
+from marl_amod.coordinator.coordinator import Coordinator, Objective
 from marl_amod.errors import ConfigError
 from marl_amod.scenario.types import City
 from marl_amod.sim.batch import BatchMacroSim
@@ -51,15 +51,13 @@ class BatchOutcome:
 class BatchFleetSystem:
     """B macro episodes of one city plus the exact coordinator; the engine of the vector env."""
 
-    def __init__(
-        self, city: City, num_envs: int, *, max_wait: int = 0, objective: Objective = "profit", solver: Backend = "fast"
-    ) -> None:
+    def __init__(self, city: City, num_envs: int, *, max_wait: int = 0, objective: Objective = "profit") -> None:
         if city.simulator is not None:
             raise ConfigError(f"{city.name} runs in its own simulator; the batched path is macro only")
         self.city = city
         self.num_envs = int(num_envs)
         self.sim = BatchMacroSim(city, num_envs, max_wait=max_wait)
-        self.coordinator = Coordinator(city, objective=objective, solver=solver)
+        self.coordinator = Coordinator(city, objective=objective)  # the fast exact path; cvxpy checks it in tests
 
     @property
     def t(self) -> int:
@@ -80,7 +78,7 @@ class BatchFleetSystem:
         """Rebalance toward ``target`` (B, N) idle vehicles per region (-1: no wish), then move on."""
         target = np.asarray(target)
         before = self._booked()
-        self.sim.apply_rebalance(self._rebalance(self.sim.idle, target))
+        self.sim.apply_rebalance(self.coordinator.rebalance(self.sim.idle, target))
         applied = self.sim.last_rebalance
         self.sim.advance()
         self._dispatch()
@@ -91,13 +89,6 @@ class BatchFleetSystem:
     def targets_from_weights(self, weights: np.ndarray) -> np.ndarray:
         """(B, N) targets floor(w_i / sum(w) * M) per episode from non-negative weights (B, N)."""
         return self.coordinator.targets(weights, self.sim.idle)
-
-    def _rebalance(self, idle: np.ndarray, target: np.ndarray) -> np.ndarray:
-        flows = np.zeros(idle.shape + idle.shape[-1:], dtype=np.int64)
-        short = np.flatnonzero((np.maximum(target, 0) > idle).any(axis=-1))
-        for b in short:  # an exact solve per episode that needs moves at all
-            flows[b] = self.coordinator.rebalance(idle[b], target[b])
-        return flows
 
     def _dispatch(self) -> None:
         self.sim.apply_dispatch(self.coordinator.dispatch(self.sim.idle, self.sim.requests(), self.sim.t))

@@ -59,13 +59,16 @@ class Coordinator:
         return greedy_dispatch(idle, requests, margin, self._orders[t])
 
     def rebalance(self, idle: np.ndarray, target: np.ndarray) -> np.ndarray:
-        """Rebalancing flows y (N, N) of least cost meeting ``target`` (a -1 entry: no target)."""
+        """Rebalancing flows y (N, N) of least cost meeting ``target`` (a -1 entry: no target);
+        idle and target (B, N) give (B, N, N), each episode solved alone."""
         if self.solver == "cvxpy":
             from marl_amod.coordinator.reference import lp_rebalance
 
             return lp_rebalance(idle, target, self.city.reb_cost)
         if self._rebalancer is None:
             self._rebalancer = Rebalancer(self.city.reb_time, metric=self.metric)
+        if np.ndim(idle) == 2:  # a batch of episodes (B, N): each solved alone
+            return self._rebalancer.many(idle, target)
         return self._rebalancer(idle, target)
 
     def targets(self, weights: np.ndarray, idle: np.ndarray) -> np.ndarray:

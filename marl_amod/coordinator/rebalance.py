@@ -99,6 +99,38 @@ class Rebalancer:
         flows.flat[:: n + 1] = 0  # a region 'sending' to itself keeps its vehicles
         return flows
 
+    def many(self, idle: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """Flows (B, N, N) for B independent instances idle (B, N), target (B, N): each solved alone
+        (the same flows as B calls), with the array bookkeeping of the full network done once."""
+        idle = np.asarray(idle, dtype=np.int64)
+        need = np.maximum(np.asarray(target, dtype=np.int64), 0)
+        b, n = idle.shape
+        flows = np.zeros((b, n, n), dtype=np.int64)
+        short = np.flatnonzero((need > idle).any(axis=-1))  # elsewhere no move is the unique optimum
+        if self.metric:
+            for k in short:
+                flows[k] = self(idle[k], need[k])
+            return flows
+        over = need[short].sum(axis=-1) > idle[short].sum(axis=-1)
+        if over.any():
+            k = short[np.argmax(over)]
+            raise SolverError(f"rebalancing targets sum to {need[k].sum()} but only {idle[k].sum()} vehicles are idle")
+        if self._full is None:
+            self._full = _network(self.cost)
+        smcf, arcs, nodes = self._full
+        supply, demand = idle[short], need[short]
+        caps = np.concatenate([np.repeat(supply, n, axis=1), supply], axis=1)
+        supplies = np.concatenate([supply, -demand, (demand.sum(1) - supply.sum(1))[:, None]], axis=1)
+        for row, k in enumerate(short):
+            smcf.set_arc_capacities(arcs, caps[row])
+            smcf.set_nodes_supplies(nodes, supplies[row])
+            status = smcf.solve()
+            if status != smcf.OPTIMAL:
+                raise SolverError(f"min-cost rebalancing flow failed with OR-Tools status {status}")
+            flows[k] = smcf.flows(arcs)[: n * n].reshape(n, n)
+        flows[:, np.arange(n), np.arange(n)] = 0  # a region 'sending' to itself keeps its vehicles
+        return flows
+
     def __getstate__(self) -> dict:
         return {**self.__dict__, "_full": None}
 
