@@ -22,6 +22,9 @@ neighbour mask       K          1.0 for a real neighbour slot, 0.0 for padding
 :func:`split_local` cuts such a vector (or a batch of them, numpy or torch) back into the blocks,
 so a shared-parameter message-passing layer runs from one agent's observation alone. The global
 state (:func:`global_state`) is the N x F feature matrix, flattened, followed by the 3 time values.
+:func:`local_from_features` and :func:`state_from_features` build both layouts from features with
+leading batch axes (B, N, F): the batched env (:mod:`marl_amod.env.vector`) and the single env run
+the same code.
 """
 
 from __future__ import annotations
