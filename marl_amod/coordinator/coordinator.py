@@ -31,7 +31,7 @@ class Coordinator:
         self.city = city
         self.objective = objective
         self.solver = solver
-        self._orders: dict[int, np.ndarray] = {}
+        self._orders: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # step -> (margin, its order)
         self._metric: bool | None = None
         self._rebalancer: Rebalancer | None = None
 
@@ -48,15 +48,16 @@ class Coordinator:
         return self._metric
 
     def dispatch(self, idle: np.ndarray, requests: np.ndarray, t: int) -> np.ndarray:
-        """Passenger flows x (N, N) for step t."""
-        margin = self.margin(t)
+        """Passenger flows x (N, N) for step t; idle (B, N) and requests (B, N, N) give (B, N, N)."""
         if self.solver == "cvxpy":
             from marl_amod.coordinator.reference import lp_dispatch
 
-            return lp_dispatch(idle, requests, margin)
-        if t not in self._orders:
-            self._orders[t] = margin_order(margin)
-        return greedy_dispatch(idle, requests, margin, self._orders[t])
+            return lp_dispatch(idle, requests, self.margin(t))
+        if t not in self._orders:  # margins are tables of the city: sort them once per step
+            margin = self.margin(t)
+            self._orders[t] = (margin, margin_order(margin))
+        margin, order = self._orders[t]
+        return greedy_dispatch(idle, requests, margin, order)
 
     def rebalance(self, idle: np.ndarray, target: np.ndarray) -> np.ndarray:
         """Rebalancing flows y (N, N) of least cost meeting ``target`` (a -1 entry: no target);
