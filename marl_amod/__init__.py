@@ -1,7 +1,8 @@
 """marl_amod: robo-taxi fleet coordination as a multi-agent RL benchmark.
 
 ``parallel_env(...)`` makes the PettingZoo ParallelEnv (every region an agent), ``env(...)`` its
-AEC version; see :mod:`marl_amod.env.parallel` for the documentation. Importing the package
+AEC version; see :mod:`marl_amod.env.parallel` for the documentation. ``vector_env(...)`` runs B
+episodes of one city in lockstep with (B, N, ...) arrays (:mod:`marl_amod.env.vector`). Importing the package
 loads numpy-level code only (no torch); the env's modules load on first use.
 """
 
