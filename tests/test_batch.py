@@ -10,8 +10,8 @@ from marl_amod.batch_system import BatchFleetSystem
 from marl_amod.coordinator.reference import lp_dispatch, lp_rebalance
 from marl_amod.errors import ActionError
 from marl_amod.scenario import load_city
-from marl_amod.system import FleetSystem
 from marl_amod.sim.macro import EpisodeTotals
+from marl_amod.system import FleetSystem
 from tests.conftest import needs_data
 
 SCENARIOS = ["synthetic", pytest.param("nyc_brooklyn", marks=needs_data)]
@@ -33,7 +33,7 @@ def test_batch_system_equals_fleet_system_episode_for_episode(scenario: str, max
     batch = BatchFleetSystem(city, len(seeds), max_wait=max_wait)
     singles = [FleetSystem(city, max_wait=max_wait) for _ in seeds]
     outs = [batch.reset(seeds)] + [None]
-    firsts = [s.reset(seed) for s, seed in zip(singles, seeds)]
+    firsts = [s.reset(seed) for s, seed in zip(singles, seeds, strict=True)]
     for b, first in enumerate(firsts):
         np.testing.assert_array_equal(batch.sim.demand[b], singles[b].sim.demand[: city.horizon])  # same draws
         np.testing.assert_array_equal(outs[0].region_profit[b], first.region_profit)
@@ -176,7 +176,7 @@ def test_rebalancer_reusing_its_network_equals_a_fresh_solve_and_pickles() -> No
             np.testing.assert_array_equal(flows, min_cost_rebalance(idle, target, c, metric=metric))
             assert ((idle - flows.sum(axis=1) + flows.sum(axis=0)) >= np.maximum(target, 0)).all()
             cases.append((idle, target, flows))
-        idles, targets, expected = map(np.stack, zip(*cases))
+        idles, targets, expected = map(np.stack, zip(*cases, strict=True))
         np.testing.assert_array_equal(solver.many(idles, targets), expected)  # a batch: each solved alone
         copy = pickle.loads(pickle.dumps(solver))
         np.testing.assert_array_equal(copy(idle, target), flows)
@@ -212,7 +212,7 @@ def test_vector_env_copy_continues_identically() -> None:
     actions = np.random.default_rng(0).random((2, venv.num_agents))
     venv.step(actions)
     copy = pickle.loads(pickle.dumps(venv))
-    for got, want in zip(copy.step(actions), venv.step(actions)):
+    for got, want in zip(copy.step(actions), venv.step(actions), strict=True):
         if isinstance(want, dict):
             for key in want:
                 np.testing.assert_array_equal(got[key], want[key])
