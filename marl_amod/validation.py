@@ -72,8 +72,13 @@ def check_array(
 
 def as_seed(seed: Any, what: str = "seed") -> int:
     """A seed as a Python int: integers of any kind (numpy included), never negative or a bool."""
-    if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, numbers.Integral):
-        raise ConfigError(f"{what} must be a non-negative integer, got {seed!r}")
-    if seed < 0:
-        raise ConfigError(f"{what} must be a non-negative integer, got {int(seed)}")
-    return int(seed)
+    return as_count(seed, what)
+
+
+def as_count(value: Any, what: str, *, upper: int | None = None, why: str = "") -> int:
+    """A whole number in [0, upper] (numpy integers welcome, bools not), else a ConfigError."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral) or value < 0:
+        raise ConfigError(f"{what} must be a non-negative integer, got {value!r}")
+    if upper is not None and value > upper:
+        raise ConfigError(f"{what} must be at most {upper}{why}, got {int(value)}")
+    return int(value)
