@@ -234,6 +234,20 @@ def test_nan_policy_weights_raise_instead_of_meaning_stay(tiny_city):
         evaluate(tiny_city, NanPolicy(), episodes=1)
 
 
+def test_a_diverged_network_raises_instead_of_meaning_stay(tiny_city):
+    """A GNN actor whose parameters became NaN (as after a diverged update), run as a policy."""
+    torch = pytest.importorskip("torch")
+    from marl_amod.checkpoints import ActorPolicy
+    from marl_amod.models import build_actor
+
+    actor = build_actor("gnn", tiny_city)
+    with torch.no_grad():
+        for param in actor.parameters():
+            param.fill_(float("nan"))
+    with pytest.raises(ActionError, match="rebalancing weights is not finite"):
+        evaluate(tiny_city, ActorPolicy(actor, tiny_city), episodes=1)
+
+
 # --------------------------------------------------------------------------- coordinator
 def test_the_coordinators_public_functions_check_their_inputs(tiny_city):
     coord = Coordinator(tiny_city)
