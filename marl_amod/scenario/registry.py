@@ -182,7 +182,10 @@ def load_spec(name_or_path: str, **overrides: Any) -> ScenarioSpec:
     try:
         return model(**raw)
     except ValidationError as exc:
-        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'scenario'}: {e['msg']}" for e in exc.errors())
+        problems = "; ".join(
+            (f"{'.'.join(map(str, e['loc']))}: " if e["loc"] else "") + e["msg"].removeprefix("Value error, ")
+            for e in exc.errors()
+        )
         raise ConfigError(f"invalid scenario {path}: {problems}") from exc
 
 

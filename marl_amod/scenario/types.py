@@ -45,9 +45,10 @@ class City:
     def __post_init__(self) -> None:
         """Every number checked once here, so no NaN, negative price or impossible time reaches a run."""
         what = f"city {self.name!r}:"
-        s, n, n2 = np.shape(self.demand_rate) if np.ndim(self.demand_rate) == 3 else (0, -1, -2)
-        if n != n2:
-            raise DataError(f"{what} demand_rate must be (S, N, N), got {np.shape(self.demand_rate)}")
+        shape = np.shape(self.demand_rate)
+        if len(shape) != 3 or shape[1] != shape[2]:
+            raise DataError(f"{what} demand_rate must be (S, N, N), got {shape}")
+        s, n, _ = shape
         check_array(self.demand_rate, f"{what} demand_rate", minimum=0)
         check_array(self.price, f"{what} price", shape=(s, n, n), minimum=0)
         check_array(self.trip_time, f"{what} trip_time (steps)", shape=(s, n, n), minimum=1, integer=True)
@@ -60,7 +61,7 @@ class City:
         if edges.size and edges.max() >= n:
             raise DataError(f"{what} edge_index names region {edges.max()} but the city has {n} regions")
         check_array(self.positions, f"{what} positions", shape=(n, 2))
-        for name in ("tstep", "beta"):
+        for name in ("tstep", "beta", "start_hour"):
             check_array(getattr(self, name), f"{what} {name}", minimum=0)
         if self.tstep <= 0:
             raise DataError(f"{what} tstep must be > 0 minutes, got {self.tstep}")
