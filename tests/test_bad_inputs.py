@@ -66,6 +66,8 @@ def reb_rows(**changes):
         ({"rebTime": reb_rows(destination=2)}, r"item 1 of 'rebTime': destination must be a region index"),
         ({"rebTime": reb_rows(reb_time=float("nan"))}, r"item 1 of 'rebTime': reb_time is not finite"),
         ({"rebTime": reb_rows(reb_time=-4.0)}, r"item 1 of 'rebTime': reb_time must be >= 0"),
+        ({"rebTime": reb_rows(reb_time=1e12)}, r"item 1 of 'rebTime': reb_time must be at most 100000 minutes"),
+        ({"demand": demand_item(travel_time=1e300)}, r"item 0 of 'demand': travel_time must be at most"),
         ({"totalAcc": [{"hour": 19, "acc": -5}]}, r"item 0 of 'totalAcc': acc must be >= 0"),
         ({"totalAcc": [{"hour": 19, "acc": 1}]}, r"fleet \(totalAcc for hour 19: 1\) is smaller than the 2 regions"),
         ({"topology_graph": [{"i": 0, "j": 7}]}, r"item 0 of 'topology_graph': j must be a region index"),

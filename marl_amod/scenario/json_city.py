@@ -72,6 +72,15 @@ def _check_non_negative(path: Path, key: str, fields: tuple[str, ...], table: np
     _check_items(path, key, fields, table, cols & (table < 0), "must be >= 0")
 
 
+# a longer trip is a unit error (seconds for minutes); the simulator keeps one row per step of it
+MAX_MINUTES = 100_000
+
+
+def _check_durations(path: Path, key: str, fields: tuple[str, ...], table: np.ndarray, name: str) -> None:
+    cols = np.array([f == name for f in fields])
+    _check_items(path, key, fields, table, cols & (table > MAX_MINUTES), f"must be at most {MAX_MINUTES} minutes")
+
+
 def load_json_city(
     path: Path,
     *,
@@ -99,6 +108,7 @@ def load_json_city(
     dem = _table(path, data, "demand", _DEMAND_KEYS)
     _check_regions(path, "demand", _DEMAND_KEYS, dem, n)
     _check_non_negative(path, "demand", _DEMAND_KEYS, dem, ("demand", "travel_time", "price"))
+    _check_durations(path, "demand", _DEMAND_KEYS, dem, "travel_time")
     ts, o, d, rate, tt, price = dem.T
     o, d = o.astype(int), d.astype(int)
     step = np.floor_divide(ts - 60 * start_hour, tstep).astype(int)
@@ -118,6 +128,7 @@ def load_json_city(
     reb = _table(path, data, "rebTime", _REB_KEYS)
     _check_regions(path, "rebTime", _REB_KEYS, reb, n)
     _check_non_negative(path, "rebTime", _REB_KEYS, reb, ("reb_time",))
+    _check_durations(path, "rebTime", _REB_KEYS, reb, "reb_time")
     rows = reb[reb[:, 0] == start_hour]
     if rows.size == 0:
         raise DataError(f"{path}: no rebTime rows stamped with the start hour {start_hour}")
@@ -161,18 +172,21 @@ def load_json_city(
         ii, jj = np.nonzero(~np.eye(n, dtype=bool))
         edge_index = np.stack([ii, jj])
 
-    return City(
-        name=name,
-        tstep=float(tstep),
-        horizon=horizon,
-        beta=float(beta),
-        demand_rate=demand_rate,
-        price=price_mean,
-        trip_time=trip_time.astype(np.int64),
-        reb_time=reb_time,
-        initial_vehicles=initial,
-        edge_index=edge_index,
-        positions=positions_from_travel_times(reb_time),
-        start_hour=float(start_hour),
-        meta={"data_file": str(path), "demand_ratio": demand_ratio, "fleet_total": int(fleet)},
-    )
+    try:
+        return City(
+            name=name,
+            tstep=float(tstep),
+            horizon=horizon,
+            beta=float(beta),
+            demand_rate=demand_rate,
+            price=price_mean,
+            trip_time=trip_time.astype(np.int64),
+            reb_time=reb_time,
+            initial_vehicles=initial,
+            edge_index=edge_index,
+            positions=positions_from_travel_times(reb_time),
+            start_hour=float(start_hour),
+            meta={"data_file": str(path), "demand_ratio": demand_ratio, "fleet_total": int(fleet)},
+        )
+    except DataError as exc:  # a derived table is impossible: say which file it came from
+        raise DataError(f"{path}: {exc}") from exc
