@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 from pathlib import Path
@@ -22,6 +21,7 @@ from rich.table import Table
 
 from marl_amod.data import ENV_VAR
 from marl_amod.errors import ConfigError, MarlAmodError
+from marl_amod.files import check_destination, save_or_fallback, write_json
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Robo-taxi fleet coordination as a multi-agent RL benchmark.")
 # wide enough for the metrics table when output is piped (rich would assume 80 columns)
@@ -90,7 +90,7 @@ def evaluate(
     scenario: Annotated[str, typer.Option(help="scenario name or YAML path")] = "synthetic",
     policy: Annotated[list[str], typer.Option(help="policy name or checkpoint; repeat to compare")] = ["equal-distribution"],  # noqa: B006
     episodes: Annotated[int, typer.Option(min=1)] = 10,
-    seed: int = 0,
+    seed: Annotated[int, typer.Option(min=0)] = 0,
     output: Annotated[Path | None, typer.Option(help="write the results JSON here")] = None,
     max_wait: Annotated[int, typer.Option(min=0, help="steps a request waits before leaving")] = 0,
     objective: Annotated[str, typer.Option(help="dispatch objective: profit or revenue")] = "profit",
@@ -103,6 +103,8 @@ def evaluate(
     from marl_amod.scenario import load_city
 
     _use_data_dir(data_dir)
+    if output is not None:
+        output = check_destination(output, what="--output")  # before the run, not after it
     city = load_city(scenario)
     results = []
     with progress_bar() as bar:
@@ -118,8 +120,7 @@ def evaluate(
     console.print(metrics_table(results, f"{city.name}: {episodes} episodes, seed {seed}"))
     if output is not None:
         payload = results[0] if len(results) == 1 else {"scenario": city.name, "results": results}
-        output.parent.mkdir(parents=True, exist_ok=True)
-        output.write_text(json.dumps(payload, indent=2))
+        save_or_fallback(output, lambda path: write_json(path, payload), what="the results")
         console.print(f"wrote {output}")
 
 
@@ -128,7 +129,7 @@ def collect(
     scenario: Annotated[str, typer.Option(help="scenario name or YAML path")] = "synthetic",
     policy: Annotated[str, typer.Option(help="behaviour policy: inf, dtv, prop, mpc-oracle, ... or a checkpoint")] = "inf",
     episodes: Annotated[int, typer.Option(min=1)] = 10,
-    seed: int = 0,
+    seed: Annotated[int, typer.Option(min=0)] = 0,
     output: Annotated[Path, typer.Option(help="dataset file to write (.npz, format in marl_amod.datasets)")] = Path("data.npz"),
     max_wait: Annotated[int, typer.Option(min=0, help="steps a request waits before leaving")] = 0,
     data_dir: DataDir = None,
@@ -139,6 +140,7 @@ def collect(
     from marl_amod.scenario import load_city
 
     _use_data_dir(data_dir)
+    output = check_destination(output, what="--output")  # before the run, not after it
     city = load_city(scenario)
     pol = make_policy(policy, city)
     with progress_bar() as bar:
@@ -146,7 +148,7 @@ def collect(
         data = collect_dataset(
             city, pol, episodes=episodes, seed=seed, max_wait=max_wait, progress=lambda _k: bar.advance(task)
         )
-    path = data.save(output)
+    path = save_or_fallback(output, data.save, what="the dataset")
     console.print(f"wrote {len(data)} transitions ({city.n_regions} agents) to {path}")
 
 

@@ -12,6 +12,7 @@ from marl_amod.errors import ConfigError
 from marl_amod.metrics import episode_metrics, region_metrics, result_record
 from marl_amod.scenario import City, load_city
 from marl_amod.system import FleetSystem
+from marl_amod.validation import as_count, as_seed
 
 PolicyFactory = Callable[[City], Policy]
 _EXTRA_POLICIES: dict[str, PolicyFactory] = {}
@@ -65,8 +66,9 @@ def evaluate(
     **system_kwargs: Any,
 ) -> dict[str, Any]:
     """Evaluate one policy for ``episodes`` episodes; episode k draws demand from (seed, k)."""
-    if episodes < 1:
+    if as_count(episodes, "episodes") < 1:
         raise ConfigError(f"episodes must be >= 1, got {episodes}")
+    seed = as_seed(seed)
     city = load_city(scenario) if isinstance(scenario, str) else scenario
     pol = make_policy(policy, city) if isinstance(policy, str) else policy
     system = FleetSystem(city, **system_kwargs)

@@ -80,7 +80,7 @@ def test_malformed_json_names_the_file_and_position(tmp_path):
     [
         ({"rebTime": [{"time_stamp": 19, "origin": 0, "destination": 1, "reb_time": 3}]}, r"lacks the pair \(1, 0\)"),
         ({"demand": [{"time_stamp": 1140, "origin": 0}]}, "item 0 of 'demand'"),
-        ({"demand": [{"time_stamp": 1140, "origin": 5, "destination": 0, "demand": 1, "travel_time": 1, "price": 1}]}, "origins"),
+        ({"demand": [{"time_stamp": 1140, "origin": 5, "destination": 0, "demand": 1, "travel_time": 1, "price": 1}]}, r"item 0 of 'demand': origin must be a region index"),
         ({"totalAcc": [{"hour": 3, "acc": 5}]}, "no entry for hour 19"),
     ],
 )

@@ -11,14 +11,16 @@ from typing import Literal
 
 import numpy as np
 
-from marl_amod.coordinator.dispatch import greedy_dispatch, margin_order
+from marl_amod.coordinator.dispatch import check_dispatch_inputs, greedy_dispatch, margin_order
 from marl_amod.coordinator.rebalance import (
+    check_rebalance_inputs,
     desired_targets,
     min_cost_rebalance,
     satisfies_triangle_inequality,
 )
-from marl_amod.errors import ConfigError
+from marl_amod.errors import ActionError, ConfigError, DataError
 from marl_amod.scenario.types import City
+from marl_amod.validation import check_array
 
 Objective = Literal["profit", "revenue"]
 Backend = Literal["fast", "cvxpy"]
@@ -52,11 +54,13 @@ class Coordinator:
 
     def dispatch(self, idle: np.ndarray, requests: np.ndarray, t: int) -> np.ndarray:
         """Passenger flows x (N, N) for step t."""
+        if isinstance(t, bool) or not isinstance(t, (int, np.integer)) or not 0 <= t < self.city.n_steps:
+            raise DataError(f"dispatch step t must be an integer in [0, {self.city.n_steps}), got {t!r}")
         margin = self.margin(t)
         if self.solver == "cvxpy":
             from marl_amod.coordinator.reference import lp_dispatch
 
-            return lp_dispatch(idle, requests, margin)
+            return lp_dispatch(*check_dispatch_inputs(idle, requests, margin))
         if t not in self._orders:
             self._orders[t] = margin_order(margin)
         return greedy_dispatch(idle, requests, margin, self._orders[t])
@@ -66,9 +70,13 @@ class Coordinator:
         if self.solver == "cvxpy":
             from marl_amod.coordinator.reference import lp_rebalance
 
-            return lp_rebalance(idle, target, self.city.reb_cost)
+            return lp_rebalance(*check_rebalance_inputs(idle, target, self.city.n_regions), self.city.reb_cost)
+        if np.shape(idle) != (self.city.n_regions,):
+            raise DataError(f"idle vehicles must have shape ({self.city.n_regions},), got {np.shape(idle)}")
         return min_cost_rebalance(idle, target, self.city.reb_time, metric=self.metric)
 
     def targets(self, weights: np.ndarray, idle: np.ndarray) -> np.ndarray:
-        """Global target u = floor(w / sum(w) * M) from per-region non-negative weights."""
-        return desired_targets(np.asarray(weights, dtype=float), int(idle.sum()))
+        """Global target u = floor(w / sum(w) * M) from per-region non-negative weights; a NaN,
+        infinite or negative weight, or one per region missing, is an ActionError naming the region."""
+        w = check_array(weights, "rebalancing weights", shape=(self.city.n_regions,), minimum=0, error=ActionError)
+        return desired_targets(w.astype(float), int(np.sum(idle)))

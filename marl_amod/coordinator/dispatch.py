@@ -12,6 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from marl_amod.errors import DataError
+from marl_amod.validation import check_array
+
 
 def margin_order(margin: np.ndarray) -> np.ndarray:
     """Per-origin column order by decreasing margin; (..., N, N) int. Cacheable per step."""
@@ -25,6 +28,7 @@ def greedy_dispatch(
 
     ``order`` is :func:`margin_order` of ``margin``; pass it when margins repeat across calls.
     """
+    idle, demand, margin = check_dispatch_inputs(idle, demand, margin)
     if order is None:
         order = margin_order(margin)
     servable = np.where(margin > 0, demand, 0)
@@ -34,3 +38,15 @@ def greedy_dispatch(
     x = np.empty_like(x_sorted)
     np.put_along_axis(x, order, x_sorted, axis=1)
     return x
+
+
+def check_dispatch_inputs(idle: np.ndarray, demand: np.ndarray, margin: np.ndarray) -> tuple[np.ndarray, ...]:
+    """idle (N,) and demand (N, N) as whole non-negative int64 counts, margin (N, N) finite;
+    otherwise a :class:`~marl_amod.errors.DataError` naming the argument and the region."""
+    idle = check_array(idle, "idle vehicles", minimum=0, integer=True)
+    if idle.ndim != 1:
+        raise DataError(f"idle vehicles must be one count per region (N,), got shape {idle.shape}")
+    n = idle.shape[0]
+    demand = check_array(demand, "requests", shape=(n, n), minimum=0, integer=True)
+    margin = check_array(margin, "dispatch margin", shape=(n, n))
+    return idle, demand, margin

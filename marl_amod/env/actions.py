@@ -67,8 +67,8 @@ def weights(action: np.ndarray, mode: ActionMode) -> np.ndarray:
 
 
 def _numeric(value: Any) -> bool:
+    """Real numbers only: numpy would read "0.5" as 0.5 and drop a complex number's imaginary part."""
     try:
-        np.asarray(value, dtype=np.float64)
+        return np.asarray(value).dtype.kind in "iuf"
     except (TypeError, ValueError):
         return False
-    return True

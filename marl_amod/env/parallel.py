@@ -72,6 +72,7 @@ from marl_amod.errors import ConfigError
 from marl_amod.metrics import episode_metrics
 from marl_amod.scenario import City, load_city
 from marl_amod.system import FleetSystem, StepOutcome
+from marl_amod.validation import as_seed
 
 RENDER_MODES = ["human", "rgb_array"]
 
@@ -150,6 +151,7 @@ class AmodParallelEnv(ParallelEnv):
     # ------------------------------------------------------------------ episode
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         if seed is not None:
+            seed = as_seed(seed)  # numpy integers welcome; a negative seed is a clear error
             self._seeds = np.random.SeedSequence(seed)
             demand_seed: int | np.random.SeedSequence = seed
             self._action_space.seed(seed)

@@ -12,7 +12,7 @@ from typing import Protocol
 import numpy as np
 
 from marl_amod.scenario.types import City
-from marl_amod.sim.macro import EpisodeTotals, MacroSim
+from marl_amod.sim.macro import EpisodeTotals, MacroSim, check_max_wait
 
 
 class Simulator(Protocol):
@@ -44,4 +44,4 @@ def make_simulator(city: City, max_wait: int = 0) -> Simulator:
     """The simulator the city asks for (``city.simulator``), else the macro model."""
     if city.simulator is None:
         return MacroSim(city, max_wait=max_wait)
-    return city.simulator(city, max_wait=max_wait)
+    return city.simulator(city, max_wait=check_max_wait(max_wait, city))

@@ -19,6 +19,7 @@ import numpy as np
 
 from marl_amod.scenario.types import City
 from marl_amod.sim.flows import as_flows, check_dispatch, check_rebalance
+from marl_amod.validation import as_count
 
 _TOL = 1e-9
 
@@ -46,14 +47,19 @@ class EpisodeTotals:
         return self.revenue - self.trip_cost - self.rebalancing_cost
 
 
+def check_max_wait(max_wait: int, city: City) -> int:
+    """Steps a request waits: at most the horizon (a request cannot outwait the episode, and the
+    backlog holds max_wait + 1 copies of the (N, N) demand)."""
+    return as_count(max_wait, "max_wait (steps)", upper=city.horizon, why=f", the horizon of {city.name}")
+
+
 class MacroSim:
     """State of one episode on one city; reset with a seed, then apply flows step by step."""
 
     dispatch_rounds = 1  # one dispatch per control step (the SUMO simulator may match more often)
 
     def __init__(self, city: City, *, max_wait: int = 0) -> None:
-        if max_wait < 0:
-            raise ValueError(f"max_wait must be >= 0 steps, got {max_wait}")
+        max_wait = check_max_wait(max_wait, city)
         self.city = city
         self.max_wait = max_wait
         n = city.n_regions
