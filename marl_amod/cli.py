@@ -99,7 +99,7 @@ def evaluate(
 ) -> None:
     """Run policies for whole episodes and print (and save) their metrics."""
     from marl_amod.evaluation import evaluate as run_eval
-    from marl_amod.evaluation import make_policy
+    from marl_amod.evaluation import results_payload
     from marl_amod.scenario import load_city
 
     _use_data_dir(data_dir)
@@ -107,19 +107,17 @@ def evaluate(
     results = []
     with progress_bar() as bar:
         for name in policy:
-            pol = make_policy(name, city)
             task = bar.add_task(f"{name} on {city.name}", total=episodes)
             results.append(
                 run_eval(
-                    city, pol, episodes=episodes, seed=seed, max_wait=max_wait, objective=objective, solver=solver,
+                    name, city, episodes, seed, max_wait=max_wait, objective=objective, solver=solver,
                     progress=lambda _k, task=task: bar.advance(task),
                 )
             )
     console.print(metrics_table(results, f"{city.name}: {episodes} episodes, seed {seed}"))
     if output is not None:
-        payload = results[0] if len(results) == 1 else {"scenario": city.name, "results": results}
         output.parent.mkdir(parents=True, exist_ok=True)
-        output.write_text(json.dumps(payload, indent=2))
+        output.write_text(json.dumps(results_payload(results), indent=2))
         console.print(f"wrote {output}")
 
 
@@ -135,7 +133,7 @@ def collect(
 ) -> None:
     """Roll a behaviour policy and write an offline dataset (observation, action, reward, next observation, done)."""
     from marl_amod.datasets import collect as collect_dataset
-    from marl_amod.evaluation import make_policy
+    from marl_amod.policies import make_policy
     from marl_amod.scenario import load_city
 
     _use_data_dir(data_dir)

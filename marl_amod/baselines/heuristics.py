@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import numpy as np
 
 from marl_amod.baselines.base import Policy, WeightPolicy
@@ -37,7 +35,7 @@ class RandomPolicy(WeightPolicy):
         return self.rng.dirichlet(np.ones(system.city.n_regions))
 
 
-class PlusOne(WeightPolicy):
+class PlusOne(Policy):
     """For every vehicle that left a region with a passenger, bring one back (P1).
 
     Regions that just dispatched ask for their idle vehicles plus one per departure; every other
@@ -57,9 +55,3 @@ class PlusOne(WeightPolicy):
         if extra.sum() > spare:
             extra = np.floor(extra * spare / extra.sum())
         return np.where(asking, idle + extra.astype(np.int64), 0)
-
-
-# name -> a factory taking no arguments; MPC and behaviour policies join it in baselines/__init__
-BASELINES: dict[str, Callable[[], Policy]] = {
-    cls.name: cls for cls in (NoRebalancing, EqualDistribution, PlusOne, RandomPolicy)
-}
