@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -12,13 +13,13 @@ import yaml
 from typer.testing import CliRunner
 
 import marl_amod
-from marl_amod.baselines import Policy, WeightPolicy
+from marl_amod.baselines import NoRebalancing, PlusOne, Policy, WeightPolicy
 from marl_amod.checkpoints import ActorPolicy, load_policy, save_policy
 from marl_amod.cli import app
 from marl_amod.errors import ConfigError
 from marl_amod.models import build_actor
 from marl_amod.policies import POLICIES, make_policy
-from marl_amod.scenario import City, load_city
+from marl_amod.scenario import City, grid_city, load_city
 from marl_amod.system import FleetSystem
 
 SHIPPED = Path(__file__).resolve().parents[1] / "policies" / "a2c_gnn_synthetic.pt"
@@ -121,3 +122,49 @@ def test_record_episode_runs_a_shipped_policy():
     env = marl_amod.parallel_env("synthetic", horizon=3, render_mode="rgb_array")
     frames = record_episode(env, load_policy(SHIPPED), seed=0)
     assert len(frames) == 3 and frames[0].ndim == 3
+
+
+# ------------------------------------------------------------------------------------------ plus-one
+def _fake_system(idle: list[int], departures: dict[tuple[int, int], int], reb_time: np.ndarray) -> SimpleNamespace:
+    """Only what plus-one reads: idle vehicles, this step's passenger flows, rebalancing times."""
+    n = len(idle)
+    dispatch = np.zeros((n, n), dtype=np.int64)
+    for (i, j), k in departures.items():
+        dispatch[i, j] = k
+    return SimpleNamespace(sim=SimpleNamespace(idle=np.array(idle), last_dispatch=dispatch), city=SimpleNamespace(reb_time=reb_time))
+
+
+def test_plus_one_brings_back_one_vehicle_per_departure_nearest_first():
+    line = np.abs(np.subtract.outer(np.arange(4), np.arange(4)))  # four regions on a line
+    system = _fake_system([0, 2, 0, 5], {(0, 2): 2, (0, 3): 1}, line)  # region 0 sent 3 vehicles away
+    flows = PlusOne().flows(system)
+    assert flows[1, 0] == 2 and flows[3, 0] == 1  # both spares of the neighbour first, then the far one
+    assert flows.sum() == 3
+
+
+def test_plus_one_lets_regions_that_dispatched_send_their_spare_vehicles():
+    system = _fake_system([4, 4], {(0, 1): 3, (1, 0): 1}, np.array([[0, 1], [1, 0]]))
+    policy = PlusOne()
+    np.testing.assert_array_equal(policy.flows(system), [[0, 1], [3, 0]])
+    np.testing.assert_array_equal(policy.target(system), [6, 2])  # net of the swap: two vehicles move
+
+
+def test_plus_one_sends_k_back_to_a_region_that_dispatched_k_and_differs_from_no_rebalancing():
+    """On a city where every region dispatches every step (the old plus-one was no rebalancing there)."""
+    city = grid_city(2, 2, seed=0, horizon=8, imbalance=0.0, vehicles_per_region=30, requests_per_region=8.0)
+    system = FleetSystem(city)
+    system.reset(0)
+    policy = PlusOne()
+    policy.reset(system, np.random.default_rng(0))
+    departures = system.sim.last_dispatch.sum(axis=1)
+    assert np.all(departures > 0) and system.sim.idle.sum() >= 2 * departures.sum()  # spares everywhere
+    flows = policy.flows(system)
+    np.testing.assert_array_equal(flows.sum(axis=0), departures)
+    assert np.all(np.diag(flows) == 0) and np.all(flows.sum(axis=1) <= system.sim.idle)
+    while not system.done:
+        assert np.all(system.sim.last_dispatch.sum(axis=1) > 0)
+        system.step(policy.target(system))
+    plus_one = marl_amod.evaluate(policy, city, episodes=2)["metrics"]
+    none = marl_amod.evaluate(NoRebalancing(), city, episodes=2)["metrics"]
+    assert plus_one["rebalancing_cost"]["mean"] > 0 == none["rebalancing_cost"]["mean"]
+    assert plus_one["profit"]["mean"] != none["profit"]["mean"]
