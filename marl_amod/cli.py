@@ -22,6 +22,7 @@ from rich.table import Table
 
 from marl_amod.data import ENV_VAR
 from marl_amod.errors import ConfigError, MarlAmodError
+from marl_amod.policies import policy_names
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Robo-taxi fleet coordination as a multi-agent RL benchmark.")
 # wide enough for the metrics table when output is piped (rich would assume 80 columns)
@@ -88,7 +89,9 @@ def metrics_table(results: list[dict], title: str) -> Table:
 @app.command()
 def evaluate(
     scenario: Annotated[str, typer.Option(help="scenario name or YAML path")] = "synthetic",
-    policy: Annotated[list[str], typer.Option(help="policy name or checkpoint; repeat to compare")] = ["equal-distribution"],  # noqa: B006
+    policy: Annotated[
+        list[str], typer.Option(help=f"{', '.join(policy_names())} or a checkpoint .pt; repeat to compare")
+    ] = ["equal-distribution"],  # noqa: B006
     episodes: Annotated[int, typer.Option(min=1)] = 10,
     seed: int = 0,
     output: Annotated[Path | None, typer.Option(help="write the results JSON here")] = None,
