@@ -22,6 +22,7 @@ from rich.table import Table
 from marl_amod.data import ENV_VAR
 from marl_amod.errors import ConfigError, MarlAmodError
 from marl_amod.files import check_destination, save_or_fallback, write_json
+from marl_amod.policies import policy_names
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Robo-taxi fleet coordination as a multi-agent RL benchmark.")
 # wide enough for the metrics table when output is piped (rich would assume 80 columns)
@@ -88,7 +89,9 @@ def metrics_table(results: list[dict], title: str) -> Table:
 @app.command()
 def evaluate(
     scenario: Annotated[str, typer.Option(help="scenario name or YAML path")] = "synthetic",
-    policy: Annotated[list[str], typer.Option(help="policy name or checkpoint; repeat to compare")] = ["equal-distribution"],  # noqa: B006
+    policy: Annotated[
+        list[str], typer.Option(help=f"{', '.join(policy_names())} or a checkpoint .pt; repeat to compare")
+    ] = ["equal-distribution"],  # noqa: B006
     episodes: Annotated[int, typer.Option(min=1)] = 10,
     seed: Annotated[int, typer.Option(min=0)] = 0,
     output: Annotated[Path | None, typer.Option(help="write the results JSON here")] = None,
@@ -99,7 +102,7 @@ def evaluate(
 ) -> None:
     """Run policies for whole episodes and print (and save) their metrics."""
     from marl_amod.evaluation import evaluate as run_eval
-    from marl_amod.evaluation import make_policy
+    from marl_amod.evaluation import results_payload
     from marl_amod.scenario import load_city
 
     _use_data_dir(data_dir)
@@ -109,17 +112,16 @@ def evaluate(
     results = []
     with progress_bar() as bar:
         for name in policy:
-            pol = make_policy(name, city)
             task = bar.add_task(f"{name} on {city.name}", total=episodes)
             results.append(
                 run_eval(
-                    city, pol, episodes=episodes, seed=seed, max_wait=max_wait, objective=objective, solver=solver,
+                    name, city, episodes, seed, max_wait=max_wait, objective=objective, solver=solver,
                     progress=lambda _k, task=task: bar.advance(task),
                 )
             )
     console.print(metrics_table(results, f"{city.name}: {episodes} episodes, seed {seed}"))
     if output is not None:
-        payload = results[0] if len(results) == 1 else {"scenario": city.name, "results": results}
+        payload = results_payload(results)
         save_or_fallback(output, lambda path: write_json(path, payload), what="the results")
         console.print(f"wrote {output}")
 
@@ -136,7 +138,7 @@ def collect(
 ) -> None:
     """Roll a behaviour policy and write an offline dataset (observation, action, reward, next observation, done)."""
     from marl_amod.datasets import collect as collect_dataset
-    from marl_amod.evaluation import make_policy
+    from marl_amod.policies import make_policy
     from marl_amod.scenario import load_city
 
     _use_data_dir(data_dir)

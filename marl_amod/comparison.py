@@ -59,7 +59,6 @@ def load_compare_config(path: str | Path) -> CompareConfig:
 
 def run_compare(cfg: CompareConfig, log: Callable[[str], None] = print) -> dict[str, Any]:
     """Train what is missing, evaluate everything on the same seeds, write table + plots."""
-    from marl_amod.checkpoints import load_policy
     from marl_amod.evaluation import evaluate
     from marl_amod.scenario import load_city
     from marl_amod.training import make_args, run_training
@@ -70,7 +69,7 @@ def run_compare(cfg: CompareConfig, log: Callable[[str], None] = print) -> dict[
     rows: list[dict[str, Any]] = []
     for name in cfg.baselines:
         log(f"evaluating {name}")
-        rows.append({"label": name, "kind": "baseline", "result": evaluate(city, name, episodes=cfg.episodes, seed=cfg.seed)})
+        rows.append({"label": name, "kind": "baseline", "result": evaluate(name, city, cfg.episodes, cfg.seed)})
     for run in cfg.runs:
         args = make_args(run.algo, {"scenario": cfg.scenario, **run.args})
         if run.retrain or not Path(args.policy_out).is_file():
@@ -78,7 +77,7 @@ def run_compare(cfg: CompareConfig, log: Callable[[str], None] = print) -> dict[
             run_training(run.algo, args)
         card = json.loads(Path(args.policy_out).with_suffix(".json").read_text())
         log(f"evaluating {run.label}")
-        result = evaluate(city, load_policy(args.policy_out, city), episodes=cfg.episodes, seed=cfg.seed)
+        result = evaluate(args.policy_out, city, cfg.episodes, cfg.seed)
         rows.append({"label": run.label, "kind": "learned", "result": result, "card": card, "run_dir": args.run_dir})
 
     best = max((r for r in rows if r["kind"] == "baseline"), key=lambda r: r["result"]["metrics"]["profit"]["mean"], default=None)

@@ -245,7 +245,7 @@ def evaluate_actor(actor: torch.nn.Module, city: City, episodes: int, seed: int,
     was_training = actor.training
     actor.eval()
     try:
-        return evaluate(city, ActorPolicy(actor, city, lookahead), episodes=episodes, seed=seed)
+        return evaluate(ActorPolicy(actor, city, lookahead), city, episodes, seed)
     finally:
         actor.train(was_training)
 

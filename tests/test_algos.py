@@ -46,7 +46,7 @@ def test_a2c_tiny_run_writes_checkpoint_logs_and_card(tmp_path, tiny_yaml, mode)
     assert (tmp_path / "run" / "state.pt").is_file()
     assert any(p.name.startswith("events.out.tfevents") for p in (tmp_path / "run").iterdir())
     # the policy file evaluates through the same path as `marl-amod evaluate --policy x.pt`
-    res = evaluate(load_city(tiny_yaml), str(pt), episodes=2, seed=0)
+    res = evaluate(str(pt), load_city(tiny_yaml), episodes=2, seed=0)
     assert res["metrics"]["profit"]["mean"] == pytest.approx(card["profit_mean"])
 
 
