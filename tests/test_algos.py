@@ -97,7 +97,7 @@ def test_discounted_returns():
 
 
 def test_train_config_typo_is_a_clear_error(tmp_path):
-    from marl_amod.training import load_train_config
+    from marl_amod.algos.registry import load_train_config
 
     bad = tmp_path / "bad.yaml"
     bad.write_text("algo: a2c\nargs: {episodse: 10}\n")
@@ -111,7 +111,7 @@ def test_train_config_typo_is_a_clear_error(tmp_path):
         load_train_config(bad)
 
 
-@pytest.mark.parametrize("loader", ["marl_amod.training:load_train_config", "marl_amod.comparison:load_compare_config"])
+@pytest.mark.parametrize("loader", ["marl_amod.algos.registry:load_train_config", "marl_amod.comparison:load_compare_config"])
 def test_malformed_or_missing_config_is_a_config_error_naming_the_file(tmp_path, loader):
     import importlib
 
@@ -145,11 +145,11 @@ def test_bundled_configs_validate():
 
     from marl_amod.comparison import load_compare_config
     from marl_amod.integrations.rllib import load_rllib_config  # pydantic only: no Ray needed
-    from marl_amod.training import load_train_config
+    from marl_amod.algos.registry import load_train_config
 
     root = Path(__file__).resolve().parent.parent / "configs"
-    for path in root.glob("*.yaml"):
-        if path.stem.startswith("compare_"):
+    for path in root.rglob("*.yaml"):
+        if path.parent.name == "compare":
             load_compare_config(path)
         elif yaml.safe_load(path.read_text()).get("algo") == "ppo":
             load_rllib_config(path)
@@ -187,7 +187,7 @@ def test_decentralised_execution_through_env_equals_centralised_evaluation(tiny_
     from marl_amod.env.observations import split_local
     from marl_amod.env.parallel import AmodParallelEnv
     from marl_amod.models import LocalActor
-    from marl_amod.training import WEIGHT_DIVISOR
+    from marl_amod.algos.rollout import WEIGHT_DIVISOR
 
     torch.manual_seed(0)
     actor = LocalActor(13, 8)

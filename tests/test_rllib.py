@@ -25,7 +25,7 @@ from typer.testing import CliRunner  # noqa: E402
 
 from marl_amod.cli import app  # noqa: E402
 from marl_amod.integrations import rllib as rl  # noqa: E402
-from marl_amod.training import WEIGHT_DIVISOR  # noqa: E402
+from marl_amod.algos.rollout import WEIGHT_DIVISOR  # noqa: E402
 
 
 def test_require_ray_names_the_extra_when_ray_is_missing(monkeypatch: pytest.MonkeyPatch) -> None:
