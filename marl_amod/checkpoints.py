@@ -156,7 +156,10 @@ def _read_blob(path: Path) -> dict[str, Any]:
         raise DataError(f"{path} is empty (0 bytes): an interrupted copy? Copy or train it again")
     if not zipfile.is_zipfile(path):
         head = path.read_bytes()[:64]
-        kind = "a text file" if head.isascii() else "truncated or not a torch checkpoint"
+        if head.startswith(b"PK"):
+            kind = "truncated (the archive's end record is missing: an interrupted save or copy?)"
+        else:
+            kind = "a text file" if head.isascii() else "not a torch checkpoint"
         raise DataError(f"{path} is not a policy checkpoint: {kind} (a torch .pt file is a zip archive)")
     try:
         with zipfile.ZipFile(path) as zf:

@@ -195,7 +195,8 @@ def train(
     except TrainingInterrupted as stop:
         console.print(
             f"interrupted at episode {stop.episode}: training state in {stop.path}; "
-            f"resume with: marl-amod train --config {config} --resume {stop.path}"
+            f"resume with: marl-amod train --config {config} --resume {stop.path}",
+            soft_wrap=True,  # one line, however long the paths
         )
         raise typer.Exit(130) from None
     card = summary["card"]

@@ -16,6 +16,7 @@ from marl_amod.algos import a2c, sac
 from marl_amod.algos.common import Progress, RunArgs
 from marl_amod.config import load_config, make_args
 from marl_amod.errors import ConfigError
+from marl_amod.files import check_destination
 
 
 class TrainFn(Protocol):
@@ -63,5 +64,11 @@ def load_train_config(path: str | Path) -> tuple[str, RunArgs]:
 def run_training(
     name: str, args: RunArgs, resume: str | None = None, progress: Progress | None = None, config_path: str | None = None
 ) -> dict[str, Any]:
-    """Train with the registered algorithm ``name``; returns the summary (card, final evaluation, policy path)."""
-    return algorithm(name).train(args, resume=resume, progress=progress, config_path=config_path)
+    """Train with the registered algorithm ``name``; returns the summary (card, final evaluation, policy path).
+
+    The policy's destination is checked first, so a bad ``policy_out`` fails now, not after training.
+    """
+    entry = algorithm(name)
+    if args.policy_out:
+        check_destination(args.policy_out, what="policy_out")
+    return entry.train(args, resume=resume, progress=progress, config_path=config_path)

@@ -27,10 +27,10 @@ from ray.rllib.core.distribution.torch.torch_distribution import TorchDeterminis
 from ray.rllib.core.rl_module.apis import InferenceOnlyAPI, ValueFunctionAPI
 from ray.rllib.core.rl_module.torch import TorchRLModule
 
+from marl_amod.algos.rollout import WEIGHT_DIVISOR
 from marl_amod.env.observations import split_local
 from marl_amod.models.gnn import mlp_head
 from marl_amod.models.local import LocalActor
-from marl_amod.algos.rollout import WEIGHT_DIVISOR
 
 _LOG_C = math.log(WEIGHT_DIVISOR)
 
