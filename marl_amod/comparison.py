@@ -21,11 +21,12 @@ from marl_amod.files import atomic_write, write_json
 
 
 class RunSpec(BaseModel):
-    """One learned policy in the comparison."""
+    """One learned policy in the comparison: a training config (plus overrides) or an algorithm and its args."""
 
     model_config = ConfigDict(extra="forbid")
     label: str = Field(description="row name in the table and plots")
-    algo: str = Field(description="a name in marl_amod.algos.registry.ALGOS")
+    config: str | None = Field(None, description="a training config, relative to this file; args override its args")
+    algo: str | None = Field(None, description="a name in marl_amod.algos.registry.ALGOS (default: the config's)")
     args: dict[str, Any] = Field(default_factory=dict, description="the algorithm's Args (checked strictly)")
     retrain: bool = Field(False, description="train even if args.policy_out already exists")
 
@@ -42,16 +43,33 @@ class CompareConfig(BaseModel):
     output: str = Field("results/compare", description="folder for compare.md, compare.json and plots")
 
 
+def _resolve_run(path: Path, run: RunSpec) -> RunSpec:
+    """The run with its training config (if any) folded in: algo set, args complete."""
+    if run.config is None:
+        if run.algo is None:
+            raise ConfigError(f"{path} run {run.label!r}: give a training config or an algo")
+        return run
+    base = read_config(path.parent / run.config)
+    algo = run.algo or base.get("algo")
+    if base.get("algo") != algo:
+        raise ConfigError(f"{path} run {run.label!r}: algo {run.algo} differs from {run.config}'s {base.get('algo')}")
+    return run.model_copy(update={"algo": algo, "args": {**(base.get("args") or {}), **run.args}})
+
+
 def load_compare_config(path: str | Path) -> CompareConfig:
     from marl_amod.algos.registry import args_for
 
+    path = Path(path)
     raw = read_config(path)
     try:
         cfg = CompareConfig.model_validate(raw)
     except ValidationError as exc:
         raise problems(str(path), exc) from None
-    for run in cfg.runs:  # fail on a typo before any training starts
-        args = args_for(run.algo, {"scenario": cfg.scenario, **run.args}, f"{path} run {run.label!r}")
+    cfg.runs = [_resolve_run(path, run) for run in cfg.runs]
+    for run in cfg.runs:  # fail on a typo or a scenario mismatch before any training starts
+        if run.args.get("scenario", cfg.scenario) != cfg.scenario:
+            raise ConfigError(f"{path} run {run.label!r}: args.scenario: {run.args['scenario']} is not the comparison's {cfg.scenario}")
+        args = args_for(run.algo, {**run.args, "scenario": cfg.scenario}, f"{path} run {run.label!r}")
         if not args.policy_out:
             raise ConfigError(f"{path} run {run.label!r}: args.policy_out is required (where the trained policy lives)")
     return cfg
@@ -72,7 +90,7 @@ def run_compare(cfg: CompareConfig, log: Callable[[str], None] = print, config_p
         log(f"evaluating {name}")
         rows.append({"label": name, "kind": "baseline", "result": evaluate(city, name, episodes=cfg.episodes, seed=cfg.seed)})
     for run in cfg.runs:
-        args = args_for(run.algo, {"scenario": cfg.scenario, **run.args})
+        args = args_for(run.algo, {**run.args, "scenario": cfg.scenario})
         if run.retrain or not Path(args.policy_out).is_file():
             log(f"training {run.label} ({run.algo}, {args.mode})")
             run_training(run.algo, args, config_path=config_path)

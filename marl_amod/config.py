@@ -97,11 +97,9 @@ def _read_config(path: Path, chain: tuple[Path, ...] = ()) -> dict[str, Any]:
     if base_path in (*chain, path.resolve()):
         raise ConfigError(f"{path}: extends: {base} makes a cycle")
     parent = _read_config(base_path, (*chain, path.resolve()))
-    args = raw.pop("args", {})
-    if not isinstance(args, Mapping):
-        raise ConfigError(f"{path}: args: expected a mapping of keys")
     merged = {**parent, **raw}
-    merged["args"] = {**parent.get("args", {}), **args}
+    if isinstance(parent.get("args"), Mapping) and isinstance(raw.get("args"), Mapping):
+        merged["args"] = {**parent["args"], **raw["args"]}
     return merged
 
 

@@ -121,3 +121,21 @@ def test_configs_are_grouped_by_algorithm_and_variants_extend_a_base():
     assert not list(CONFIGS.glob("*.yaml"))
     for variant in ("a2c/nyc_brooklyn_sage.yaml", "a2c/nyc_brooklyn_dec.yaml", "sac/nyc_brooklyn_long.yaml"):
         assert "extends" in yaml.safe_load((CONFIGS / variant).read_text())
+
+
+def test_a_compare_run_is_a_training_config_plus_overrides(tmp_path):
+    from marl_amod.comparison import load_compare_config
+
+    (tmp_path / "a2c").mkdir()
+    _write(tmp_path / "a2c", "city.yaml", {"algo": "a2c", "args": {"scenario": "synthetic", "episodes": 7, "policy_out": "p.pt"}})
+    (tmp_path / "compare").mkdir()
+    run = {"label": "dec", "config": "../a2c/city.yaml", "args": {"mode": "decentralised", "policy_out": "d.pt"}}
+    path = _write(tmp_path / "compare", "city.yaml", {"scenario": "synthetic", "runs": [run]})
+    (resolved,) = load_compare_config(path).runs
+    assert resolved.algo == "a2c" and resolved.args == {"scenario": "synthetic", "episodes": 7, "policy_out": "d.pt", "mode": "decentralised"}
+    path = _write(tmp_path / "compare", "other.yaml", {"scenario": "nyc_brooklyn", "runs": [run]})
+    with pytest.raises(ConfigError, match=r"run 'dec': args.scenario: synthetic is not the comparison's nyc_brooklyn"):
+        load_compare_config(path)
+    path = _write(tmp_path / "compare", "sac.yaml", {"scenario": "synthetic", "runs": [{**run, "algo": "sac"}]})
+    with pytest.raises(ConfigError, match="algo sac differs from ../a2c/city.yaml's a2c"):
+        load_compare_config(path)
