@@ -148,10 +148,13 @@ def save_policy(path: str | Path, actor: torch.nn.Module, card: PolicyCard | dic
 # --------------------------------------------------------------------------------------------
 # Reading
 # --------------------------------------------------------------------------------------------
-def _read_blob(path: Path) -> dict[str, Any]:
-    """The checkpoint's dict, or a DataError saying in plain words why the file is not one."""
+def check_torch_file(path: Path, what: str = "policy checkpoint") -> None:
+    """Raise a DataError saying in plain words why ``path`` is not an intact torch file.
+
+    Checked before ``torch.load``, whose errors on damaged files are cryptic (or a crash).
+    """
     if not path.is_file():
-        raise ConfigError(f"policy checkpoint {path} not found")
+        raise ConfigError(f"{what} {path} not found")
     if path.stat().st_size == 0:
         raise DataError(f"{path} is empty (0 bytes): an interrupted copy? Copy or train it again")
     if not zipfile.is_zipfile(path):
@@ -160,7 +163,7 @@ def _read_blob(path: Path) -> dict[str, Any]:
             kind = "truncated (the archive's end record is missing: an interrupted save or copy?)"
         else:
             kind = "a text file" if head.isascii() else "not a torch checkpoint"
-        raise DataError(f"{path} is not a policy checkpoint: {kind} (a torch .pt file is a zip archive)")
+        raise DataError(f"{path} is not a {what}: {kind} (a torch .pt file is a zip archive)")
     try:
         with zipfile.ZipFile(path) as zf:
             bad = zf.testzip()  # CRC of every member: catches bit flips and partial copies
@@ -168,6 +171,11 @@ def _read_blob(path: Path) -> dict[str, Any]:
         raise DataError(f"{path} is damaged: {exc}") from None
     if bad is not None:
         raise DataError(f"{path} is damaged: {bad} fails its checksum (a bit flip or a partial copy)")
+
+
+def _read_blob(path: Path) -> dict[str, Any]:
+    """The checkpoint's dict, or a DataError saying in plain words why the file is not one."""
+    check_torch_file(path)
     try:
         blob = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # noqa: BLE001 - torch raises many types for bad files; all mean the same here

@@ -351,7 +351,7 @@ def test_resume_from_an_older_state_drops_the_rows_logged_after_it(tmp_path, tin
 
 @pytest.mark.parametrize(
     ("content", "message"),
-    [(b"", "cannot be read as a training state"), (b"not a checkpoint", "cannot be read as a training state")],
+    [(b"", "is empty"), (b"not a checkpoint", "is not a training state: a text file"), (b"PK\x03\x04 cut", "truncated")],
 )
 def test_bad_resume_file_is_a_data_error_naming_it(tmp_path, tiny_yaml, content, message):
     from marl_amod.algos import a2c

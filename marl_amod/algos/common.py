@@ -27,9 +27,9 @@ import torch
 from pydantic import Field
 
 from marl_amod.algos.rollout import Mode, Rollout
-from marl_amod.checkpoints import ActorPolicy, make_card, save_policy
+from marl_amod.checkpoints import ActorPolicy, check_torch_file, make_card, save_policy
 from marl_amod.config import CommonArgs
-from marl_amod.errors import ConfigError, DataError, MarlAmodError
+from marl_amod.errors import DataError, MarlAmodError
 from marl_amod.files import atomic_write, torch_save, write_json
 from marl_amod.scenario import City
 
@@ -210,8 +210,7 @@ def save_state(path: str | Path, **state: Any) -> Path:
 def load_state(path: str | Path, algorithm: str) -> dict[str, Any]:
     """A training state written by :func:`save_state` for ``algorithm``; global RNGs restored."""
     path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"resume checkpoint {path} not found")
+    check_torch_file(path, "training state")
     try:
         state = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as exc:  # noqa: BLE001 - every unreadable file means the same to the user
