@@ -3,8 +3,7 @@
 * ``centralised``: one learner sees the global graph (N, F) and acts for every region.
 * ``decentralised``: every region acts from its own local observation (own features plus its
   in-neighbours' features and a mask), with one shared parameter set. Observations come through
-  the PettingZoo env (``marl_amod.parallel_env``) when it is installed, else from
-  :func:`marl_amod.env.observations.local_observations` on the same system (the same bytes).
+  the PettingZoo env (``marl_amod.parallel_env``), exactly as a deployed agent would see them.
 """
 
 from __future__ import annotations
@@ -32,29 +31,16 @@ class Obs:
     mask: torch.Tensor | None = None
 
 
-def _env_available() -> bool:
-    try:
-        import marl_amod.env.parallel  # noqa: F401
-    except Exception:  # noqa: BLE001 - the env is optional for centralised training
-        return False
-    return True
-
-
 class Rollout:
     """Drives one city episode by episode; ``step(weights)`` takes (N,) non-negative weights."""
 
-    def __init__(self, city: City, mode: Mode = "centralised", lookahead: int = 6, use_env: bool | None = None) -> None:
+    def __init__(self, city: City, mode: Mode = "centralised", lookahead: int = 6) -> None:
+        from marl_amod import parallel_env
         from marl_amod.env.observations import neighbour_table
 
         self.city, self.mode, self.lookahead = city, mode, lookahead
-        self.use_env = (mode == "decentralised") and (_env_available() if use_env is None else use_env)
         self.table = neighbour_table(city)
-        if self.use_env:
-            try:
-                from marl_amod import parallel_env
-            except ImportError:  # the package re-export may land later than the module
-                from marl_amod.env.parallel import AmodParallelEnv as parallel_env
-
+        if mode == "decentralised":  # agents act on their own PettingZoo observations
             self.env = parallel_env(city, reward_mode="team", action_mode="weight", lookahead=lookahead)
             self.system = self.env.system
         else:
