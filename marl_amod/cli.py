@@ -156,7 +156,7 @@ def collect(
 
 @app.command()
 def train(
-    config: Annotated[Path, typer.Option(help="training config YAML (configs/<run>.yaml)")],
+    config: Annotated[Path, typer.Option(help="training config YAML (configs/<algo>/<city>.yaml)")],
     resume: Annotated[Path | None, typer.Option(help="resume from a training state (runs/<run>/state.pt)")] = None,
     backend: Annotated[str, typer.Option(help="native (A2C/SAC in-process) or rllib (PPO on Ray RLlib)")] = "native",
     num_env_runners: Annotated[
@@ -178,31 +178,37 @@ def train(
         raise ConfigError(f"--backend must be native or rllib, got {backend!r}")
     if num_env_runners is not None or address is not None:
         raise ConfigError("--num-env-runners and --address need --backend rllib")
-    from marl_amod.training import load_train_config, run_training
+    from marl_amod.algos.common import TrainingInterrupted
+    from marl_amod.algos.registry import load_train_config, run_training
 
     algo, args = load_train_config(config)
     last_eval: dict[str, float] = {}
-    with progress_bar() as bar:
-        task = bar.add_task(f"{algo} {args.mode} on {args.scenario}", total=args.episodes)
+    try:
+        with progress_bar() as bar:
+            task = bar.add_task(f"{algo} {args.mode} on {args.scenario}", total=args.episodes)
 
-        def progress(ep: int, total: int, stats: dict) -> None:
-            if "eval/profit" in stats:
-                last_eval["profit"] = stats["eval/profit"]
-            desc = f"{algo} {args.mode} on {args.scenario}"
-            if last_eval:
-                desc += f" | val profit {last_eval['profit']:,.0f}"
-            bar.update(task, completed=ep, description=desc)
+            def progress(ep: int, total: int, stats: dict) -> None:
+                if "eval/profit" in stats:
+                    last_eval["profit"] = stats["eval/profit"]
+                desc = f"{algo} {args.mode} on {args.scenario}"
+                if last_eval:
+                    desc += f" | val profit {last_eval['profit']:,.0f}"
+                bar.update(task, completed=ep, description=desc)
 
-        summary = run_training(algo, args, resume=str(resume) if resume else None, progress=progress)
+            summary = run_training(algo, args, resume=str(resume) if resume else None, progress=progress, config_path=str(config))
+    except TrainingInterrupted as stop:
+        console.print(
+            f"interrupted at episode {stop.episode}: training state in {stop.path}; "
+            f"resume with: marl-amod train --config {config} --resume {stop.path}",
+            soft_wrap=True,  # one line, however long the paths
+        )
+        raise typer.Exit(130) from None
     card = summary["card"]
     console.print(
         f"{card['scenario']}: profit {card['profit_mean']:,.1f} ± {card['profit_std']:,.1f} over {card['eval_episodes']} episodes "
         f"(seed {card['eval_seed']}), trained {card['episodes_trained']} episodes in {card['training_wall_s'] / 60:.1f} min"
     )
     if "policy" in summary:
-        from marl_amod.checkpoints import update_card
-
-        update_card(summary["policy"], config=str(config))
         console.print(f"wrote {summary['policy']} (+ .json, .md); logs in {args.run_dir}")
 
 
@@ -240,7 +246,7 @@ def _train_rllib(config: Path, num_env_runners: int | None, address: str | None)
 
 @app.command()
 def compare(
-    config: Annotated[Path, typer.Option(help="comparison config YAML (configs/compare_<city>.yaml)")],
+    config: Annotated[Path, typer.Option(help="comparison config YAML (configs/compare/<city>.yaml)")],
     data_dir: DataDir = None,
 ) -> None:
     """Learned policies (centralised, decentralised, ablations) vs baselines on the same seeds: table + plots."""
@@ -248,7 +254,7 @@ def compare(
 
     _use_data_dir(data_dir)
     cfg = load_compare_config(config)
-    payload = run_compare(cfg, log=console.print)
+    payload = run_compare(cfg, log=console.print, config_path=str(config))
     console.print((Path(cfg.output) / "compare.md").read_text())
     console.print(f"best baseline: {payload['best_baseline']}")
 
