@@ -6,7 +6,7 @@ import pickle
 
 import numpy as np
 import pytest
-from pettingzoo.test import api_test, parallel_api_test, parallel_seed_test, render_test, state_test
+from pettingzoo.test import api_test, max_cycles_test, parallel_api_test, parallel_seed_test, render_test, state_test
 
 import marl_amod
 from marl_amod.env.parallel import AmodParallelEnv
@@ -70,10 +70,19 @@ def test_env_metadata_and_spaces_are_shared(tiny_city) -> None:
     assert env.render_mode is None
 
 
-def test_versioned_module_and_registry() -> None:
+def test_max_cycles_conformance() -> None:
     from marl_amod import amod_v0
 
+    max_cycles_test(amod_v0)
+
+
+def test_versioned_module_and_registry() -> None:
+    from marl_amod import amod_v0
+    from marl_amod.env import ENV_VERSION
+
+    assert ENV_VERSION == "amod_v0" == amod_v0.ENV_VERSION
     assert isinstance(amod_v0.parallel_env(horizon=4), AmodParallelEnv)
+    assert amod_v0.env is amod_v0.raw_env
     import pettingzoo
 
     if hasattr(pettingzoo, "make"):
