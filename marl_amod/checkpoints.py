@@ -78,10 +78,11 @@ class ActorPolicy(WeightPolicy):
     @torch.no_grad()
     def weights(self, system: FleetSystem) -> np.ndarray:
         from marl_amod.env.features import node_features
+        from marl_amod.models.distributions import dirichlet_mean
 
         x = torch.as_tensor(node_features(system, self.lookahead))  # (N, F)
         alpha = self.actor(x, self.edge_index)  # (N,)
-        return (alpha / alpha.sum()).numpy().astype(np.float64)
+        return dirichlet_mean(alpha).numpy().astype(np.float64)
 
 
 def load_policy(path: str | Path, city: City) -> ActorPolicy:

@@ -29,6 +29,8 @@ import torch
 from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
 
 from marl_amod.data import read_yaml
+from marl_amod.env import ENV_VERSION
+from marl_amod.env.features import n_features as feature_count
 from marl_amod.errors import ConfigError
 from marl_amod.scenario import City
 from marl_amod.system import FleetSystem
@@ -101,14 +103,6 @@ class Obs:
     mask: torch.Tensor | None = None
 
 
-def _env_available() -> bool:
-    try:
-        import marl_amod.env.parallel  # noqa: F401
-    except Exception:  # noqa: BLE001 - the env is optional for centralised training
-        return False
-    return True
-
-
 class Rollout:
     """Drives one city episode by episode; ``step(weights)`` takes (N,) non-negative weights."""
 
@@ -116,13 +110,10 @@ class Rollout:
         from marl_amod.env.observations import neighbour_table
 
         self.city, self.mode, self.lookahead = city, mode, lookahead
-        self.use_env = (mode == "decentralised") and (_env_available() if use_env is None else use_env)
+        self.use_env = mode == "decentralised" and use_env is not False
         self.table = neighbour_table(city)
         if self.use_env:
-            try:
-                from marl_amod import parallel_env
-            except ImportError:  # the package re-export may land later than the module
-                from marl_amod.env.parallel import AmodParallelEnv as parallel_env
+            from marl_amod.env.parallel import parallel_env
 
             self.env = parallel_env(city, reward_mode="team", action_mode="weight", lookahead=lookahead)
             self.system = self.env.system
@@ -301,13 +292,14 @@ def finish_run(
     result = evaluate_actor(actor, city, args.final_eval_episodes, args.final_eval_seed, args.lookahead)
     profit = result["metrics"]["profit"]
     card = {
+        "env_version": ENV_VERSION,
         "scenario": city.name,
         "algorithm": algorithm,
         "mode": args.mode,
         "actor": "local" if args.mode == "decentralised" else args.actor,
         "conv": "sage" if args.mode == "decentralised" else args.conv,
         "hidden": args.hidden,
-        "n_features": 1 + 2 * args.lookahead,
+        "n_features": feature_count(args.lookahead),
         "lookahead": args.lookahead,
         "seed": args.seed,
         "episodes_trained": episodes_done,

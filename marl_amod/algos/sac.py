@@ -25,6 +25,7 @@ import torch
 import torch.nn.functional as F
 
 from marl_amod import training as T
+from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import LocalActor, TwinQ, build_actor, dirichlet, gamma, gamma_log_prob
 from marl_amod.scenario import load_city
 
@@ -107,7 +108,7 @@ def train(args: Args, resume: str | None = None, progress: Callable[[int, int, d
     local = args.mode == "decentralised"
     rollout = T.Rollout(city, args.mode, args.lookahead)
     edge_index = torch.as_tensor(city.edge_index, dtype=torch.long)
-    n_features = 1 + 2 * args.lookahead
+    n_features = feature_count(args.lookahead)
     actor = LocalActor(n_features, args.hidden) if local else build_actor(args.actor, city, n_features, args.hidden, args.conv)
     critic = TwinQ(n_features, args.hidden, "sage" if local else args.conv)
     critic_targ = copy.deepcopy(critic).requires_grad_(False)

@@ -37,11 +37,6 @@ from marl_amod.system import FleetSystem
 N_CONTEXT = 3  # sin(time of day), cos(time of day), step fraction
 
 
-def n_features(lookahead: int) -> int:
-    """F: columns of :func:`node_features` for a look-ahead of T steps."""
-    return 1 + 2 * lookahead
-
-
 def max_in_degree(city: City) -> int:
     """Largest number of in-neighbours of any region (at least 1, so the layout is never empty)."""
     if city.edge_index.size == 0:

@@ -34,6 +34,5 @@ def typical_step_revenue(city: City) -> float:
     A city's own money unit, from its tables alone (no rollout), so scaled rewards are comparable
     across cities and seeds; 1.0 for a city without demand.
     """
-    steps = slice(0, city.horizon)
-    value = float((city.demand_rate[steps] * city.price[steps]).sum()) / city.horizon
+    value = float(city.expected_fares[: city.horizon].sum()) / city.horizon
     return value if value > 0 else 1.0

@@ -14,7 +14,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from marl_amod.data import read_yaml, resolve
-from marl_amod.errors import ConfigError, DataError
+from marl_amod.errors import ConfigError
 from marl_amod.scenario.json_city import load_json_city
 from marl_amod.scenario.synthetic import grid_city
 from marl_amod.scenario.types import City
@@ -209,7 +209,4 @@ def _cached(name_or_path: str, frozen_overrides: tuple) -> City:
 
 def load_city(name_or_path: str = DEFAULT_SCENARIO, **overrides: Any) -> City:
     """The city for a scenario name (see :func:`available`) or YAML path, cached per arguments."""
-    try:
-        return _cached(str(name_or_path), tuple(sorted(overrides.items())))
-    except DataError:
-        raise
+    return _cached(str(name_or_path), tuple(sorted(overrides.items())))
