@@ -41,6 +41,7 @@ from pettingzoo import ParallelEnv
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from marl_amod.data import read_yaml
+from marl_amod.env import ENV_VERSION
 from marl_amod.env.features import n_features as feature_count
 from marl_amod.errors import ConfigError
 
@@ -394,6 +395,7 @@ def train_rllib(
     profit = result["metrics"]["profit"]
     env_steps = history[-1]["env_steps"] if history else 0.0
     card = {
+        "env_version": ENV_VERSION,
         "scenario": city.name,
         "algorithm": "rllib-ppo",
         "mode": "decentralised",
