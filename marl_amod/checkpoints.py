@@ -29,9 +29,10 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 
 from marl_amod.baselines.base import WeightPolicy
 from marl_amod.env import observations as ob
-from marl_amod.env.features import node_features
+from marl_amod.env.features import n_features, node_features
 from marl_amod.errors import ConfigError, DataError
 from marl_amod.files import atomic_write, write_json
+from marl_amod.models.distributions import dirichlet_mean
 from marl_amod.scenario import City
 from marl_amod.system import FleetSystem
 
@@ -79,10 +80,11 @@ class PolicyCard(BaseModel):
 
 
 def env_version() -> str:
-    """The env's version tag, from the versioned module's id: ``marl_amod/amod-v0`` -> ``v0``."""
-    from marl_amod.amod_v0 import ENV_ID
+    """The env's version tag from its versioned name: ``amod_v0`` -> ``v0`` (it changes whenever
+    learning results could)."""
+    from marl_amod.env import ENV_VERSION
 
-    return ENV_ID.rsplit("-", 1)[-1]
+    return ENV_VERSION.rsplit("_", 1)[-1]
 
 
 def git_commit() -> str | None:
@@ -227,8 +229,8 @@ def load_actor(path: str | Path, city: City) -> tuple[torch.nn.Module, dict[str,
     path = Path(path)
     blob = _read_blob(path)
     card, state = _card_of(path, blob["card"]), blob["state_dict"]
-    if card.n_features != 1 + 2 * card.lookahead:
-        raise DataError(f"{path}: card says lookahead {card.lookahead} but {card.n_features} features (expected {1 + 2 * card.lookahead})")
+    if card.n_features != n_features(card.lookahead):
+        raise DataError(f"{path}: card says lookahead {card.lookahead} but {card.n_features} features (expected {n_features(card.lookahead)})")
     if card.actor in REGION_BOUND:
         trained = _trained_regions(card.actor, card, state)
         if trained != city.n_regions:
@@ -275,14 +277,14 @@ class ActorPolicy(WeightPolicy):
     def __call__(self, observations: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Actions (each agent's weight, shape (1,)) for the env's local observations."""
         stacked = np.stack([np.asarray(observations[a], dtype=np.float32) for a in self.agents])
-        own = ob.split_local(stacked, ob.n_features(self.lookahead))[0]  # (N, F)
+        own = ob.split_local(stacked, n_features(self.lookahead))[0]  # (N, F)
         w = self._mean(own).astype(np.float32)  # exact: the weights are float32 values
         return {a: w[i : i + 1] for i, a in enumerate(self.agents)}
 
     @torch.no_grad()
     def _mean(self, features: np.ndarray) -> np.ndarray:
         alpha = self.actor(torch.as_tensor(features), self.edge_index)  # (N,)
-        return (alpha / alpha.sum()).numpy().astype(np.float64)
+        return dirichlet_mean(alpha).numpy().astype(np.float64)
 
 
 def load_policy(path: str | Path, city: City | str | None = None) -> ActorPolicy:

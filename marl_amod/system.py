@@ -122,7 +122,7 @@ class FleetSystem:
     def _booked(self) -> tuple[np.ndarray, np.ndarray]:
         """Copies of the simulator's per-region money totals (dispatch profit, rebalancing cost)."""
         totals = self.sim.totals
-        return totals.revenue - totals.trip_cost, totals.rebalancing_cost.copy()
+        return totals.dispatch_profit, totals.rebalancing_cost.copy()
 
     def _outcome(self, before: tuple[np.ndarray, np.ndarray], rebalancing: np.ndarray) -> StepOutcome:
         profit, cost = self._booked()

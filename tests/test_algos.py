@@ -40,6 +40,7 @@ def test_a2c_tiny_run_writes_checkpoint_logs_and_card(tmp_path, tiny_yaml, mode)
     assert pt.is_file() and pt.with_suffix(".json").is_file() and pt.with_suffix(".md").is_file()
     card = json.loads(pt.with_suffix(".json").read_text())
     assert card["mode"] == mode and card["algorithm"] == "a2c" and card["episodes_trained"] == 8
+    assert card["env_version"] == "v0"  # a card says which env version its score is on
     assert np.isfinite(card["profit_mean"]) and card["profit_mean"] == summary["card"]["profit_mean"]
     log = (tmp_path / "run" / "log.csv").read_text()
     assert "eval/profit" in log and "loss/policy" in log

@@ -6,7 +6,7 @@ import pickle
 
 import numpy as np
 import pytest
-from pettingzoo.test import api_test, parallel_api_test, parallel_seed_test, render_test, state_test
+from pettingzoo.test import api_test, max_cycles_test, parallel_api_test, parallel_seed_test, render_test, state_test
 
 import marl_amod
 from marl_amod.env.parallel import AmodParallelEnv
@@ -70,10 +70,19 @@ def test_env_metadata_and_spaces_are_shared(tiny_city) -> None:
     assert env.render_mode is None
 
 
-def test_versioned_module_and_registry() -> None:
+def test_max_cycles_conformance() -> None:
     from marl_amod import amod_v0
 
+    max_cycles_test(amod_v0)
+
+
+def test_versioned_module_and_registry() -> None:
+    from marl_amod import amod_v0
+    from marl_amod.env import ENV_VERSION
+
+    assert ENV_VERSION == "amod_v0" == amod_v0.ENV_VERSION
     assert isinstance(amod_v0.parallel_env(horizon=4), AmodParallelEnv)
+    assert amod_v0.env is amod_v0.raw_env
     import pettingzoo
 
     if hasattr(pettingzoo, "make"):
@@ -104,6 +113,7 @@ def test_env_pickles_mid_episode_and_continues_identically(tiny_city) -> None:
 
 
 def _sb3_vec_env(n_envs: int = 2):
+    pytest.importorskip("stable_baselines3")
     from marl_amod.integrations.sb3 import sb3_vec_env
 
     return sb3_vec_env(marl_amod.parallel_env(horizon=6), copies=n_envs)
@@ -200,3 +210,16 @@ def test_random_agents_example_runs() -> None:
     script = Path(__file__).resolve().parent.parent / "examples" / "random_agents.py"
     out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, check=True, timeout=120)
     assert "episode profit" in out.stdout
+
+
+def test_sb3_parameter_sharing_example_runs_and_scores_against_equal_distribution() -> None:
+    """A smoke run of the example on a tiny budget (its default budget is what beats ED)."""
+    pytest.importorskip("stable_baselines3")
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parent.parent / "examples" / "sb3_parameter_sharing.py"
+    args = [sys.executable, str(script), "--steps", "1024", "--copies", "1", "--eval-episodes", "1"]
+    out = subprocess.run(args, capture_output=True, text=True, check=True, timeout=300).stdout
+    assert "PPO (shared)" in out and "equal distribution" in out

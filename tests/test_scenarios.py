@@ -163,3 +163,20 @@ def test_every_real_city_loads_and_runs_an_episode(name):
     result = evaluate("equal-distribution", city, episodes=1, seed=0)
     m = result["metrics"]
     assert 0 < m["served_demand"]["mean"] <= m["demand"]["mean"]
+
+
+def test_step_rows_reads_a_step_table_and_zero_past_its_end():
+    from marl_amod.scenario.types import step_rows
+
+    table = np.arange(1, 13).reshape(3, 2, 2)
+    got = step_rows(table, np.array([1, 2, 3, 9]))
+    assert got.shape == (4, 2, 2)
+    assert np.array_equal(got[:2], table[1:]) and not got[2:].any()
+
+
+def test_city_margin_and_expected_fares_are_per_request_profit_and_fares(small_city):
+    c = small_city
+    t, i, j = 3, 1, 2
+    assert c.margin[t, i, j] == pytest.approx(c.price[t, i, j] - c.beta * c.tstep * c.trip_time[t, i, j])
+    assert c.expected_fares[t, i] == pytest.approx(sum(c.demand_rate[t, i, k] * c.price[t, i, k] for k in range(c.n_regions)))
+    assert c.margin.shape == c.price.shape and c.expected_fares.shape == (c.n_steps, c.n_regions)

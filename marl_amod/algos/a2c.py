@@ -24,6 +24,7 @@ from pydantic import Field
 
 from marl_amod.algos import common as C
 from marl_amod.algos.rollout import Obs, Rollout, train_seed
+from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import GNNValueCritic, LocalActor, LocalValueCritic, build_actor, dirichlet, gamma, gamma_log_prob
 from marl_amod.scenario import load_city
 
@@ -88,7 +89,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     city = load_city(args.scenario)
     rollout = Rollout(city, args.mode, args.lookahead)
     edge_index = torch.as_tensor(city.edge_index, dtype=torch.long)
-    n_features = 1 + 2 * args.lookahead
+    n_features = feature_count(args.lookahead)
     local_critic = args.mode == "decentralised" and not args.central_critic
     if args.mode == "decentralised":
         actor = LocalActor(n_features, args.hidden)

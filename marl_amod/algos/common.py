@@ -29,6 +29,7 @@ from pydantic import Field
 from marl_amod.algos.rollout import Mode, Rollout
 from marl_amod.checkpoints import ActorPolicy, check_torch_file, make_card, save_policy
 from marl_amod.config import CommonArgs
+from marl_amod.env.features import n_features
 from marl_amod.errors import DataError, MarlAmodError
 from marl_amod.files import atomic_write, torch_save, write_json
 from marl_amod.scenario import City
@@ -259,7 +260,7 @@ def finish_run(
         scenario=city.name, n_regions=city.n_regions, algorithm=algorithm, mode=args.mode,
         actor="local" if args.mode == "decentralised" else args.actor,
         conv="sage" if args.mode == "decentralised" else args.conv,
-        hidden=args.hidden, n_features=1 + 2 * args.lookahead, lookahead=args.lookahead, seed=args.seed,
+        hidden=args.hidden, n_features=n_features(args.lookahead), lookahead=args.lookahead, seed=args.seed,
         episodes_trained=episodes_done, eval_episodes=args.final_eval_episodes, eval_seed=args.final_eval_seed,
         profit_mean=profit["mean"], profit_std=profit["std"], served_demand_mean=result["metrics"]["served_demand"]["mean"],
         training_wall_s=round(wall_s, 1), torch_threads=torch.get_num_threads(),

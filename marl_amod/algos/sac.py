@@ -26,6 +26,7 @@ from pydantic import Field
 
 from marl_amod.algos import common as C
 from marl_amod.algos.rollout import Obs, Rollout, train_seed
+from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import LocalActor, TwinQ, build_actor, dirichlet, gamma, gamma_log_prob
 from marl_amod.scenario import load_city
 
@@ -127,7 +128,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     local = args.mode == "decentralised"
     rollout = Rollout(city, args.mode, args.lookahead)
     edge_index = torch.as_tensor(city.edge_index, dtype=torch.long)
-    n_features = 1 + 2 * args.lookahead
+    n_features = feature_count(args.lookahead)
     actor = LocalActor(n_features, args.hidden) if local else build_actor(args.actor, city, n_features, args.hidden, args.conv)
     critic = TwinQ(n_features, args.hidden, "sage" if local else args.conv)
     critic_targ = copy.deepcopy(critic).requires_grad_(False)

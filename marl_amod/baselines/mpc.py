@@ -38,7 +38,7 @@ import numpy as np
 
 from marl_amod.baselines.base import FlowPolicy
 from marl_amod.errors import ConfigError, SolverError
-from marl_amod.scenario.types import City
+from marl_amod.scenario.types import City, step_rows
 from marl_amod.system import FleetSystem
 
 if TYPE_CHECKING:
@@ -83,13 +83,12 @@ def plan_data(
     steps = t + np.arange(h)
     live = steps <= city.horizon - 1
     idx = np.minimum(steps, city.n_steps - 1)
-    arr_idx = np.minimum(steps, arrivals.shape[0] - 1)
-    arr = np.where((steps < arrivals.shape[0])[:, None], arrivals[arr_idx], 0)
+    arr = step_rows(arrivals, steps)
     return PlanData(
         idle=np.asarray(idle, dtype=float),
         arrivals=arr.astype(float),
         demand=np.asarray(demand, dtype=float) * live[:, None, None],
-        margin=city.price[idx] - city.trip_cost[idx],
+        margin=city.margin[idx],
         trip_time=city.trip_time[idx].astype(np.int64),
         reb_time=city.reb_time.astype(np.int64),
         reb_cost=np.asarray(city.reb_cost, dtype=float),

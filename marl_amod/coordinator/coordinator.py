@@ -42,8 +42,7 @@ class Coordinator:
 
     def margin(self, t: int) -> np.ndarray:
         """(N, N) value of serving one request i->j in step t under the dispatch objective."""
-        price = self.city.price[t]
-        return price - self.city.trip_cost[t] if self.objective == "profit" else price
+        return self.city.margin[t] if self.objective == "profit" else self.city.price[t]
 
     @property
     def metric(self) -> bool:

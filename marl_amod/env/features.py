@@ -7,17 +7,22 @@ For region i at step t, with look-ahead T (6 by default) and scale 0.01:
 * ``value[k]``: expected requests out of i in step t+k times their price, summed over
   destinations, k = 1..T (T columns).
 
-Steps past the tabulated horizon count as zero.
+Steps past the tabulated horizon count as zero (:func:`~marl_amod.scenario.types.step_rows`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from marl_amod.scenario.types import City
+from marl_amod.scenario.types import City, step_rows
 from marl_amod.system import FleetSystem
 
 FEATURE_SCALE = 0.01
+
+
+def n_features(lookahead: int) -> int:
+    """F = 1 + 2T: columns of :func:`node_features` for a look-ahead of T steps."""
+    return 1 + 2 * lookahead
 
 
 def feature_names(lookahead: int = 6) -> list[str]:
@@ -27,14 +32,10 @@ def feature_names(lookahead: int = 6) -> list[str]:
 
 def node_features(system: FleetSystem, lookahead: int = 6, scale: float = FEATURE_SCALE) -> np.ndarray:
     """(N, 1 + 2T) float32 features of every region (the paper's GNN input)."""
-    sim, city = system.sim, system.city
-    t = sim.t
-    steps = np.arange(t + 1, t + lookahead + 1)
-    valid = steps < city.n_steps
-    idx = np.minimum(steps, city.n_steps - 1)
-    arriving = sim.arrivals[np.minimum(steps, sim.arrivals.shape[0] - 1)]  # (T, N)
-    supply = sim.idle[None, :] + arriving
-    value = (city.demand_rate[idx] * city.price[idx]).sum(axis=2) * valid[:, None]  # (T, N)
+    sim = system.sim
+    steps = np.arange(sim.t + 1, sim.t + lookahead + 1)
+    supply = sim.idle[None, :] + step_rows(sim.arrivals, steps)  # (T, N)
+    value = step_rows(system.city.expected_fares, steps)  # (T, N)
     feats = np.concatenate([sim.idle[None, :], supply, value], axis=0).T * scale
     return feats.astype(np.float32)
 
@@ -47,6 +48,6 @@ def feature_high(city: City, lookahead: int = 6, scale: float = FEATURE_SCALE) -
     learners that normalise or sample them.
     """
     fleet = city.fleet_size * scale
-    value = float((city.demand_rate * city.price).sum(axis=2).max()) * scale
+    value = float(city.expected_fares.max()) * scale
     high = np.concatenate([np.full(1 + lookahead, fleet), np.full(lookahead, value)])
     return (high * (1 + 1e-6)).astype(np.float32)

@@ -42,11 +42,6 @@ def agent_names(n_regions: int) -> list[str]:
     return [f"region_{i}" for i in range(n_regions)]
 
 
-def n_features(lookahead: int) -> int:
-    """F: columns of :func:`node_features` for a look-ahead of T steps."""
-    return 1 + 2 * lookahead
-
-
 def max_in_degree(city: City) -> int:
     """Largest number of in-neighbours of any region (at least 1, so the layout is never empty)."""
     if city.edge_index.size == 0:

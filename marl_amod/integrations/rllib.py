@@ -40,6 +40,7 @@ from pettingzoo import ParallelEnv
 from pydantic import Field
 
 from marl_amod.config import CommonArgs, load_config
+from marl_amod.env.features import n_features as feature_count
 from marl_amod.errors import ConfigError
 
 EXTRA = 'pip install "marl-amod[rllib]"'
@@ -240,7 +241,7 @@ def build_ppo(args: RllibArgs, num_env_runners: int | None = None) -> Any:
     register_env(ENV_NAME, make_rllib_env)
     probe = RllibAmodEnv(**env_config(args))
     runners = args.num_env_runners if num_env_runners is None else num_env_runners
-    model = {"local_dim": probe.local_dim, "n_features": 1 + 2 * args.lookahead, "hidden": args.hidden, "critic_hidden": args.critic_hidden}
+    model = {"local_dim": probe.local_dim, "n_features": feature_count(args.lookahead), "hidden": args.hidden, "critic_hidden": args.critic_hidden}
     config = (
         PPOConfig()
         .environment(ENV_NAME, env_config=env_config(args), normalize_actions=False, clip_actions=False)
@@ -325,7 +326,7 @@ def train_rllib(
 
     seed_everything(args.seed)
     city = load_city(args.scenario)
-    n_features = 1 + 2 * args.lookahead
+    n_features = feature_count(args.lookahead)
     runners = args.num_env_runners if num_env_runners is None else num_env_runners
     run_dir = Path(args.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)

@@ -95,6 +95,16 @@ class City:
         return _frozen(self.beta * self.tstep * self.trip_time)
 
     @cached_property
+    def margin(self) -> np.ndarray:
+        """(S, N, N) profit of serving one request i->j of step t: fare minus operating cost."""
+        return _frozen(self.price - self.trip_cost)
+
+    @cached_property
+    def expected_fares(self) -> np.ndarray:
+        """(S, N) expected fares of the requests out of each region in step t (rate x fare over destinations)."""
+        return _frozen((self.demand_rate * self.price).sum(axis=2))
+
+    @cached_property
     def reb_cost(self) -> np.ndarray:
         """(N, N) cost of one rebalancing move: beta * tstep * duration (computed once)."""
         return _frozen(self.beta * self.tstep * self.reb_time)
@@ -109,6 +119,18 @@ class City:
             "tstep_min": self.tstep,
             "expected_requests": float(self.demand_rate[: self.horizon].sum()),
         }
+
+
+def step_rows(table: np.ndarray, steps: np.ndarray) -> np.ndarray:
+    """``table[steps]`` of a table indexed by step, with zero rows for steps past its end.
+
+    Look-ahead (observations, MPC) reads a few steps past what a city or a simulator tabulates;
+    nothing is requested and nothing arrives there.
+    """
+    steps = np.asarray(steps)
+    rows = table[np.minimum(steps, len(table) - 1)]
+    inside = (steps < len(table)).reshape(steps.shape + (1,) * (table.ndim - 1))
+    return np.where(inside, rows, 0)
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:

@@ -43,8 +43,21 @@ class EpisodeTotals:
         return cls(**{name: np.zeros(n) for name in cls.__dataclass_fields__})
 
     @property
+    def dispatch_profit(self) -> np.ndarray:
+        """(N,) fares minus operating costs of the trips that left each region."""
+        return self.revenue - self.trip_cost
+
+    @property
     def profit(self) -> np.ndarray:
-        return self.revenue - self.trip_cost - self.rebalancing_cost
+        return self.dispatch_profit - self.rebalancing_cost
+
+    def book_trips(self, x: np.ndarray, city: City, t: int) -> float:
+        """Add the fares and operating costs of dispatch flows x (N, N) of step t; returns their profit."""
+        revenue = (x * city.price[t]).sum(axis=1)
+        cost = (x * city.trip_cost[t]).sum(axis=1)
+        self.revenue += revenue
+        self.trip_cost += cost
+        return float(revenue.sum() - cost.sum())
 
 
 def check_max_wait(max_wait: int, city: City) -> int:
@@ -124,15 +137,11 @@ class MacroSim:
             self.backlog[age] -= take
             remaining -= take
             wait += age * c.tstep * take.sum(axis=1)
-        revenue = (x * c.price[t]).sum(axis=1)
-        cost = (x * c.trip_cost[t]).sum(axis=1)
         tot = self.totals
-        tot.revenue += revenue
-        tot.trip_cost += cost
         tot.served += out
         tot.wait_minutes += wait
         self.last_dispatch = x
-        return float(revenue.sum() - cost.sum())
+        return tot.book_trips(x, c, t)
 
     def apply_rebalance(self, y: np.ndarray) -> float:
         """Move idle vehicles with flows y (N, N); returns the step's rebalancing cost."""

@@ -245,13 +245,9 @@ class MesoSim:
                 self.v_dest[v] = self.r_d[k]
                 self._go_busy(v, i, now + self.step_s * c.trip_time[t, i, self.r_d[k]])
                 self._send_to_pickup(v, k)
-        revenue = (x * c.price[t]).sum(axis=1)
-        cost = (x * c.trip_cost[t]).sum(axis=1)
-        self.totals.revenue += revenue
-        self.totals.trip_cost += cost
         self.totals.served += x.sum(axis=1)
         self.last_dispatch = self.last_dispatch + x  # summed over the step's dispatch rounds
-        return float(revenue.sum() - cost.sum())
+        return self.totals.book_trips(x, c, t)
 
     def apply_rebalance(self, y: np.ndarray) -> float:
         """Send idle vehicles y (N, N) to random edges of their target regions; returns the cost."""
