@@ -69,7 +69,7 @@ def scenarios(data_dir: DataDir = None) -> None:
 
 def metrics_table(results: list[dict], title: str) -> Table:
     """Policies as rows, metrics as 'mean ± std' columns."""
-    from marl_amod.metrics import METRICS
+    from marl_amod.metrics import DISPLAY_DIGITS, METRICS
 
     table = Table(title=title)
     table.add_column("policy")
@@ -79,7 +79,7 @@ def metrics_table(results: list[dict], title: str) -> Table:
         cells = []
         for key in METRICS:
             m = r["metrics"][key]
-            digits = 2 if key in ("utilization", "wait_time") else 1
+            digits = DISPLAY_DIGITS.get(key, 1)
             cells.append(f"{m['mean']:,.{digits}f} ± {m['std']:,.{digits}f}")
         table.add_row(r["policy"], *cells)
     return table
