@@ -266,10 +266,12 @@ def wait_map(
     """Per-region mean waiting time (and service rate) of each policy on the region map, shared colour scale."""
     from marl_amod.evaluation import evaluate as run_eval
     from marl_amod.evaluation import make_policy
+    from marl_amod.files import check_destination, write_json
     from marl_amod.plots import region_map
     from marl_amod.scenario import load_city
 
     _use_data_dir(data_dir)
+    check_destination(output, what="--output")
     city = load_city(scenario)
     results = []
     with progress_bar() as bar:
@@ -280,7 +282,7 @@ def wait_map(
     console.print(metrics_table(results, f"{city.name}: {episodes} episodes, seed {seed}, max wait {max_wait} steps"))
     title = f"{city.name}: {episodes} episodes (seed {seed}), requests wait up to {max_wait} steps ({max_wait * city.tstep:g} min)"
     path = region_map(results, city, output, title=title)
-    output.with_suffix(".json").write_text(json.dumps({"scenario": city.name, "max_wait": max_wait, "results": results}, indent=2))
+    write_json(output.with_suffix(".json"), {"scenario": city.name, "max_wait": max_wait, "results": results})
     console.print(f"wrote {path} and {output.with_suffix('.json')}")
 
 

@@ -68,11 +68,12 @@ def region_map(
     rows: Sequence[str] = ("wait_time", "service_rate"),
     title: str | None = None,
 ) -> Path:
-    """Write :func:`region_map_figure` to ``path`` (format from the suffix)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    region_map_figure(results, city, rows, title).savefig(path)
-    return path
+    """Write :func:`region_map_figure` to ``path`` atomically (format from the suffix, png by default)."""
+    from marl_amod.files import atomic_write, check_destination
+
+    path = check_destination(path, what="figure")
+    fig = region_map_figure(results, city, rows, title)
+    return atomic_write(path, lambda fh: fig.savefig(fh, format=path.suffix.lstrip(".") or "png"))
 
 
 def region_map_figure(
