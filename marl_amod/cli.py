@@ -70,7 +70,7 @@ def scenarios(data_dir: DataDir = None) -> None:
 
 def metrics_table(results: list[dict], title: str) -> Table:
     """Policies as rows, metrics as 'mean ± std' columns."""
-    from marl_amod.metrics import METRICS
+    from marl_amod.metrics import DISPLAY_DIGITS, METRICS
 
     table = Table(title=title)
     table.add_column("policy")
@@ -80,7 +80,7 @@ def metrics_table(results: list[dict], title: str) -> Table:
         cells = []
         for key in METRICS:
             m = r["metrics"][key]
-            digits = 2 if key in ("utilization", "wait_time") else 1
+            digits = DISPLAY_DIGITS.get(key, 1)
             cells.append(f"{m['mean']:,.{digits}f} ± {m['std']:,.{digits}f}")
         table.add_row(r["policy"], *cells)
     return table
@@ -257,6 +257,43 @@ def compare(
     payload = run_compare(cfg, log=console.print, config_path=str(config))
     console.print((Path(cfg.output) / "compare.md").read_text())
     console.print(f"best baseline: {payload['best_baseline']}")
+
+
+plot_app = typer.Typer(no_args_is_help=True, help="Study figures from evaluations.")
+app.add_typer(plot_app, name="plot")
+
+
+@plot_app.command("wait-map")
+def wait_map(
+    scenario: Annotated[str, typer.Option(help="scenario name or YAML path")] = "synthetic",
+    policy: Annotated[list[str], typer.Option(help="policy name or checkpoint; repeat: one panel each")] = ["no-rebalancing", "equal-distribution"],  # noqa: B006
+    episodes: Annotated[int, typer.Option(min=1)] = 10,
+    seed: int = 0,
+    max_wait: Annotated[int, typer.Option(min=1, help="steps a request waits before leaving (waits are 0 without waiting)")] = 3,
+    output: Annotated[Path, typer.Option(help="figure to write (.png); the results JSON goes beside it")] = Path("wait_map.png"),
+    data_dir: DataDir = None,
+) -> None:
+    """Per-region mean waiting time (and service rate) of each policy on the region map, shared colour scale."""
+    from marl_amod.evaluation import evaluate as run_eval
+    from marl_amod.evaluation import make_policy
+    from marl_amod.files import check_destination, write_json
+    from marl_amod.plots import region_map
+    from marl_amod.scenario import load_city
+
+    _use_data_dir(data_dir)
+    check_destination(output, what="--output")
+    city = load_city(scenario)
+    results = []
+    with progress_bar() as bar:
+        for name in policy:
+            task = bar.add_task(f"{name} on {city.name}", total=episodes)
+            results.append(run_eval(city, make_policy(name, city), episodes=episodes, seed=seed, max_wait=max_wait,
+                                    progress=lambda _k, task=task: bar.advance(task)))
+    console.print(metrics_table(results, f"{city.name}: {episodes} episodes, seed {seed}, max wait {max_wait} steps"))
+    title = f"{city.name}: {episodes} episodes (seed {seed}), requests wait up to {max_wait} steps ({max_wait * city.tstep:g} min)"
+    path = region_map(results, city, output, title=title)
+    write_json(output.with_suffix(".json"), {"scenario": city.name, "max_wait": max_wait, "results": results})
+    console.print(f"wrote {path} and {output.with_suffix('.json')}")
 
 
 def main() -> None:

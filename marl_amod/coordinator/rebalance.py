@@ -18,9 +18,14 @@ from marl_amod.errors import ActionError, DataError, SolverError
 from marl_amod.validation import check_array
 
 
-def satisfies_triangle_inequality(cost: np.ndarray, chunk: int = 64) -> bool:
-    """True when c_ij <= c_ik + c_kj for all i, j, k (O(N^3), in chunks to bound memory)."""
+def satisfies_triangle_inequality(cost: np.ndarray, chunk: int | None = None) -> bool:
+    """True when c_ij <= c_ik + c_kj for all i, j, k (O(N^3), in chunks to bound memory).
+
+    The default chunk keeps each (chunk, N, N) block near 8 M entries (64 MB of int64), so a
+    city of thousands of regions is checked without gigabytes of scratch memory.
+    """
     n = cost.shape[0]
+    chunk = chunk or max(1, min(64, (1 << 23) // max(n * n, 1)))
     for start in range(0, n, chunk):
         block = cost[start : start + chunk]  # (b, N) = c_ik for i in the block
         via = (block[:, :, None] + cost[None, :, :]).min(axis=1)  # (b, N): min_k c_ik + c_kj
