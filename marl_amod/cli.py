@@ -46,25 +46,40 @@ def progress_bar() -> Progress:
 
 @app.command()
 def scenarios(data_dir: DataDir = None) -> None:
-    """List scenarios with their regions, fleet and horizon."""
-    from marl_amod.scenario import available, load_city, load_spec
+    """List the bundled scenarios from their YAML files (no city is built)."""
+    from importlib.util import find_spec
+
+    from marl_amod.data import data_dir as data_root
+    from marl_amod.errors import DataError
+    from marl_amod.scenario import catalogue
 
     _use_data_dir(data_dir)
+    missing: dict[str, str] = {}
+    try:
+        data_root()
+    except DataError as exc:
+        missing["data"] = str(exc)
+    if find_spec("sumo") is None:
+        from marl_amod.sim.meso.engine import INSTALL_HINT
+
+        missing["sumo"] = f"SUMO scenarios need the SUMO extra: {INSTALL_HINT}"
     table = Table(title="marl_amod scenarios")
-    for col in ("name", "regions", "fleet", "horizon", "step (min)", "requests/episode", "description"):
-        table.add_column(col, justify="left" if col in ("name", "description") else "right")
-    for name in available():
-        spec = load_spec(name)
-        try:
-            s = load_city(name).summary()
-            row = [str(s["regions"]), str(s["fleet"]), str(s["horizon"]), f"{s['tstep_min']:g}", f"{s['expected_requests']:.0f}"]
-        except MarlAmodError as exc:
-            row = ["-", "-", str(spec.horizon), "-", "-"]
-            spec_desc = f"[dim]unavailable: {escape(str(exc))}[/dim]"
-            table.add_row(name, *row, spec_desc)
+    for col in ("name", "source", "regions", "fleet", "horizon", "step (min)", "needs", "description"):
+        table.add_column(col, justify="right" if col in ("regions", "fleet", "horizon", "step (min)") else "left")
+    broken = 0
+    for info in catalogue():
+        if info.error is not None:
+            broken += 1
+            table.add_row(info.name, "[red]broken[/red]", "-", "-", "-", "-", "-", f"[red]{escape(info.error)}[/red]")
             continue
-        table.add_row(name, *row, spec.description)
+        needs = ", ".join(f"[yellow]{n}[/yellow]" if n in missing else n for n in info.needs) or "-"
+        cells = ["-" if v is None else f"{v:g}" for v in (info.regions, info.fleet, info.horizon, info.tstep)]
+        table.add_row(info.name, info.source, *cells, needs, escape(info.description))
     console.print(table)
+    for need, hint in missing.items():
+        console.print(f"[yellow]{need}[/yellow]: {escape(hint)}")
+    if broken:
+        console.print(f"[red]{broken} scenario file(s) could not be read[/red]; the others are listed.")
 
 
 def metrics_table(results: list[dict], title: str) -> Table:
