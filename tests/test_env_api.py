@@ -180,13 +180,3 @@ def test_human_mode_renders_on_reset_and_step_without_a_display(tiny_city) -> No
     pickle.dumps(env)  # the window does not travel
     env.close()
     assert env._viewer is None
-
-
-def test_random_agents_example_runs() -> None:
-    import subprocess
-    import sys
-    from pathlib import Path
-
-    script = Path(__file__).resolve().parent.parent / "examples" / "random_agents.py"
-    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, check=True, timeout=120)
-    assert "episode profit" in out.stdout
