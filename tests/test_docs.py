@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parent.parent
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 PYTHON_BLOCK = re.compile(r"^```python\n(.*?)^```", re.DOTALL | re.MULTILINE)
 BUDGET = int(os.environ.get("MARL_AMOD_DOCS_STEPS", "512"))
-EXAMPLE_ARGS = {"sb3_parameter_sharing.py": ["--steps", str(BUDGET)]}
+EXAMPLE_ARGS = {"sb3_parameter_sharing.py": ["--steps", str(BUDGET), "--copies", "1"]}
 
 sys.path.insert(0, str(ROOT / "benchmarks"))
 import results_tables  # noqa: E402
