@@ -47,25 +47,40 @@ def progress_bar() -> Progress:
 
 @app.command()
 def scenarios(data_dir: DataDir = None) -> None:
-    """List scenarios with their regions, fleet and horizon."""
-    from marl_amod.scenario import available, load_city, load_spec
+    """List the bundled scenarios from their YAML files (no city is built)."""
+    from importlib.util import find_spec
+
+    from marl_amod.data import data_dir as data_root
+    from marl_amod.errors import DataError
+    from marl_amod.scenario import catalogue
 
     _use_data_dir(data_dir)
+    missing: dict[str, str] = {}
+    try:
+        data_root()
+    except DataError as exc:
+        missing["data"] = str(exc)
+    if find_spec("sumo") is None:
+        from marl_amod.sim.meso.engine import INSTALL_HINT
+
+        missing["sumo"] = f"SUMO scenarios need the SUMO extra: {INSTALL_HINT}"
     table = Table(title="marl_amod scenarios")
-    for col in ("name", "regions", "fleet", "horizon", "step (min)", "requests/episode", "description"):
-        table.add_column(col, justify="left" if col in ("name", "description") else "right")
-    for name in available():
-        spec = load_spec(name)
-        try:
-            s = load_city(name).summary()
-            row = [str(s["regions"]), str(s["fleet"]), str(s["horizon"]), f"{s['tstep_min']:g}", f"{s['expected_requests']:.0f}"]
-        except MarlAmodError as exc:
-            row = ["-", "-", str(spec.horizon), "-", "-"]
-            spec_desc = f"[dim]unavailable: {escape(str(exc))}[/dim]"
-            table.add_row(name, *row, spec_desc)
+    for col in ("name", "source", "regions", "fleet", "horizon", "step (min)", "needs", "description"):
+        table.add_column(col, justify="right" if col in ("regions", "fleet", "horizon", "step (min)") else "left")
+    broken = 0
+    for info in catalogue():
+        if info.error is not None:
+            broken += 1
+            table.add_row(info.name, "[red]broken[/red]", "-", "-", "-", "-", "-", f"[red]{escape(info.error)}[/red]")
             continue
-        table.add_row(name, *row, spec.description)
+        needs = ", ".join(f"[yellow]{n}[/yellow]" if n in missing else n for n in info.needs) or "-"
+        cells = ["-" if v is None else f"{v:g}" for v in (info.regions, info.fleet, info.horizon, info.tstep)]
+        table.add_row(info.name, info.source, *cells, needs, escape(info.description))
     console.print(table)
+    for need, hint in missing.items():
+        console.print(f"[yellow]{need}[/yellow]: {escape(hint)}")
+    if broken:
+        console.print(f"[red]{broken} scenario file(s) could not be read[/red]; the others are listed.")
 
 
 def metrics_table(results: list[dict], title: str) -> Table:
@@ -268,14 +283,13 @@ def wait_map(
     scenario: Annotated[str, typer.Option(help="scenario name or YAML path")] = "synthetic",
     policy: Annotated[list[str], typer.Option(help="policy name or checkpoint; repeat: one panel each")] = ["no-rebalancing", "equal-distribution"],  # noqa: B006
     episodes: Annotated[int, typer.Option(min=1)] = 10,
-    seed: int = 0,
+    seed: Annotated[int, typer.Option(min=0)] = 0,
     max_wait: Annotated[int, typer.Option(min=1, help="steps a request waits before leaving (waits are 0 without waiting)")] = 3,
     output: Annotated[Path, typer.Option(help="figure to write (.png); the results JSON goes beside it")] = Path("wait_map.png"),
     data_dir: DataDir = None,
 ) -> None:
     """Per-region mean waiting time (and service rate) of each policy on the region map, shared colour scale."""
     from marl_amod.evaluation import evaluate as run_eval
-    from marl_amod.evaluation import make_policy
     from marl_amod.files import check_destination, write_json
     from marl_amod.plots import region_map
     from marl_amod.scenario import load_city
@@ -287,7 +301,7 @@ def wait_map(
     with progress_bar() as bar:
         for name in policy:
             task = bar.add_task(f"{name} on {city.name}", total=episodes)
-            results.append(run_eval(city, make_policy(name, city), episodes=episodes, seed=seed, max_wait=max_wait,
+            results.append(run_eval(name, city, episodes, seed, max_wait=max_wait,
                                     progress=lambda _k, task=task: bar.advance(task)))
     console.print(metrics_table(results, f"{city.name}: {episodes} episodes, seed {seed}, max wait {max_wait} steps"))
     title = f"{city.name}: {episodes} episodes (seed {seed}), requests wait up to {max_wait} steps ({max_wait * city.tstep:g} min)"

@@ -3,7 +3,6 @@ the PettingZoo API, and configuration errors. A 14-minute grid episode takes wel
 
 from __future__ import annotations
 
-import dataclasses
 import os
 from pathlib import Path
 
@@ -13,7 +12,6 @@ import pytest
 pytest.importorskip("libsumo")
 
 from conftest import has_data  # noqa: E402
-from pettingzoo.test import parallel_api_test  # noqa: E402
 
 from marl_amod.env.parallel import AmodParallelEnv  # noqa: E402
 from marl_amod.errors import ConfigError, DataError  # noqa: E402
@@ -93,11 +91,6 @@ def test_taxi_device_fleet_is_sumo_taxis_and_serves_like_the_leg_model():
     np.testing.assert_array_equal(a.demand, b.demand)  # same requests; only the driving differs
     assert b.served.sum() > 0 and abs(b.served.sum() - a.served.sum()) <= 0.15 * a.served.sum()
     assert 0 < b.wait_minutes.sum() / b.served.sum() < taxi.city.tstep * 5  # boarding happens in SUMO
-
-
-def test_meso_env_passes_pettingzoo_parallel_api():
-    env = AmodParallelEnv("sumo_grid")
-    parallel_api_test(env, num_cycles=20)
 
 
 def test_meso_evaluate_gives_the_macro_json_schema():
@@ -188,9 +181,11 @@ def _has_lux() -> bool:
 def test_lux_network_and_regions_build():
     city = load_city("lux", horizon=2)
     assert city.n_regions == 10 and city.fleet_size == load_spec("lux").fleet
-    sim = city.simulator
-    assert len(np.unique(sim.of_edge)) == 10
-    assert dataclasses.is_dataclass(sim)
+    options = city.simulator
+    members = np.bincount(options.of_edge, minlength=10)
+    assert len(members) == 10 and members.min() > 0  # every edge in one region, no region empty
+    off = ~np.eye(10, dtype=bool)
+    assert np.all(city.reb_time[off] >= 1) and np.all(city.trip_time[:, off] >= 1)  # regions apart take time
 
 
 @pytest.mark.parametrize("taxi_device", [False, True], ids=["legs", "taxi_device"])

@@ -59,7 +59,7 @@ def test_service_rate_and_fairness_leave_out_regions_where_they_are_undefined():
 
 
 def test_evaluation_reports_fairness_with_mean_and_std(tiny_city):
-    res = evaluate(tiny_city, "no-rebalancing", episodes=3, seed=0, max_wait=2)
+    res = evaluate("no-rebalancing", tiny_city, episodes=3, seed=0, max_wait=2)
     for key in ("wait_time_gini", "service_rate_gini"):
         per_episode = [e[key] for e in res["per_episode"]]
         assert all(0.0 <= g < 1.0 for g in per_episode)

@@ -35,7 +35,7 @@ def test_region_cells_of_a_grid_are_its_squares_and_contain_their_region():
 @pytest.fixture(scope="module")
 def two_results():
     city = grid_city(3, 3, seed=1, horizon=6, vehicles_per_region=3, requests_per_region=3.0)
-    return city, [evaluate(city, name, episodes=2, seed=0, max_wait=2) for name in ("no-rebalancing", "equal-distribution")]
+    return city, [evaluate(name, city, episodes=2, seed=0, max_wait=2) for name in ("no-rebalancing", "equal-distribution")]
 
 
 def test_region_map_shares_one_colour_scale_per_row(two_results, tmp_path):

@@ -6,11 +6,9 @@ import json
 
 import numpy as np
 import pytest
-from conftest import REAL_CITIES, needs_data
 
 from marl_amod.errors import ConfigError, DataError
-from marl_amod.evaluation import evaluate
-from marl_amod.scenario import available, grid_city, load_city, load_spec
+from marl_amod.scenario import grid_city, load_city, load_spec
 from marl_amod.scenario.json_city import load_json_city
 
 
@@ -148,21 +146,6 @@ def test_synthetic_cities_from_4_to_over_400_regions(rows, cols):
     assert np.all(city.price[:, ~np.eye(n, dtype=bool)] > city.trip_cost[:, ~np.eye(n, dtype=bool)])
     assert np.array_equal(city.demand_rate, grid_city(rows, cols, seed=3).demand_rate)
     assert not np.array_equal(city.demand_rate, grid_city(rows, cols, seed=4).demand_rate)
-
-
-def test_every_bundled_scenario_is_listed():
-    assert {"synthetic", "synthetic_large", *REAL_CITIES} <= set(available())
-
-
-@needs_data
-@pytest.mark.parametrize("name", REAL_CITIES)
-def test_every_real_city_loads_and_runs_an_episode(name):
-    city = load_city(name)
-    assert city.n_regions >= 10 and city.fleet_size > 0 and city.demand_rate[:20].sum() > 0
-    assert city.edge_index.max() < city.n_regions
-    result = evaluate("equal-distribution", city, episodes=1, seed=0)
-    m = result["metrics"]
-    assert 0 < m["served_demand"]["mean"] <= m["demand"]["mean"]
 
 
 def test_step_rows_reads_a_step_table_and_zero_past_its_end():

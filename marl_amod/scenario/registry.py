@@ -7,6 +7,7 @@ validated strictly: a typo is an error naming the key, never a silent default.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, get_args
 
@@ -261,3 +262,41 @@ def load_city(name_or_path: str = DEFAULT_SCENARIO, **overrides: Any) -> City:
             _CACHE.pop(next(iter(_CACHE)))
         _CACHE[key] = city
     return city
+
+
+@dataclass(frozen=True)
+class ScenarioInfo:
+    """One row of the scenario catalogue, read from the YAML alone (no city is built, so listing
+    stays instant and a broken file or missing data spoils only its own row)."""
+
+    name: str
+    source: str = "-"  # json | synthetic | sumo meso | sumo micro | sumo macro (+ taxi)
+    regions: int | None = None  # None: known only after reading the data file
+    fleet: int | None = None
+    horizon: int | None = None
+    tstep: float | None = None
+    needs: tuple[str, ...] = ()  # "data" (MARL_AMOD_DATA), "sumo" (the [sumo] extra)
+    description: str = ""
+    error: str | None = None  # the scenario file is invalid
+
+
+def describe(name_or_path: str) -> ScenarioInfo:
+    """What a scenario's YAML says about it, without building the city."""
+    try:
+        spec = load_spec(name_or_path)
+    except ConfigError as exc:
+        return ScenarioInfo(name=Path(name_or_path).stem, error=str(exc))
+    common = {"name": spec.name, "horizon": spec.horizon, "tstep": spec.tstep, "description": spec.description}
+    if isinstance(spec, SyntheticScenario):
+        n = spec.rows * spec.cols
+        return ScenarioInfo(source="synthetic", regions=n, fleet=n * spec.vehicles_per_region, **common)
+    if isinstance(spec, SumoScenario):
+        source = f"sumo {spec.mode}" + (" taxi" if spec.taxi_device else "")
+        needs = ("data", "sumo") if spec.network == "osm" else ("sumo",)
+        return ScenarioInfo(source=source, regions=spec.regions, fleet=spec.fleet, needs=needs, **common)
+    return ScenarioInfo(source="json", fleet=spec.fleet, needs=("data",), **common)
+
+
+def catalogue() -> list[ScenarioInfo]:
+    """Every bundled scenario, described from its YAML (see :func:`describe`)."""
+    return [describe(name) for name in available()]
