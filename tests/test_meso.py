@@ -277,3 +277,50 @@ def test_background_traffic_shares_the_roads_and_the_fleet_is_still_conserved(ta
     assert routes and load_city("sumo_grid", background_per_hour=3000).simulator.sumo.route_files == routes  # cached
     assert load_city("sumo_grid", background_per_hour=3000, mode="macro").simulator.kind == "macro"
 
+
+def _sumo_children() -> set[int]:
+    """Process ids of the ``sumo`` processes this test process started and has not reaped."""
+    import psutil  # a dependency of torch-geometric, so always installed
+
+    return {p.pid for p in psutil.Process().children(recursive=True) if p.name() == "sumo"}
+
+
+def test_traci_env_close_and_garbage_collection_end_the_sumo_process():
+    import gc
+
+    before = _sumo_children()
+    env = AmodParallelEnv("sumo_grid", backend="traci")
+    env.reset(seed=0)
+    env.step({a: np.array([1.0], dtype=np.float32) for a in env.agents})
+    assert len(_sumo_children() - before) == 1  # TraCI runs SUMO as a child process
+    env.close()
+    assert _sumo_children() == before
+    env.reset(seed=1)  # a closed env starts a new run on reset
+    assert len(_sumo_children() - before) == 1
+    env.close()
+    dropped = FleetSystem(load_city("sumo_grid", backend="traci"))
+    dropped.reset(0)
+    assert len(_sumo_children() - before) == 1
+    del dropped  # never closed: collecting the simulator ends its run
+    gc.collect()
+    assert _sumo_children() == before
+
+
+def test_libsumo_env_close_unloads_the_simulation():
+    import libsumo
+
+    env = AmodParallelEnv("sumo_grid")
+    env.reset(seed=0)
+    assert libsumo.simulation.isLoaded()
+    env.close()
+    assert not libsumo.simulation.isLoaded()
+    with pytest.raises(RuntimeError, match="reset"):
+        _ = env.system.sim.sumo
+    other = FleetSystem(load_city("sumo_grid"))
+    other.reset(0)
+    env.reset(seed=0)  # takes libsumo over from `other`
+    other.close()  # so closing `other` must leave env's simulation running
+    assert libsumo.simulation.isLoaded()
+    env.step({a: np.array([1.0], dtype=np.float32) for a in env.agents})
+    env.close()
+    assert not libsumo.simulation.isLoaded()
