@@ -104,6 +104,10 @@ class FleetSystem:
             self.sim.finish()
         return self._outcome(before, applied)
 
+    def close(self) -> None:
+        """Release what the simulator started (a SUMO run and its process); reset starts anew."""
+        self.sim.close()
+
     def targets_from_weights(self, weights: np.ndarray) -> np.ndarray:
         """The paper's target floor(w_i / sum(w) * M) from non-negative per-region weights."""
         return self.coordinator.targets(weights, self.sim.idle)

@@ -237,9 +237,11 @@ class AmodParallelEnv(ParallelEnv):
         return None
 
     def close(self) -> None:
+        """Close the viewer and end the simulator's run (a SUMO process); ``reset`` starts anew."""
         if self._viewer is not None:
             self._viewer.close()
             self._viewer = None
+        self.system.close()
 
     # ------------------------------------------------------------------ helpers
     def _observations(self) -> dict[str, np.ndarray]:

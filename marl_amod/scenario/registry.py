@@ -210,26 +210,9 @@ def build_city(spec: ScenarioSpec) -> City:
 
 
 def _build_sumo_city(spec: SumoScenario) -> City:
-    from marl_amod.scenario.sumo_city import sumo_city
-    from marl_amod.sim.meso import network as nw
-    from marl_amod.sim.meso.traffic import background_routes
+    from marl_amod.scenario.sumo.city import build_sumo_city  # loads the network tools only when needed
 
-    if spec.network == "osm":
-        net_file = nw.build_osm(resolve(spec.osm_file))
-    else:
-        net_file = nw.build_grid(spec.grid_size, spec.grid_length, spec.seed)
-    keys = ("regions", "horizon", "tstep", "start_hour", "fleet", "requests_per_hour", "imbalance",
-            "mean_trip_min", "peak", "fare_base", "fare_per_km", "beta")  # fmt: skip
-    options = {"max_wait_min": spec.max_wait_min, "backend": spec.backend, "step_length": spec.step_length,
-               "sumo_seed": spec.seed, "refresh_travel_times": spec.refresh_travel_times,
-               "dispatch_every_min": spec.dispatch_every_min, "taxi_device": spec.taxi_device,
-               "extra_args": tuple(spec.sumo_args)}  # fmt: skip
-    if spec.background_per_hour > 0 and spec.mode != "macro":
-        begin = 3600.0 * spec.start_hour
-        routes = background_routes(net_file, spec.background_per_hour, begin, begin + 60.0 * spec.tstep * spec.horizon, spec.seed)
-        options["route_files"] = (str(routes),)
-    return sumo_city(name=spec.name, net_file=net_file, region_seed=spec.seed, mode=spec.mode, options=options,
-                     **{k: getattr(spec, k) for k in keys})  # fmt: skip
+    return build_sumo_city(spec)
 
 
 _CACHE: dict[tuple, City] = {}

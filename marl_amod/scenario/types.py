@@ -7,14 +7,13 @@ and MPC can look ahead past the last control step.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Any
 
 import numpy as np
 
 from marl_amod.errors import DataError
+from marl_amod.scenario.simspec import MACRO, SimSpec
 from marl_amod.validation import check_array
 
 
@@ -38,12 +37,14 @@ class City:
     positions: np.ndarray  # (N, 2) float, a drawing position per region
     start_hour: float = 0.0  # clock time of step 0, for the time-of-day feature
     meta: dict = field(default_factory=dict)  # provenance (data file, parameters), shown to users
-    # builds the simulator, called as simulator(city, max_wait=...); None: the macro model.
-    # SUMO scenarios set it, so every consumer of a City gets their simulator unchanged.
-    simulator: Callable[..., Any] | None = field(default=None, repr=False)
+    # which simulator runs this city (data; marl_amod.sim.base.make_simulator builds it). SUMO
+    # scenarios set it, so every consumer of a City gets its simulator without asking.
+    simulator: SimSpec = field(default=MACRO, repr=False)
 
     def __post_init__(self) -> None:
         """Every number checked once here, so no NaN, negative price or impossible time reaches a run."""
+        if not isinstance(self.simulator, SimSpec):
+            raise TypeError(f"City.simulator must be a SimSpec (data), got {type(self.simulator).__name__}")
         what = f"city {self.name!r}:"
         shape = np.shape(self.demand_rate)
         if len(shape) != 3 or shape[1] != shape[2]:

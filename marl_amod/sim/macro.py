@@ -173,6 +173,9 @@ class MacroSim:
         self.totals.lost += self.backlog.sum(axis=(0, 2))
         self.backlog[:] = 0
 
+    def close(self) -> None:
+        """Nothing to release: the macro model holds arrays only."""
+
     # ------------------------------------------------------------------ helpers
     def _depart(self, flows: np.ndarray, duration: np.ndarray) -> None:
         """Vehicles leave now and arrive after ``duration`` steps (per pair)."""

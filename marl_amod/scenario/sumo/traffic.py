@@ -13,8 +13,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from marl_amod.sim.meso import engine
-from marl_amod.sim.meso.network import cached_output
+from marl_amod.scenario.sumo import install
+from marl_amod.scenario.sumo.network import cached_output
 
 PREFIX = "bg"
 
@@ -35,9 +35,9 @@ def background_routes(net_file: Path, per_hour: float, begin_s: float, end_s: fl
         "--min-distance", "500",
         "--vclass", "passenger",
     ]  # fmt: skip
-    script = engine.sumo_home() / "tools" / "randomTrips.py"
+    script = install.sumo_home() / "tools" / "randomTrips.py"
     return cached_output(
-        "background", ".rou.xml", ["randomTrips", engine.version(), Path(net_file).name, *args[2:]],
+        "background", ".rou.xml", ["randomTrips", install.version(), Path(net_file).name, *args[2:]],
         lambda target: [sys.executable, str(script), *args, "-o", str(target.with_name("trips.xml")), "-r", str(target)],
         "randomTrips.py",
     )  # fmt: skip

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from marl_amod.sim.meso.network import RoadNetwork
+from marl_amod.scenario.sumo.network import RoadNetwork
 
 TRAVEL_SAMPLES = 12  # sampled edges per region that region-to-region travel times average over
 

@@ -18,8 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from marl_amod.sim.meso.network import RoadNetwork
-from marl_amod.sim.meso.regions import Regions
+from marl_amod.scenario.sumo.network import RoadNetwork
+from marl_amod.scenario.sumo.regions import Regions
 
 
 def od_rates(

@@ -27,7 +27,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components, dijkstra
 
 from marl_amod.errors import DataError
-from marl_amod.sim.meso import engine
+from marl_amod.scenario.sumo import install
 
 CACHE_ENV = "MARL_AMOD_CACHE"
 
@@ -70,7 +70,7 @@ def cached_output(stem: str, suffix: str, key_parts: list[str], command: Callabl
     with tempfile.TemporaryDirectory(dir=cache_dir(), prefix=f".{stem}-") as work:
         target = Path(work) / f"out{suffix}"
         proc = subprocess.run(
-            command(target), capture_output=True, text=True, cwd=work, env={**os.environ, "SUMO_HOME": str(engine.sumo_home())}
+            command(target), capture_output=True, text=True, cwd=work, env={**os.environ, "SUMO_HOME": str(install.sumo_home())}
         )
         if proc.returncode != 0 or not target.is_file():
             raise DataError(f"{what} failed ({proc.returncode}) building {out.name}: {proc.stderr.strip()[-2000:]}")
@@ -81,8 +81,8 @@ def cached_output(stem: str, suffix: str, key_parts: list[str], command: Callabl
 def _build(tool: str, args: list[str], key_parts: list[str], stem: str) -> Path:
     """A network built by a SUMO tool (``netconvert``, ``netgenerate``); its name is its content key."""
     return cached_output(
-        stem, ".net.xml", [tool, engine.version(), *args, *key_parts],
-        lambda target: [engine.binary(tool), *args, "--output-file", str(target), "--no-warnings"], tool,
+        stem, ".net.xml", [tool, install.version(), *args, *key_parts],
+        lambda target: [install.binary(tool), *args, "--output-file", str(target), "--no-warnings"], tool,
     )  # fmt: skip
 
 
