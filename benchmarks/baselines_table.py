@@ -1,6 +1,7 @@
 """Profit of every non-learning baseline per city, with the wall time of one control step.
 
-    MARL_AMOD_DATA=/path/to/data python benchmarks/baselines_table.py --episodes 10 --output results.json
+    MARL_AMOD_DATA=/path/to/data python benchmarks/baselines_table.py --episodes 10 --results-dir docs/results
+    python benchmarks/results_tables.py   # README.md and docs/results.md tables from docs/results/*.json
 
 Each policy runs ``--episodes`` episodes (episode k draws demand from (seed, k), the same draws
 for every policy); a control step is the policy's decision plus the coordinator's rebalancing,
@@ -16,7 +17,8 @@ import time
 from pathlib import Path
 
 from marl_amod.errors import DataError
-from marl_amod.evaluation import evaluate, make_policy
+from marl_amod.evaluation import evaluate
+from marl_amod.policies import make_policy
 from marl_amod.scenario import load_city
 
 CITIES = ["synthetic", "nyc_brooklyn", "san_francisco", "shenzhen_downtown_west"]
@@ -34,10 +36,11 @@ def run(cities: list[str], policies: list[str], episodes: int, seed: int) -> lis
         for pol_name in policies:
             policy = make_policy(pol_name, city)
             start = time.perf_counter()
-            result = evaluate(city, policy, episodes=episodes, seed=seed)
+            result = evaluate(policy, city, episodes, seed)
             seconds = time.perf_counter() - start
             profit = result["metrics"]["profit"]
             rows.append({
+                "record": {**result, "kind": "baseline", "ms_per_step": round(1000 * seconds / (episodes * (city.horizon - 1)), 1)},
                 "city": city.name, "policy": pol_name, "episodes": episodes, "seed": seed,
                 "profit_mean": profit["mean"], "profit_std": profit["std"],
                 "served_mean": result["metrics"]["served_demand"]["mean"],
@@ -72,13 +75,19 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--output", type=Path, default=None, help="also write the rows as JSON here")
+    parser.add_argument("--results-dir", type=Path, default=None, help="merge the results into <dir>/<city>.json (docs/results)")
     args = parser.parse_args()
     rows = run(args.cities, args.policies, args.episodes, args.seed)
     print()
     print(markdown(rows))
     if args.output is not None:
         args.output.parent.mkdir(parents=True, exist_ok=True)
-        args.output.write_text(json.dumps(rows, indent=2))
+        args.output.write_text(json.dumps([{k: v for k, v in r.items() if k != "record"} for r in rows], indent=2))
+    if args.results_dir is not None:
+        from results_tables import merge
+
+        for city in dict.fromkeys(r["city"] for r in rows):
+            merge([r["record"] for r in rows if r["city"] == city], city, args.results_dir)
 
 
 if __name__ == "__main__":

@@ -23,6 +23,7 @@ import numpy as np  # noqa: E402
 
 from marl_amod.coordinator.coordinator import Coordinator  # noqa: E402
 from marl_amod.scenario import load_city  # noqa: E402
+from marl_amod.scenario.simspec import SimSpec  # noqa: E402
 from marl_amod.system import FleetSystem  # noqa: E402
 
 CONFIGS = ["meso:libsumo:legs", "meso:traci:legs", "micro:libsumo:legs", "meso:libsumo:taxi"]
@@ -53,8 +54,8 @@ for _name in ("dispatch", "rebalance"):  # on the class, once: FleetSystem renew
 
 def run(scenario: str, mode: str, backend: str, fleet: str, horizon: int | None) -> dict:
     city = load_city(scenario, **({"horizon": horizon} if horizon else {}))
-    options = dataclasses.replace(city.simulator, mode=mode, backend=backend, taxi_device=fleet == "taxi")
-    city = dataclasses.replace(city, simulator=options)
+    options = dataclasses.replace(city.simulator.sumo, mode=mode, backend=backend)
+    city = dataclasses.replace(city, simulator=SimSpec("taxi" if fleet == "taxi" else "meso", options))
     system = FleetSystem(city)
     clock = COORDINATOR_CLOCK
     clock.clear()

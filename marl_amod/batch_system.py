@@ -52,7 +52,7 @@ class BatchFleetSystem:
     """B macro episodes of one city plus the exact coordinator; the engine of the vector env."""
 
     def __init__(self, city: City, num_envs: int, *, max_wait: int = 0, objective: Objective = "profit") -> None:
-        if city.simulator is not None:
+        if city.simulator.kind != "macro":
             raise ConfigError(f"{city.name} runs in its own simulator; the batched path is macro only")
         self.city = city
         self.num_envs = int(num_envs)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 from pathlib import Path
@@ -22,6 +21,8 @@ from rich.table import Table
 
 from marl_amod.data import ENV_VAR
 from marl_amod.errors import ConfigError, MarlAmodError
+from marl_amod.files import check_destination, save_or_fallback, write_json
+from marl_amod.policies import policy_names
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Robo-taxi fleet coordination as a multi-agent RL benchmark.")
 # wide enough for the metrics table when output is piped (rich would assume 80 columns)
@@ -46,30 +47,45 @@ def progress_bar() -> Progress:
 
 @app.command()
 def scenarios(data_dir: DataDir = None) -> None:
-    """List scenarios with their regions, fleet and horizon."""
-    from marl_amod.scenario import available, load_city, load_spec
+    """List the bundled scenarios from their YAML files (no city is built)."""
+    from importlib.util import find_spec
+
+    from marl_amod.data import data_dir as data_root
+    from marl_amod.errors import DataError
+    from marl_amod.scenario import catalogue
 
     _use_data_dir(data_dir)
+    missing: dict[str, str] = {}
+    try:
+        data_root()
+    except DataError as exc:
+        missing["data"] = str(exc)
+    if find_spec("sumo") is None:
+        from marl_amod.sim.meso.engine import INSTALL_HINT
+
+        missing["sumo"] = f"SUMO scenarios need the SUMO extra: {INSTALL_HINT}"
     table = Table(title="marl_amod scenarios")
-    for col in ("name", "regions", "fleet", "horizon", "step (min)", "requests/episode", "description"):
-        table.add_column(col, justify="left" if col in ("name", "description") else "right")
-    for name in available():
-        spec = load_spec(name)
-        try:
-            s = load_city(name).summary()
-            row = [str(s["regions"]), str(s["fleet"]), str(s["horizon"]), f"{s['tstep_min']:g}", f"{s['expected_requests']:.0f}"]
-        except MarlAmodError as exc:
-            row = ["-", "-", str(spec.horizon), "-", "-"]
-            spec_desc = f"[dim]unavailable: {escape(str(exc))}[/dim]"
-            table.add_row(name, *row, spec_desc)
+    for col in ("name", "source", "regions", "fleet", "horizon", "step (min)", "needs", "description"):
+        table.add_column(col, justify="right" if col in ("regions", "fleet", "horizon", "step (min)") else "left")
+    broken = 0
+    for info in catalogue():
+        if info.error is not None:
+            broken += 1
+            table.add_row(info.name, "[red]broken[/red]", "-", "-", "-", "-", "-", f"[red]{escape(info.error)}[/red]")
             continue
-        table.add_row(name, *row, spec.description)
+        needs = ", ".join(f"[yellow]{n}[/yellow]" if n in missing else n for n in info.needs) or "-"
+        cells = ["-" if v is None else f"{v:g}" for v in (info.regions, info.fleet, info.horizon, info.tstep)]
+        table.add_row(info.name, info.source, *cells, needs, escape(info.description))
     console.print(table)
+    for need, hint in missing.items():
+        console.print(f"[yellow]{need}[/yellow]: {escape(hint)}")
+    if broken:
+        console.print(f"[red]{broken} scenario file(s) could not be read[/red]; the others are listed.")
 
 
 def metrics_table(results: list[dict], title: str) -> Table:
     """Policies as rows, metrics as 'mean ± std' columns."""
-    from marl_amod.metrics import METRICS
+    from marl_amod.metrics import DISPLAY_DIGITS, METRICS
 
     table = Table(title=title)
     table.add_column("policy")
@@ -79,7 +95,7 @@ def metrics_table(results: list[dict], title: str) -> Table:
         cells = []
         for key in METRICS:
             m = r["metrics"][key]
-            digits = 2 if key in ("utilization", "wait_time") else 1
+            digits = DISPLAY_DIGITS.get(key, 1)
             cells.append(f"{m['mean']:,.{digits}f} ± {m['std']:,.{digits}f}")
         table.add_row(r["policy"], *cells)
     return table
@@ -88,9 +104,11 @@ def metrics_table(results: list[dict], title: str) -> Table:
 @app.command()
 def evaluate(
     scenario: Annotated[str, typer.Option(help="scenario name or YAML path")] = "synthetic",
-    policy: Annotated[list[str], typer.Option(help="policy name or checkpoint; repeat to compare")] = ["equal-distribution"],  # noqa: B006
+    policy: Annotated[
+        list[str], typer.Option(help=f"{', '.join(policy_names())} or a checkpoint .pt; repeat to compare")
+    ] = ["equal-distribution"],  # noqa: B006
     episodes: Annotated[int, typer.Option(min=1)] = 10,
-    seed: int = 0,
+    seed: Annotated[int, typer.Option(min=0)] = 0,
     output: Annotated[Path | None, typer.Option(help="write the results JSON here")] = None,
     max_wait: Annotated[int, typer.Option(min=0, help="steps a request waits before leaving")] = 0,
     objective: Annotated[str, typer.Option(help="dispatch objective: profit or revenue")] = "profit",
@@ -99,27 +117,27 @@ def evaluate(
 ) -> None:
     """Run policies for whole episodes and print (and save) their metrics."""
     from marl_amod.evaluation import evaluate as run_eval
-    from marl_amod.evaluation import make_policy
+    from marl_amod.evaluation import results_payload
     from marl_amod.scenario import load_city
 
     _use_data_dir(data_dir)
+    if output is not None:
+        output = check_destination(output, what="--output")  # before the run, not after it
     city = load_city(scenario)
     results = []
     with progress_bar() as bar:
         for name in policy:
-            pol = make_policy(name, city)
             task = bar.add_task(f"{name} on {city.name}", total=episodes)
             results.append(
                 run_eval(
-                    city, pol, episodes=episodes, seed=seed, max_wait=max_wait, objective=objective, solver=solver,
+                    name, city, episodes, seed, max_wait=max_wait, objective=objective, solver=solver,
                     progress=lambda _k, task=task: bar.advance(task),
                 )
             )
     console.print(metrics_table(results, f"{city.name}: {episodes} episodes, seed {seed}"))
     if output is not None:
-        payload = results[0] if len(results) == 1 else {"scenario": city.name, "results": results}
-        output.parent.mkdir(parents=True, exist_ok=True)
-        output.write_text(json.dumps(payload, indent=2))
+        payload = results_payload(results)
+        save_or_fallback(output, lambda path: write_json(path, payload), what="the results")
         console.print(f"wrote {output}")
 
 
@@ -128,17 +146,18 @@ def collect(
     scenario: Annotated[str, typer.Option(help="scenario name or YAML path")] = "synthetic",
     policy: Annotated[str, typer.Option(help="behaviour policy: inf, dtv, prop, mpc-oracle, ... or a checkpoint")] = "inf",
     episodes: Annotated[int, typer.Option(min=1)] = 10,
-    seed: int = 0,
+    seed: Annotated[int, typer.Option(min=0)] = 0,
     output: Annotated[Path, typer.Option(help="dataset file to write (.npz, format in marl_amod.datasets)")] = Path("data.npz"),
     max_wait: Annotated[int, typer.Option(min=0, help="steps a request waits before leaving")] = 0,
     data_dir: DataDir = None,
 ) -> None:
     """Roll a behaviour policy and write an offline dataset (observation, action, reward, next observation, done)."""
     from marl_amod.datasets import collect as collect_dataset
-    from marl_amod.evaluation import make_policy
+    from marl_amod.policies import make_policy
     from marl_amod.scenario import load_city
 
     _use_data_dir(data_dir)
+    output = check_destination(output, what="--output")  # before the run, not after it
     city = load_city(scenario)
     pol = make_policy(policy, city)
     with progress_bar() as bar:
@@ -146,13 +165,13 @@ def collect(
         data = collect_dataset(
             city, pol, episodes=episodes, seed=seed, max_wait=max_wait, progress=lambda _k: bar.advance(task)
         )
-    path = data.save(output)
+    path = save_or_fallback(output, data.save, what="the dataset")
     console.print(f"wrote {len(data)} transitions ({city.n_regions} agents) to {path}")
 
 
 @app.command()
 def train(
-    config: Annotated[Path, typer.Option(help="training config YAML (configs/<run>.yaml)")],
+    config: Annotated[Path, typer.Option(help="training config YAML (configs/<algo>/<city>.yaml)")],
     resume: Annotated[Path | None, typer.Option(help="resume from a training state (runs/<run>/state.pt)")] = None,
     backend: Annotated[str, typer.Option(help="native (A2C/SAC in-process) or rllib (PPO on Ray RLlib)")] = "native",
     num_env_runners: Annotated[
@@ -174,31 +193,37 @@ def train(
         raise ConfigError(f"--backend must be native or rllib, got {backend!r}")
     if num_env_runners is not None or address is not None:
         raise ConfigError("--num-env-runners and --address need --backend rllib")
-    from marl_amod.training import load_train_config, run_training
+    from marl_amod.algos.common import TrainingInterrupted
+    from marl_amod.algos.registry import load_train_config, run_training
 
     algo, args = load_train_config(config)
     last_eval: dict[str, float] = {}
-    with progress_bar() as bar:
-        task = bar.add_task(f"{algo} {args.mode} on {args.scenario}", total=args.episodes)
+    try:
+        with progress_bar() as bar:
+            task = bar.add_task(f"{algo} {args.mode} on {args.scenario}", total=args.episodes)
 
-        def progress(ep: int, total: int, stats: dict) -> None:
-            if "eval/profit" in stats:
-                last_eval["profit"] = stats["eval/profit"]
-            desc = f"{algo} {args.mode} on {args.scenario}"
-            if last_eval:
-                desc += f" | val profit {last_eval['profit']:,.0f}"
-            bar.update(task, completed=ep, description=desc)
+            def progress(ep: int, total: int, stats: dict) -> None:
+                if "eval/profit" in stats:
+                    last_eval["profit"] = stats["eval/profit"]
+                desc = f"{algo} {args.mode} on {args.scenario}"
+                if last_eval:
+                    desc += f" | val profit {last_eval['profit']:,.0f}"
+                bar.update(task, completed=ep, description=desc)
 
-        summary = run_training(algo, args, resume=str(resume) if resume else None, progress=progress)
+            summary = run_training(algo, args, resume=str(resume) if resume else None, progress=progress, config_path=str(config))
+    except TrainingInterrupted as stop:
+        console.print(
+            f"interrupted at episode {stop.episode}: training state in {stop.path}; "
+            f"resume with: marl-amod train --config {config} --resume {stop.path}",
+            soft_wrap=True,  # one line, however long the paths
+        )
+        raise typer.Exit(130) from None
     card = summary["card"]
     console.print(
         f"{card['scenario']}: profit {card['profit_mean']:,.1f} ± {card['profit_std']:,.1f} over {card['eval_episodes']} episodes "
         f"(seed {card['eval_seed']}), trained {card['episodes_trained']} episodes in {card['training_wall_s'] / 60:.1f} min"
     )
     if "policy" in summary:
-        from marl_amod.checkpoints import update_card
-
-        update_card(summary["policy"], config=str(config))
         console.print(f"wrote {summary['policy']} (+ .json, .md); logs in {args.run_dir}")
 
 
@@ -236,7 +261,7 @@ def _train_rllib(config: Path, num_env_runners: int | None, address: str | None)
 
 @app.command()
 def compare(
-    config: Annotated[Path, typer.Option(help="comparison config YAML (configs/compare_<city>.yaml)")],
+    config: Annotated[Path, typer.Option(help="comparison config YAML (configs/compare/<city>.yaml)")],
     data_dir: DataDir = None,
 ) -> None:
     """Learned policies (centralised, decentralised, ablations) vs baselines on the same seeds: table + plots."""
@@ -244,9 +269,45 @@ def compare(
 
     _use_data_dir(data_dir)
     cfg = load_compare_config(config)
-    payload = run_compare(cfg, log=console.print)
+    payload = run_compare(cfg, log=console.print, config_path=str(config))
     console.print((Path(cfg.output) / "compare.md").read_text())
     console.print(f"best baseline: {payload['best_baseline']}")
+
+
+plot_app = typer.Typer(no_args_is_help=True, help="Study figures from evaluations.")
+app.add_typer(plot_app, name="plot")
+
+
+@plot_app.command("wait-map")
+def wait_map(
+    scenario: Annotated[str, typer.Option(help="scenario name or YAML path")] = "synthetic",
+    policy: Annotated[list[str], typer.Option(help="policy name or checkpoint; repeat: one panel each")] = ["no-rebalancing", "equal-distribution"],  # noqa: B006
+    episodes: Annotated[int, typer.Option(min=1)] = 10,
+    seed: Annotated[int, typer.Option(min=0)] = 0,
+    max_wait: Annotated[int, typer.Option(min=1, help="steps a request waits before leaving (waits are 0 without waiting)")] = 3,
+    output: Annotated[Path, typer.Option(help="figure to write (.png); the results JSON goes beside it")] = Path("wait_map.png"),
+    data_dir: DataDir = None,
+) -> None:
+    """Per-region mean waiting time (and service rate) of each policy on the region map, shared colour scale."""
+    from marl_amod.evaluation import evaluate as run_eval
+    from marl_amod.files import check_destination, write_json
+    from marl_amod.plots import region_map
+    from marl_amod.scenario import load_city
+
+    _use_data_dir(data_dir)
+    check_destination(output, what="--output")
+    city = load_city(scenario)
+    results = []
+    with progress_bar() as bar:
+        for name in policy:
+            task = bar.add_task(f"{name} on {city.name}", total=episodes)
+            results.append(run_eval(name, city, episodes, seed, max_wait=max_wait,
+                                    progress=lambda _k, task=task: bar.advance(task)))
+    console.print(metrics_table(results, f"{city.name}: {episodes} episodes, seed {seed}, max wait {max_wait} steps"))
+    title = f"{city.name}: {episodes} episodes (seed {seed}), requests wait up to {max_wait} steps ({max_wait * city.tstep:g} min)"
+    path = region_map(results, city, output, title=title)
+    write_json(output.with_suffix(".json"), {"scenario": city.name, "max_wait": max_wait, "results": results})
+    console.print(f"wrote {path} and {output.with_suffix('.json')}")
 
 
 def main() -> None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Hashable
 from pathlib import Path
 from typing import Any
 
@@ -56,14 +57,31 @@ def read_json(path: Path) -> Any:
         raise DataError(f"cannot read {path}: {exc}") from exc
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, except that a key given twice in one mapping is an error: plain YAML
+    keeps the last value, so a duplicated ``tstep:`` silently overrides the first."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen: set = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            if not isinstance(key, Hashable):
+                continue  # the parent reports unhashable keys itself
+            if key in seen:
+                raise yaml.constructor.ConstructorError(None, None, f"duplicate key {key!r}", key_node.start_mark)
+            seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
 def read_yaml(path: str | Path, what: str = "config") -> dict[str, Any]:
-    """Parse a YAML mapping (a scenario or an experiment config); every failure is a
-    :class:`ConfigError` naming the file, never a parser traceback. An empty file is ``{}``."""
+    """Parse a YAML mapping (a scenario or an experiment config); every failure (a duplicate key
+    included) is a :class:`ConfigError` naming the file, never a parser traceback. An empty file
+    is ``{}``."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{what} {path} not found")
     try:
-        raw = yaml.safe_load(path.read_text(encoding="utf-8")) or {}
+        raw = yaml.load(path.read_text(encoding="utf-8"), Loader=_UniqueKeyLoader) or {}  # noqa: S506 (a SafeLoader)
     except yaml.YAMLError as exc:
         raise ConfigError(f"malformed YAML in {path}: {exc}") from exc
     if not isinstance(raw, dict):

@@ -37,10 +37,12 @@ import numpy as np
 
 from marl_amod.baselines.base import Policy
 from marl_amod.env.features import feature_names, node_features
-from marl_amod.errors import DataError
+from marl_amod.errors import ConfigError, DataError
 from marl_amod.evaluation import episode_seeds
+from marl_amod.files import atomic_write, check_destination
 from marl_amod.scenario.types import City
 from marl_amod.system import FleetSystem
+from marl_amod.validation import as_count, as_seed
 
 FORMAT_VERSION = 1
 ARRAY_KEYS = ("observation", "action", "reward", "region_reward", "next_observation", "done", "episode", "step")
@@ -66,14 +68,13 @@ class OfflineDataset:
         return int(self.reward.shape[0])
 
     def save(self, path: str | Path) -> Path:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        with path.open("wb") as fh:  # a file handle keeps numpy from appending '.npz'
-            np.savez_compressed(
-                fh, **{k: getattr(self, k) for k in ARRAY_KEYS}, edge_index=self.edge_index,
-                feature_names=np.array(self.feature_names), meta=np.array(json.dumps(self.meta)),
-            )
-        return path
+        """Write atomically (a reader never sees half a dataset); a file handle keeps numpy from
+        appending '.npz'."""
+        path = check_destination(path, what="dataset")
+        return atomic_write(path, lambda fh: np.savez_compressed(
+            fh, **{k: getattr(self, k) for k in ARRAY_KEYS}, edge_index=self.edge_index,
+            feature_names=np.array(self.feature_names), meta=np.array(json.dumps(self.meta)),
+        ))  # fmt: skip
 
     @classmethod
     def load(cls, path: str | Path) -> OfflineDataset:
@@ -110,6 +111,9 @@ def collect(
     progress: Callable[[int], None] | None = None, **system_kwargs,
 ) -> OfflineDataset:
     """Roll ``policy`` for ``episodes`` episodes (seeded as in :func:`marl_amod.evaluation.evaluate`)."""
+    if as_count(episodes, "episodes") < 1:
+        raise ConfigError(f"episodes must be >= 1, got {episodes}")
+    seed = as_seed(seed)
     system = FleetSystem(city, **system_kwargs)
     cols: dict[str, list] = {k: [] for k in ARRAY_KEYS}
     for ep in range(episodes):

@@ -14,7 +14,7 @@ class ConfigError(MarlAmodError):
 
 
 class ActionError(MarlAmodError, ValueError):
-    """An action has the wrong shape, is not finite, or is negative."""
+    """An action has the wrong shape, is not finite, or (strict_actions) lies outside the action space."""
 
 
 class SolverError(MarlAmodError):

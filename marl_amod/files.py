@@ -83,3 +83,25 @@ def torch_save(path: str | Path, obj: Any) -> Path:
     buffer = io.BytesIO()
     torch.save(obj, buffer)
     return atomic_write(path, buffer.getvalue())
+
+
+def save_or_fallback(path: str | Path, write: Callable[[Path], Any], *, what: str = "results") -> Path:
+    """Write with ``write(path)``; if that fails after a long run (disk full, folder removed), write
+    to a fresh folder under the system's temporary directory, then the working directory, and
+    raise an :class:`OutputError` that says where the results are. Nothing computed is lost."""
+    path = Path(path)
+    try:
+        write(path)
+        return path
+    except (OSError, OutputError) as exc:
+        reason = getattr(exc, "strerror", None) or str(exc)
+        tried = []
+        for folder in (Path(tempfile.gettempdir()), Path.cwd()):
+            try:
+                fallback = Path(tempfile.mkdtemp(prefix="marl_amod-", dir=folder)) / path.name
+                write(fallback)
+            except OSError as again:
+                tried.append(f"{folder} ({again.strerror or again})")
+                continue
+            raise OutputError(f"could not write {what} to {path} ({reason}); they are saved in {fallback}") from exc
+        raise OutputError(f"could not write {what} to {path} ({reason}) nor to {', '.join(tried)}") from exc

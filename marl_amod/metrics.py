@@ -1,4 +1,11 @@
-"""Episode metrics, their aggregation over episodes, and the JSON schema of results."""
+"""Episode metrics, their aggregation over episodes, and the JSON schema of results.
+
+Besides the operator's numbers (profit, demand served, utilisation) every episode reports how
+evenly service is spread over the city -- the paper names equity of service as future work: the
+Gini coefficient of the per-region mean waiting time and of the per-region service rate
+(served / requested). 0 means every region is treated alike; (n - 1) / n means one region gets
+everything.
+"""
 
 from __future__ import annotations
 
@@ -16,7 +23,46 @@ METRICS: dict[str, str] = {
     "rebalancing_cost": "cost of rebalancing moves (money)",
     "wait_time": "mean passenger wait in minutes (0 when requests are served or lost at once)",
     "utilization": "share of vehicle-steps spent carrying passengers or rebalancing",
+    "wait_time_gini": "Gini coefficient of per-region mean wait over regions that served someone (0: equal)",
+    "service_rate_gini": "Gini coefficient of per-region service rate over regions with requests (0: equal)",
 }
+
+# decimals shown in tables; metrics not named here show one
+DISPLAY_DIGITS: dict[str, int] = {"wait_time": 2, "utilization": 2, "wait_time_gini": 3, "service_rate_gini": 3}
+
+
+def gini(values: np.ndarray | list[float], axis: int = -1) -> np.ndarray | float:
+    """Gini coefficient of non-negative values along ``axis`` (0: all equal; one-hot: (n - 1) / n).
+
+    Sorted form of mean |x_i - x_j| / (2 mean x), O(n log n); all-zero (or empty) rows give 0.
+    """
+    x = np.sort(np.moveaxis(np.asarray(values, dtype=float), axis, -1), axis=-1)
+    if np.any(x < 0):
+        raise ValueError("the Gini coefficient needs non-negative values")
+    n = x.shape[-1]
+    total = x.sum(axis=-1)
+    rank = np.arange(1, n + 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        g = 2.0 * (x * rank).sum(axis=-1) / (n * total) - (n + 1.0) / max(n, 1)
+    g = np.where(total > 0, g, 0.0)
+    return float(g) if g.ndim == 0 else g
+
+
+def region_wait_time(totals: EpisodeTotals) -> np.ndarray:
+    """(N,) mean wait in minutes of the passengers served from each region (0 where none was)."""
+    return np.where(totals.served > 0, totals.wait_minutes / np.maximum(totals.served, 1e-12), 0.0)
+
+
+def region_service_rate(totals: EpisodeTotals) -> np.ndarray:
+    """(N,) served / requested per region (0 where nobody requested a trip)."""
+    return np.where(totals.demand > 0, totals.served / np.maximum(totals.demand, 1e-12), 0.0)
+
+
+def _masked_gini(values: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Gini of ``values[..., keep]`` per leading index (each episode keeps its own regions)."""
+    n = values.shape[-1]
+    flat = [gini(v[k]) for v, k in zip(values.reshape(-1, n), keep.reshape(-1, n), strict=True)]
+    return np.asarray(flat, dtype=float).reshape(values.shape[:-1])
 
 
 def episode_metrics(totals: EpisodeTotals, fleet: int, horizon: int) -> dict[str, float]:
@@ -37,19 +83,22 @@ def metric_arrays(totals: EpisodeTotals, fleet: int, horizon: int) -> dict[str, 
         "rebalancing_cost": totals.rebalancing_cost.sum(axis=-1),
         "wait_time": np.where(served > 0, wait / np.maximum(served, 1e-300), 0.0),
         "utilization": totals.busy_vehicle_steps.sum(axis=-1) / max(fleet * horizon, 1),
+        # regions where the quantity is undefined (nobody served / nobody asked) are left out
+        "wait_time_gini": _masked_gini(region_wait_time(totals), totals.served > 0),
+        "service_rate_gini": _masked_gini(region_service_rate(totals), totals.demand > 0),
     }
 
 
 def region_metrics(totals: EpisodeTotals) -> dict[str, list[float]]:
     """Per-region metrics of one episode (attributed to the region vehicles leave from)."""
-    served = np.maximum(totals.served, 1e-12)
     return {
         "profit": totals.profit.tolist(),
         "revenue": totals.revenue.tolist(),
         "served_demand": totals.served.tolist(),
         "demand": totals.demand.tolist(),
         "rebalancing_cost": totals.rebalancing_cost.tolist(),
-        "wait_time": np.where(totals.served > 0, totals.wait_minutes / served, 0.0).tolist(),
+        "wait_time": region_wait_time(totals).tolist(),
+        "service_rate": region_service_rate(totals).tolist(),
     }
 
 

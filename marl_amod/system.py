@@ -104,6 +104,10 @@ class FleetSystem:
             self.sim.finish()
         return self._outcome(before, applied)
 
+    def close(self) -> None:
+        """Release what the simulator started (a SUMO run and its process); reset starts anew."""
+        self.sim.close()
+
     def targets_from_weights(self, weights: np.ndarray) -> np.ndarray:
         """The paper's target floor(w_i / sum(w) * M) from non-negative per-region weights."""
         return self.coordinator.targets(weights, self.sim.idle)
@@ -122,7 +126,7 @@ class FleetSystem:
     def _booked(self) -> tuple[np.ndarray, np.ndarray]:
         """Copies of the simulator's per-region money totals (dispatch profit, rebalancing cost)."""
         totals = self.sim.totals
-        return totals.revenue - totals.trip_cost, totals.rebalancing_cost.copy()
+        return totals.dispatch_profit, totals.rebalancing_cost.copy()
 
     def _outcome(self, before: tuple[np.ndarray, np.ndarray], rebalancing: np.ndarray) -> StepOutcome:
         profit, cost = self._booked()

@@ -27,6 +27,16 @@ def has_data() -> bool:
 needs_data = pytest.mark.skipif(not has_data(), reason=f"set {ENV_VAR} to the data folder to run real-city tests")
 
 
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``slow`` (a whole city in SUMO, several starts) run with MARL_AMOD_SLOW=1."""
+    if os.environ.get("MARL_AMOD_SLOW") == "1":
+        return
+    skip = pytest.mark.skip(reason="slow: set MARL_AMOD_SLOW=1 to run")
+    for item in items:
+        if "slow" in item.keywords:
+            item.add_marker(skip)
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _private_network_cache(tmp_path_factory):
     """SUMO networks built by tests go to a folder the test session owns, never the user's cache."""

@@ -7,7 +7,8 @@ import pytest
 
 from marl_amod.baselines.behaviour import DynamicTripVehicle, Informed, Proportional
 from marl_amod.errors import ConfigError
-from marl_amod.evaluation import evaluate, make_policy, policy_names
+from marl_amod.evaluation import evaluate
+from marl_amod.policies import make_policy, policy_names
 from marl_amod.system import FleetSystem
 
 NAMES = ["inf", "dtv", "prop", "mpc-oracle", "mpc-forecast"]
@@ -53,8 +54,19 @@ def test_prop_weights_follow_the_forecast_not_the_draw(tiny_city):
     assert np.allclose(w, tiny_city.demand_rate[1].sum(axis=1))
 
 
-def test_inf_sends_nothing_beyond_max_reb_and_is_deterministic(tiny_city):
-    result = [evaluate(tiny_city, Informed(max_reb=2), episodes=2, seed=0)["per_episode"] for _ in range(2)]
+def test_inf_sends_nothing_beyond_max_reb_and_is_deterministic(tiny_city, monkeypatch):
+    """INF's LP moves vehicles only between regions at most ``max_reb`` steps apart (a low ``roh`` makes
+    its capacity rule bind, so it has to move some)."""
+    from marl_amod.baselines import behaviour
+
+    planned = []
+    keep = behaviour._targets_from_moves
+    monkeypatch.setattr(behaviour, "_targets_from_moves", lambda idle, moves: planned.append(moves) or keep(idle, moves))
+    result = [evaluate(Informed(max_reb=2, roh=0.1), tiny_city, episodes=2, seed=0)["per_episode"] for _ in range(2)]
     assert result[0] == result[1]
+    far = tiny_city.reb_time > 2
+    assert far.any() and planned  # the limit can bind on this city
+    moves = np.stack(planned) * ~np.eye(tiny_city.n_regions, dtype=bool)  # (calls, N, N), stays removed
+    assert moves[:, far].max() < 1 and moves.sum() >= 1  # vehicles moved, none out of reach
     with pytest.raises(ConfigError):
         Informed(max_reb=0)

@@ -26,6 +26,30 @@ def test_scenarios_lists_the_default_city():
     assert "synthetic" in result.output and "16" in result.output
 
 
+def test_scenarios_list_reads_yaml_only_and_survives_a_broken_file(monkeypatch, tmp_path):
+    """Listing builds no city, says the missing-data hint once, and a broken YAML spoils only its row."""
+    from marl_amod.scenario import registry
+
+    def no_build(*args, **kwargs):
+        raise AssertionError("listing must not build a city")
+
+    monkeypatch.setattr(registry, "build_city", no_build)
+    (tmp_path / "good.yaml").write_text("name: good\nsource: synthetic\nrows: 2\ncols: 3\nvehicles_per_region: 5\n")
+    (tmp_path / "city.yaml").write_text("name: city\nsource: json\ndata_file: macro/x.json\nstart_hour: 8\n"
+                                        "demand_ratio: 1\nbeta: 0.5\n")  # fmt: skip
+    (tmp_path / "broken.yaml").write_text("name: broken\nsource: synthetic\nrowz: 3\n")
+    monkeypatch.setattr(registry, "scenario_dirs", lambda: [tmp_path])
+    monkeypatch.delenv("MARL_AMOD_DATA", raising=False)
+    result = runner.invoke(app, ["scenarios"])
+    assert result.exit_code == 0, result.output
+    lines = result.output.splitlines()
+    good = next(line for line in lines if "good" in line)
+    assert "synthetic" in good and " 6 " in good and " 30 " in good
+    assert any(line.startswith("│ broken") and line.count("broken") >= 2 for line in lines) and "rowz" in result.output
+    assert any(line.startswith("│ city") and "data" in line for line in lines)
+    assert result.output.count("MARL_AMOD_DATA") == 1 and "could not be read" in result.output
+
+
 def test_evaluate_writes_the_documented_json(tmp_path):
     data, output = run_eval(tmp_path, "--policy", "equal-distribution", "--seed", "3")
     assert data["scenario"] == "synthetic" and data["policy"] == "equal-distribution"

@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 from marl_amod.cli import app
 from marl_amod.datasets import ARRAY_KEYS, OfflineDataset, agent_transitions, collect
 from marl_amod.errors import DataError
-from marl_amod.evaluation import make_policy
+from marl_amod.policies import make_policy
 
 
 @pytest.fixture
@@ -39,12 +39,15 @@ def test_dataset_contents_are_consistent(tiny_city, dataset):
 
 
 def test_dataset_rewards_match_evaluation(tiny_city, dataset):
-    from marl_amod.evaluation import evaluate
+    """Episode profit = the dispatch in reset (no transition) + the transition rewards, exactly."""
+    from marl_amod.evaluation import episode_seeds, evaluate
+    from marl_amod.system import FleetSystem
 
-    profits = evaluate(tiny_city, "prop", episodes=2, seed=3)["per_episode"]
-    # episode profit = first dispatch (not a transition) + transition rewards; transitions are the larger part
+    profits = evaluate("prop", tiny_city, episodes=2, seed=3)["per_episode"]
     for ep, m in enumerate(profits):
-        assert dataset.reward[dataset.episode == ep].sum() <= m["profit"] + 1e-3
+        first_dispatch = FleetSystem(tiny_city).reset(episode_seeds(3, ep)[0]).reward
+        assert first_dispatch > 0
+        assert dataset.reward[dataset.episode == ep].sum() + first_dispatch == pytest.approx(m["profit"], rel=1e-5)
 
 
 def test_agent_view_has_one_transition_stream_per_region(tiny_city, dataset):

@@ -82,12 +82,41 @@ def test_episode_truncates_every_agent_at_the_horizon(tiny_city) -> None:
         env.step({})
 
 
+@pytest.mark.parametrize("max_cycles", [1, 3, 99])
+def test_max_cycles_truncates_at_the_cap_or_the_horizon(small_city, max_cycles) -> None:
+    env = marl_amod.parallel_env(small_city, max_cycles=max_cycles)
+    for seed in (0, 1):  # the count restarts on reset
+        env.reset(seed=seed)
+        steps = 0
+        while env.agents:
+            _, _, term, trunc, _ = env.step(_const(env, 0.5))
+            steps += 1
+            assert all(trunc.values()) == (env.agents == []) and not any(term.values())
+        assert steps == min(max_cycles, small_city.horizon - 1)
+
+
+def test_reward_scale_multiplies_rewards_and_leaves_infos_in_money(small_city) -> None:
+    from marl_amod.env.rewards import typical_step_revenue
+
+    envs = {s: marl_amod.parallel_env(small_city, reward_mode="local", reward_scale=s) for s in (1.0, 0.01, "auto")}
+    auto = 1.0 / typical_step_revenue(small_city)
+    assert envs["auto"].reward_scale == pytest.approx(auto) and 0 < auto < 1
+    for e in envs.values():
+        e.reset(seed=2)
+    while envs[1.0].agents:
+        out = {s: e.step(_const(e, 0.3)) for s, e in envs.items()}
+        r = {s: np.array(list(o[1].values())) for s, o in out.items()}
+        assert np.abs(r[1.0]).sum() > 0
+        np.testing.assert_allclose(r[0.01], 0.01 * r[1.0], rtol=1e-12)
+        np.testing.assert_allclose(r["auto"], auto * r[1.0], rtol=1e-12)
+        assert out["auto"][4] == out[1.0][4]  # infos: money as booked
+
+
 @pytest.mark.parametrize(
     "bad, match",
     [
         (np.array([np.nan], dtype=np.float32), "not finite"),
         (np.array([np.inf], dtype=np.float32), "not finite"),
-        (np.array([-0.5], dtype=np.float32), "negative"),
         (np.array([0.2, 0.3], dtype=np.float32), "shape"),
         (np.zeros((1, 1), dtype=np.float32), "shape"),
         ("lots", "number"),
@@ -115,9 +144,33 @@ def test_missing_and_unknown_agents_raise(tiny_city) -> None:
 
 
 def test_out_of_range_actions_are_clipped_into_the_unit_interval() -> None:
-    agents = ["a", "b", "c"]
-    got = act.joint_action({"a": np.array([3.0]), "b": -1e-8, "c": np.array([0.25])}, agents)
-    assert np.array_equal(got, [1.0, 0.0, 0.25])
+    agents = ["a", "b", "c", "d"]
+    got = act.joint_action({"a": np.array([3.0]), "b": -1e-8, "c": np.array([0.25]), "d": np.array([-7.5])}, agents)
+    assert np.array_equal(got, [1.0, 0.0, 0.25, 0.0])
+
+
+def test_a_gaussian_policy_steps_the_env_like_its_clipped_actions(small_city) -> None:
+    """Unclipped Gaussian samples (negative ones included) act exactly as their clipped values."""
+    rng = np.random.default_rng(0)
+    raw_env, clip_env = marl_amod.parallel_env(small_city), marl_amod.parallel_env(small_city)
+    raw_env.reset(seed=4)
+    clip_env.reset(seed=4)
+    while raw_env.agents:
+        raw = {a: rng.normal(0.3, 1.0, size=1).astype(np.float32) for a in raw_env.agents}
+        _, r1, *_ = raw_env.step(raw)
+        _, r2, *_ = clip_env.step({a: np.clip(v, 0.0, 1.0) for a, v in raw.items()})
+        assert r1 == r2
+        assert np.array_equal(raw_env.last_outcome.rebalancing, clip_env.last_outcome.rebalancing)
+
+
+@pytest.mark.parametrize("value", [-0.5, -1e-8, 1.5])
+def test_strict_actions_raise_on_finite_values_outside_the_space(tiny_city, value) -> None:
+    env = marl_amod.parallel_env(tiny_city, strict_actions=True)
+    env.reset(seed=0)
+    actions = {**_const(env, 0.5), "region_3": np.array([value], dtype=np.float64)}
+    with pytest.raises(ActionError, match="region_3.*outside the action space"):
+        env.step(actions)
+    env.step(_const(env, 1.0))  # the bounds themselves are inside
 
 
 def test_all_zero_weights_mean_no_rebalancing(small_city) -> None:
@@ -266,6 +319,12 @@ def test_bad_configuration_raises_config_error(tiny_city) -> None:
         marl_amod.parallel_env(hoirzon=5)  # typo in a scenario key
     with pytest.raises(ConfigError, match="overrides"):
         marl_amod.parallel_env(tiny_city, horizon=3)
+    for bad in (0, -1.0, float("nan"), "big"):
+        with pytest.raises(ConfigError, match="reward_scale"):
+            marl_amod.parallel_env(tiny_city, reward_scale=bad)
+    for bad in (0, 2.5):
+        with pytest.raises(ConfigError, match="max_cycles"):
+            marl_amod.parallel_env(tiny_city, max_cycles=bad)
 
 
 @needs_data
@@ -284,7 +343,7 @@ _N = _CITY.n_regions
 
 tiny = st.floats(min_value=0.0, max_value=1e-30, allow_subnormal=True)
 in_range = st.floats(min_value=0.0, max_value=1.0)
-clipped = st.floats(min_value=-1e-7, max_value=50.0)
+clipped = st.floats(min_value=-50.0, max_value=50.0)
 one_hot = st.integers(0, _N - 1).map(lambda i: [1.0 if k == i else 0.0 for k in range(_N)])
 joint = st.one_of(
     st.lists(in_range, min_size=_N, max_size=_N),

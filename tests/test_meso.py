@@ -3,7 +3,6 @@ the PettingZoo API, and configuration errors. A 14-minute grid episode takes wel
 
 from __future__ import annotations
 
-import dataclasses
 import os
 from pathlib import Path
 
@@ -13,14 +12,17 @@ import pytest
 pytest.importorskip("libsumo")
 
 from conftest import has_data  # noqa: E402
-from pettingzoo.test import parallel_api_test  # noqa: E402
 
 from marl_amod.env.parallel import AmodParallelEnv  # noqa: E402
 from marl_amod.errors import ConfigError, DataError  # noqa: E402
 from marl_amod.evaluation import evaluate  # noqa: E402
 from marl_amod.scenario import load_city, load_spec  # noqa: E402
-from marl_amod.sim.meso.sumo_sim import LOST, MesoSim  # noqa: E402
+from marl_amod.scenario.simspec import SimSpec  # noqa: E402
+from marl_amod.scenario.sumo.network import read_network  # noqa: E402
+from marl_amod.sim.base import make_simulator  # noqa: E402
+from marl_amod.sim.meso.sumo_sim import MesoSim  # noqa: E402
 from marl_amod.sim.meso.taxi_sim import TaxiMesoSim  # noqa: E402
+from marl_amod.sim.meso.types import RequestState  # noqa: E402
 from marl_amod.system import FleetSystem  # noqa: E402
 
 
@@ -77,7 +79,7 @@ def test_meso_requests_leave_after_max_wait(taxi_device):
         system.step(np.full(city.n_regions, -1))
         if taxi_device:  # a request that left is no longer a person waiting in SUMO
             sim = system.sim
-            lost = {f"req{k}" for k in np.flatnonzero(sim.r_status == LOST)}
+            lost = {f"req{k}" for k in sim.ride_requests.in_state(RequestState.LOST)}
             assert not lost & set(sim.sumo.person.getIDList())
     tot = system.sim.totals
     assert tot.lost.sum() > tot.served.sum() > 0
@@ -95,14 +97,9 @@ def test_taxi_device_fleet_is_sumo_taxis_and_serves_like_the_leg_model():
     assert 0 < b.wait_minutes.sum() / b.served.sum() < taxi.city.tstep * 5  # boarding happens in SUMO
 
 
-def test_meso_env_passes_pettingzoo_parallel_api():
-    env = AmodParallelEnv("sumo_grid")
-    parallel_api_test(env, num_cycles=20)
-
-
 def test_meso_evaluate_gives_the_macro_json_schema():
-    res = evaluate("sumo_grid", "equal-distribution", episodes=1, seed=0)
-    macro = evaluate(load_city("synthetic", horizon=3), "equal-distribution", episodes=1, seed=0)
+    res = evaluate("equal-distribution", "sumo_grid", episodes=1, seed=0)
+    macro = evaluate("equal-distribution", load_city("synthetic", horizon=3), episodes=1, seed=0)
     assert res["metrics"].keys() == macro["metrics"].keys()
     assert res["per_region"].keys() == macro["per_region"].keys()
     assert len(res["per_region"]["wait_time"]) == 4
@@ -112,7 +109,7 @@ def test_meso_evaluate_gives_the_macro_json_schema():
 def test_mpc_plans_on_meso_with_the_requests_that_will_still_wait(taxi_device):
     city = load_city("sumo_grid", fleet=6, requests_per_hour=900, max_wait_min=3, taxi_device=taxi_device)
     for policy in ("mpc-oracle", "mpc-forecast"):
-        assert evaluate(city, policy, episodes=1, seed=0)["metrics"]["served_demand"]["mean"] > 0
+        assert evaluate(policy, city, episodes=1, seed=0)["metrics"]["served_demand"]["mean"] > 0
     system = FleetSystem(city)
     system.reset(0)
     sim, leaving = system.sim, 0
@@ -164,11 +161,11 @@ def test_sumo_scenario_config_errors(tmp_path: Path):
 def test_missing_sumo_extra_names_the_install_command(monkeypatch):
     import sys
 
-    from marl_amod.sim.meso import engine
+    from marl_amod.scenario.sumo import install
 
     monkeypatch.setitem(sys.modules, "sumo", None)  # import sumo now fails
     with pytest.raises(ConfigError, match=r'pip install "marl-amod\[sumo\]"'):
-        engine.sumo_home()
+        install.sumo_home()
 
 
 def test_meso_flows_are_validated():
@@ -188,9 +185,13 @@ def _has_lux() -> bool:
 def test_lux_network_and_regions_build():
     city = load_city("lux", horizon=2)
     assert city.n_regions == 10 and city.fleet_size == load_spec("lux").fleet
-    sim = city.simulator
-    assert len(np.unique(sim.of_edge)) == 10
-    assert dataclasses.is_dataclass(sim)
+    spec = city.simulator
+    assert isinstance(spec, SimSpec) and spec.kind == "meso"  # data naming the simulator, no factory
+    net = read_network(spec.sumo.net_file)
+    assert net.n_edges > 1000 and len(spec.sumo.of_edge) == net.n_edges  # every usable edge has a region
+    assert np.all(np.bincount(spec.sumo.of_edge, minlength=10) > 0)  # and no region is empty
+    off = ~np.eye(10, dtype=bool)
+    assert np.all(city.reb_time[off] >= 1) and np.all(city.trip_time[:, off] >= 1)  # regions apart take time
 
 
 @pytest.mark.parametrize("taxi_device", [False, True], ids=["legs", "taxi_device"])
@@ -203,12 +204,13 @@ def test_meso_traci_backend_matches_libsumo(taxi_device):
 
 def test_micro_mode_runs_the_same_episode_contract():
     system = _episode(0, mode="micro")
-    assert system.sim.options.mode == "micro" and "--mesosim" not in system.sim.options.sumo_args()
+    assert system.sim.options.mode == "micro" and "--mesosim" not in system.sim.sumo_args()
 
 
 def test_macro_twin_is_the_same_city_without_sumo():
     meso, macro = load_city("sumo_grid"), load_city("sumo_grid", mode="macro")
-    assert macro.simulator is None and isinstance(meso.simulator(meso), MesoSim)
+    assert macro.simulator.kind == "macro" and meso.simulator.kind == "meso"
+    assert type(make_simulator(meso)) is MesoSim and type(make_simulator(load_city("sumo_grid", taxi_device=True))) is TaxiMesoSim
     np.testing.assert_array_equal(meso.demand_rate, macro.demand_rate)
     np.testing.assert_array_equal(meso.reb_time, macro.reb_time)
     assert type(FleetSystem(macro).sim).__name__ == "MacroSim"
@@ -246,7 +248,6 @@ def test_meso_matches_more_often_than_it_rebalances():
         load_spec("sumo_grid", tstep=3, dispatch_every_min=2)
 
 
-
 @pytest.mark.skipif(not _has_lux(), reason="set MARL_AMOD_DATA to a folder with lux/ to build Luxembourg")
 def test_lux_taxi_sent_to_a_pickup_on_the_edge_it_is_driving_is_not_lost():
     # Found on Luxembourg (episode (0, 1)): a taxi still driving from its insertion was sent to a
@@ -269,5 +270,53 @@ def test_background_traffic_shares_the_roads_and_the_fleet_is_still_conserved(ta
     others = [v for v in api.vehicle.getIDList() if v.startswith("bg")]
     assert len(others) > 50  # randomTrips' cars are on the roads next to the fleet
     routes = system.sim.options.route_files
-    assert routes and load_city("sumo_grid", background_per_hour=3000).simulator.route_files == routes  # cached
-    assert load_city("sumo_grid", background_per_hour=3000, mode="macro").simulator is None
+    assert routes and load_city("sumo_grid", background_per_hour=3000).simulator.sumo.route_files == routes  # cached
+    assert load_city("sumo_grid", background_per_hour=3000, mode="macro").simulator.kind == "macro"
+
+
+def _sumo_children() -> set[int]:
+    """Process ids of the ``sumo`` processes this test process started and has not reaped."""
+    import psutil  # a dependency of torch-geometric, so always installed
+
+    return {p.pid for p in psutil.Process().children(recursive=True) if p.name() == "sumo"}
+
+
+def test_traci_env_close_and_garbage_collection_end_the_sumo_process():
+    import gc
+
+    before = _sumo_children()
+    env = AmodParallelEnv("sumo_grid", backend="traci")
+    env.reset(seed=0)
+    env.step({a: np.array([1.0], dtype=np.float32) for a in env.agents})
+    assert len(_sumo_children() - before) == 1  # TraCI runs SUMO as a child process
+    env.close()
+    assert _sumo_children() == before
+    env.reset(seed=1)  # a closed env starts a new run on reset
+    assert len(_sumo_children() - before) == 1
+    env.close()
+    dropped = FleetSystem(load_city("sumo_grid", backend="traci"))
+    dropped.reset(0)
+    assert len(_sumo_children() - before) == 1
+    del dropped  # never closed: collecting the simulator ends its run
+    gc.collect()
+    assert _sumo_children() == before
+
+
+def test_libsumo_env_close_unloads_the_simulation():
+    import libsumo
+
+    env = AmodParallelEnv("sumo_grid")
+    env.reset(seed=0)
+    assert libsumo.simulation.isLoaded()
+    env.close()
+    assert not libsumo.simulation.isLoaded()
+    with pytest.raises(RuntimeError, match="reset"):
+        _ = env.system.sim.sumo
+    other = FleetSystem(load_city("sumo_grid"))
+    other.reset(0)
+    env.reset(seed=0)  # takes libsumo over from `other`
+    other.close()  # so closing `other` must leave env's simulation running
+    assert libsumo.simulation.isLoaded()
+    env.step({a: np.array([1.0], dtype=np.float32) for a in env.agents})
+    env.close()
+    assert not libsumo.simulation.isLoaded()

@@ -6,11 +6,9 @@ import json
 
 import numpy as np
 import pytest
-from conftest import REAL_CITIES, needs_data
 
 from marl_amod.errors import ConfigError, DataError
-from marl_amod.evaluation import evaluate
-from marl_amod.scenario import available, grid_city, load_city, load_spec
+from marl_amod.scenario import grid_city, load_city, load_spec
 from marl_amod.scenario.json_city import load_json_city
 
 
@@ -80,7 +78,7 @@ def test_malformed_json_names_the_file_and_position(tmp_path):
     [
         ({"rebTime": [{"time_stamp": 19, "origin": 0, "destination": 1, "reb_time": 3}]}, r"lacks the pair \(1, 0\)"),
         ({"demand": [{"time_stamp": 1140, "origin": 0}]}, "item 0 of 'demand'"),
-        ({"demand": [{"time_stamp": 1140, "origin": 5, "destination": 0, "demand": 1, "travel_time": 1, "price": 1}]}, "origins"),
+        ({"demand": [{"time_stamp": 1140, "origin": 5, "destination": 0, "demand": 1, "travel_time": 1, "price": 1}]}, r"item 0 of 'demand': origin must be a region index"),
         ({"totalAcc": [{"hour": 3, "acc": 5}]}, "no entry for hour 19"),
     ],
 )
@@ -150,16 +148,18 @@ def test_synthetic_cities_from_4_to_over_400_regions(rows, cols):
     assert not np.array_equal(city.demand_rate, grid_city(rows, cols, seed=4).demand_rate)
 
 
-def test_every_bundled_scenario_is_listed():
-    assert {"synthetic", "synthetic_large", *REAL_CITIES} <= set(available())
+def test_step_rows_reads_a_step_table_and_zero_past_its_end():
+    from marl_amod.scenario.types import step_rows
+
+    table = np.arange(1, 13).reshape(3, 2, 2)
+    got = step_rows(table, np.array([1, 2, 3, 9]))
+    assert got.shape == (4, 2, 2)
+    assert np.array_equal(got[:2], table[1:]) and not got[2:].any()
 
 
-@needs_data
-@pytest.mark.parametrize("name", REAL_CITIES)
-def test_every_real_city_loads_and_runs_an_episode(name):
-    city = load_city(name)
-    assert city.n_regions >= 10 and city.fleet_size > 0 and city.demand_rate[:20].sum() > 0
-    assert city.edge_index.max() < city.n_regions
-    result = evaluate(city, "equal-distribution", episodes=1, seed=0)
-    m = result["metrics"]
-    assert 0 < m["served_demand"]["mean"] <= m["demand"]["mean"]
+def test_city_margin_and_expected_fares_are_per_request_profit_and_fares(small_city):
+    c = small_city
+    t, i, j = 3, 1, 2
+    assert c.margin[t, i, j] == pytest.approx(c.price[t, i, j] - c.beta * c.tstep * c.trip_time[t, i, j])
+    assert c.expected_fares[t, i] == pytest.approx(sum(c.demand_rate[t, i, k] * c.price[t, i, k] for k in range(c.n_regions)))
+    assert c.margin.shape == c.price.shape and c.expected_fares.shape == (c.n_steps, c.n_regions)

@@ -11,9 +11,14 @@ from typing import Literal
 
 import numpy as np
 
-from marl_amod.coordinator.dispatch import greedy_dispatch, margin_order
-from marl_amod.coordinator.rebalance import Rebalancer, desired_targets, satisfies_triangle_inequality
-from marl_amod.errors import ConfigError
+from marl_amod.coordinator.dispatch import check_dispatch_inputs, greedy_dispatch, margin_order
+from marl_amod.coordinator.rebalance import (
+    Rebalancer,
+    check_rebalance_inputs,
+    desired_targets,
+    satisfies_triangle_inequality,
+)
+from marl_amod.errors import ActionError, ConfigError, DataError
 from marl_amod.scenario.types import City
 
 Objective = Literal["profit", "revenue"]
@@ -37,8 +42,7 @@ class Coordinator:
 
     def margin(self, t: int) -> np.ndarray:
         """(N, N) value of serving one request i->j in step t under the dispatch objective."""
-        price = self.city.price[t]
-        return price - self.city.trip_cost[t] if self.objective == "profit" else price
+        return self.city.margin[t] if self.objective == "profit" else self.city.price[t]
 
     @property
     def metric(self) -> bool:
@@ -49,15 +53,17 @@ class Coordinator:
 
     def dispatch(self, idle: np.ndarray, requests: np.ndarray, t: int) -> np.ndarray:
         """Passenger flows x (N, N) for step t; idle (B, N) and requests (B, N, N) give (B, N, N)."""
+        if isinstance(t, bool) or not isinstance(t, (int, np.integer)) or not 0 <= t < self.city.n_steps:
+            raise DataError(f"dispatch step t must be an integer in [0, {self.city.n_steps}), got {t!r}")
         if self.solver == "cvxpy":
             from marl_amod.coordinator.reference import lp_dispatch
 
-            return lp_dispatch(idle, requests, self.margin(t))
+            return lp_dispatch(*check_dispatch_inputs(idle, requests, self.margin(t)))
         if t not in self._orders:  # margins are tables of the city: sort them once per step
             margin = self.margin(t)
             self._orders[t] = (margin, margin_order(margin))
         margin, order = self._orders[t]
-        return greedy_dispatch(idle, requests, margin, order)
+        return greedy_dispatch(idle, requests, margin, order)  # checks the whole batch once
 
     def rebalance(self, idle: np.ndarray, target: np.ndarray) -> np.ndarray:
         """Rebalancing flows y (N, N) of least cost meeting ``target`` (a -1 entry: no target);
@@ -65,13 +71,20 @@ class Coordinator:
         if self.solver == "cvxpy":
             from marl_amod.coordinator.reference import lp_rebalance
 
-            return lp_rebalance(idle, target, self.city.reb_cost)
+            return lp_rebalance(*check_rebalance_inputs(idle, target, self.city.n_regions), self.city.reb_cost)
+        idle, target = check_rebalance_inputs(idle, target, self.city.n_regions)  # the whole batch, once
         if self._rebalancer is None:
             self._rebalancer = Rebalancer(self.city.reb_time, metric=self.metric)
-        if np.ndim(idle) == 2:  # a batch of episodes (B, N): each solved alone
+        if idle.ndim == 2:  # a batch of episodes (B, N): each solved alone
             return self._rebalancer.many(idle, target)
         return self._rebalancer(idle, target)
 
     def targets(self, weights: np.ndarray, idle: np.ndarray) -> np.ndarray:
-        """Global target u = floor(w / sum(w) * M) from per-region non-negative weights."""
-        return desired_targets(np.asarray(weights, dtype=float), np.asarray(idle).sum(axis=-1))
+        """Global target u = floor(w / sum(w) * M) from per-region non-negative weights; a NaN,
+        infinite or negative weight, or one per region missing, is an ActionError naming the region.
+        Weights (B, N) and idle (B, N) give (B, N) targets."""
+        if np.ndim(weights) < 1 or np.shape(weights)[-1] != self.city.n_regions:
+            raise ActionError(
+                f"rebalancing weights must have shape ({self.city.n_regions},) (leading batch axes allowed), got {np.shape(weights)}"
+            )
+        return desired_targets(weights, np.asarray(idle).sum(axis=-1))

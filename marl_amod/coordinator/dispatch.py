@@ -12,6 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from marl_amod.errors import DataError
+from marl_amod.validation import check_array
+
 
 def margin_order(margin: np.ndarray) -> np.ndarray:
     """Per-origin column order by decreasing margin; (..., N, N) int. Cacheable per step."""
@@ -26,6 +29,7 @@ def greedy_dispatch(
     ``order`` is :func:`margin_order` of ``margin``; pass it when margins repeat across calls.
     Leading axes are independent instances (a batch of episodes at the same step).
     """
+    idle, demand, margin = check_dispatch_inputs(idle, demand, margin)
     if order is None:
         order = margin_order(margin)
     n = margin.shape[-1]
@@ -38,3 +42,17 @@ def greedy_dispatch(
     x = np.empty_like(servable)
     x[..., flat] = x_sorted
     return x.reshape(demand.shape)
+
+
+def check_dispatch_inputs(idle: np.ndarray, demand: np.ndarray, margin: np.ndarray) -> tuple[np.ndarray, ...]:
+    """idle (..., N) and demand (..., N, N) as whole non-negative int64 counts, margin (N, N) finite;
+    otherwise a :class:`~marl_amod.errors.DataError` naming the argument and the region. Leading
+    axes are a batch of episodes, checked in one pass."""
+    lead = max(np.ndim(idle) - 1, 0)
+    idle = check_array(idle, "idle vehicles", minimum=0, integer=True, lead=lead)
+    if idle.ndim < 1:
+        raise DataError(f"idle vehicles must be one count per region (N,), got shape {idle.shape}")
+    n = idle.shape[-1]
+    demand = check_array(demand, "requests", shape=(*idle.shape, n), minimum=0, integer=True, lead=lead)
+    margin = check_array(margin, "dispatch margin", shape=(n, n))
+    return idle, demand, margin

@@ -14,12 +14,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from marl_amod.errors import SolverError
+from marl_amod.errors import ActionError, DataError, SolverError
+from marl_amod.validation import check_array
 
 
-def satisfies_triangle_inequality(cost: np.ndarray, chunk: int = 64) -> bool:
-    """True when c_ij <= c_ik + c_kj for all i, j, k (O(N^3), in chunks to bound memory)."""
+def satisfies_triangle_inequality(cost: np.ndarray, chunk: int | None = None) -> bool:
+    """True when c_ij <= c_ik + c_kj for all i, j, k (O(N^3), in chunks to bound memory).
+
+    The default chunk keeps each (chunk, N, N) block near 8 M entries (64 MB of int64), so a
+    city of thousands of regions is checked without gigabytes of scratch memory.
+    """
     n = cost.shape[0]
+    chunk = chunk or max(1, min(64, (1 << 23) // max(n * n, 1)))
     for start in range(0, n, chunk):
         block = cost[start : start + chunk]  # (b, N) = c_ik for i in the block
         via = (block[:, :, None] + cost[None, :, :]).min(axis=1)  # (b, N): min_k c_ik + c_kj
@@ -32,22 +38,63 @@ def desired_targets(weights: np.ndarray, total_idle: int | np.ndarray) -> np.nda
     """The paper's target u_i = floor(w_i / sum(w) * M); all-zero weights mean 'stay' (-1s).
 
     Leading axes of ``weights`` (..., N) are independent instances with ``total_idle`` (...,).
+    Weights are a policy's output: a NaN, infinite or negative one raises
+    :class:`~marl_amod.errors.ActionError` naming the region (cast to an integer it would
+    silently mean 'stay' and give the no-rebalancing result).
     """
+    weights = check_array(weights, "rebalancing weights", minimum=0, error=ActionError, lead=max(np.ndim(weights) - 1, 0))
+    if weights.ndim < 1:
+        raise ActionError(f"rebalancing weights must be one number per region (N,), got shape {weights.shape}")
     s = weights.sum(axis=-1, keepdims=True)
+    big = ~np.isfinite(s)
+    if big.any():  # weights near the float maximum overflow their sum: rescale those rows
+        weights = np.where(big, weights / np.where(big, weights.max(axis=-1, keepdims=True), 1.0), weights)
+        s = weights.sum(axis=-1, keepdims=True)
     positive = s > 0
     total = np.asarray(total_idle)[..., None]
     u = np.floor(weights / np.where(positive, s, 1.0) * total + 1e-9).astype(np.int64)
     return np.where(positive, u, -1)
 
 
+def check_rebalance_inputs(idle: np.ndarray, target: np.ndarray, n: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(idle, target) as int64 (..., N) arrays, or an error naming the argument and the region:
+    idle counts must be whole and >= 0; a target whole and >= -1 (-1: no wish). Leading axes are
+    a batch of independent instances, checked in one pass."""
+    lead = max(np.ndim(idle) - 1, 0)
+    idle = check_array(idle, "idle vehicles", minimum=0, integer=True, lead=lead)
+    if idle.ndim < 1 or (n is not None and idle.shape[-1] != n):
+        want = "(N,)" if n is None else f"({n},)"
+        raise DataError(f"idle vehicles must have shape {want} (one count per region, leading batch axes allowed), got {idle.shape}")
+    target = check_array(target, "rebalancing target", shape=idle.shape, minimum=-1, integer=True, error=ActionError, lead=lead)
+    return idle, target
+
+
+# costs scaled to integers with this resolution when they are not whole numbers already
+COST_RESOLUTION = 10**9
+
+
+def integer_costs(cost: np.ndarray) -> np.ndarray:
+    """Costs as int64 for OR-Tools: whole numbers up to ``COST_RESOLUTION`` unchanged (exact),
+    others scaled so the largest is ``COST_RESOLUTION`` and rounded (never truncated)."""
+    top = float(cost.max()) if cost.size else 0.0
+    if top <= COST_RESOLUTION and (cost.dtype.kind in "iu" or np.all(cost == np.round(cost))):
+        return cost.astype(np.int64, copy=False)
+    return np.rint(cost * (COST_RESOLUTION / top)).astype(np.int64)
+
+
 def min_cost_rebalance(idle: np.ndarray, target: np.ndarray, cost: np.ndarray, metric: bool = False) -> np.ndarray:
     """Optimal integral rebalancing flows y (N, N), zero diagonal.
 
-    ``cost`` must be non-negative integers (travel steps: proportional to the money cost, so
-    the same argmin). ``metric`` says the triangle inequality holds (see
+    ``cost`` (N, N) is non-negative and finite. Whole-number costs (travel steps, as the
+    coordinator passes: proportional to the money cost, so the same argmin) are solved exactly;
+    other costs are scaled so the largest is 10^9 and rounded (see :func:`integer_costs`), so the
+    flows are optimal to within total flow x max cost x 1e-9 of the LP. ``metric`` says the triangle inequality holds (see
     :func:`satisfies_triangle_inequality`). Targets above what the fleet can reach are
     infeasible and raise; targets summing to at most sum(idle) never are.
     """
+    idle, target = check_rebalance_inputs(idle, target)
+    if idle.ndim != 1 or np.shape(cost) != (idle.shape[0],) * 2:
+        raise DataError(f"min_cost_rebalance takes idle (N,) and cost (N, N), got {idle.shape} and {np.shape(cost)}")
     return Rebalancer(cost, metric)(idle, target)
 
 
@@ -61,7 +108,10 @@ class Rebalancer:
     """
 
     def __init__(self, cost: np.ndarray, metric: bool = False) -> None:
-        self.cost = np.asarray(cost, dtype=np.int64)
+        cost = check_array(cost, "rebalancing cost", minimum=0)
+        if cost.ndim != 2 or cost.shape[0] != cost.shape[1]:
+            raise DataError(f"rebalancing cost must be a square (N, N) matrix, got shape {cost.shape}")
+        self.cost = integer_costs(cost)
         self.metric = metric
         self._full: tuple | None = None  # (solver, arc ids, node ids) of the full network
 

@@ -14,14 +14,19 @@ from importlib import import_module
 from types import ModuleType
 from typing import Any
 
+ENV_VERSION = "amod_v0"  # PettingZoo-style versioned name; policy cards record it
+ENV_ID = "marl_amod/amod-v0"  # the name in PettingZoo's registry (1.27+)
+
 _LAZY = {
     "AmodParallelEnv": "marl_amod.env.parallel",
+    "parallel_env": "marl_amod.env.parallel",
+    "raw_env": "marl_amod.env.parallel",
     "local_observations": "marl_amod.env.observations",
     "split_local": "marl_amod.env.observations",
     "write_episode_gif": "marl_amod.env.render",
     "record_episode": "marl_amod.env.render",
 }
-__all__ = sorted(_LAZY)
+__all__ = ["ENV_ID", "ENV_VERSION", *sorted(_LAZY)]
 
 
 def __getattr__(name: str) -> Any:
@@ -33,7 +38,7 @@ def __getattr__(name: str) -> Any:
 class _CallableEnvPackage(ModuleType):
     def __call__(self, scenario: Any = "synthetic", **kwargs: Any) -> Any:
         """The AEC env: ``parallel_to_aec(parallel_env(scenario, **kwargs))``."""
-        from marl_amod.amod_v0 import raw_env
+        from marl_amod.env.parallel import raw_env
 
         return raw_env(scenario, **kwargs)
 

@@ -2,10 +2,12 @@
 
 Each agent acts with one number ``a`` in ``Box(0, 1, (1,))``. The rule for values outside:
 
-* a value that is not finite, or below ``-NEGATIVE_TOLERANCE``, or of a shape other than ``()``
-  or ``(1,)``, raises :class:`~marl_amod.errors.ActionError` naming the agent (a bug upstream);
-* any other value is clipped into [0, 1] (small negative noise and values above 1, as a
-  Gaussian policy without clipping produces, are tolerated).
+* a value that is not finite, or of a shape other than ``()`` or ``(1,)``, raises
+  :class:`~marl_amod.errors.ActionError` naming the agent (a bug upstream);
+* any other value is clipped into [0, 1], as PettingZoo's own continuous envs do, so a Gaussian
+  policy (tianshou, skrl, SB3 without squashing) can act on the env unmodified;
+* with ``strict=True`` (the env's ``strict_actions=True``) a finite value outside [0, 1] raises
+  instead: for code that wants to catch a policy that leaves the action space.
 
 ``weight`` mode: the clipped values are the weights w; the coordinator's target is
 floor(w_i / sum(w) * M) (independent Gamma(alpha_i) samples normalised this way are exactly a
@@ -23,15 +25,18 @@ from typing import Any, Literal
 import numpy as np
 
 from marl_amod.errors import ActionError
+from marl_amod.system import FleetSystem
 
 ActionMode = Literal["weight", "logit"]
 ACTION_MODES: tuple[str, ...] = ("weight", "logit")
 LOGIT_RANGE = 10.0
-NEGATIVE_TOLERANCE = 1e-6
 
 
-def joint_action(actions: Mapping[str, Any], agents: Sequence[str]) -> np.ndarray:
-    """(N,) float64 clipped actions in the order of ``agents``; raises ActionError on bad input."""
+def joint_action(actions: Mapping[str, Any], agents: Sequence[str], *, strict: bool = False) -> np.ndarray:
+    """(N,) float64 actions in [0, 1] in the order of ``agents``; raises ActionError on bad input.
+
+    Finite values outside [0, 1] are clipped, or raise when ``strict``.
+    """
     if not isinstance(actions, Mapping):
         raise ActionError(f"actions must be a dict {{agent: action}}, got {type(actions).__name__}")
     missing = [a for a in agents if a not in actions]
@@ -51,8 +56,8 @@ def joint_action(actions: Mapping[str, Any], agents: Sequence[str]) -> np.ndarra
         v = float(value.reshape(()))
         if not np.isfinite(v):
             raise ActionError(f"action of {agent} is not finite: {v}")
-        if v < -NEGATIVE_TOLERANCE:
-            raise ActionError(f"action of {agent} is negative ({v}); weights must be >= 0")
+        if strict and not 0.0 <= v <= 1.0:
+            raise ActionError(f"action of {agent} is {v}, outside the action space [0, 1] (strict_actions=True)")
         out[k] = v
     return np.clip(out, 0.0, 1.0)
 
@@ -66,9 +71,16 @@ def weights(action: np.ndarray, mode: ActionMode) -> np.ndarray:
     return z / z.sum(axis=-1, keepdims=True)
 
 
+def targets(
+    system: FleetSystem, actions: Mapping[str, Any], agents: Sequence[str], mode: ActionMode, *, strict: bool = False
+) -> np.ndarray:
+    """(N,) coordinator targets of a joint action: the env's step and policies written for it share this path."""
+    return system.targets_from_weights(weights(joint_action(actions, agents, strict=strict), mode))
+
+
 def _numeric(value: Any) -> bool:
+    """Real numbers only: numpy would read "0.5" as 0.5 and drop a complex number's imaginary part."""
     try:
-        np.asarray(value, dtype=np.float64)
+        return np.asarray(value).dtype.kind in "iuf"
     except (TypeError, ValueError):
         return False
-    return True

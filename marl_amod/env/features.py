@@ -7,7 +7,7 @@ For region i at step t, with look-ahead T (6 by default) and scale 0.01:
 * ``value[k]``: expected requests out of i in step t+k times their price, summed over
   destinations, k = 1..T (T columns).
 
-Steps past the tabulated horizon count as zero.
+Steps past the tabulated horizon count as zero (:func:`~marl_amod.scenario.types.step_rows`).
 """
 
 from __future__ import annotations
@@ -16,10 +16,15 @@ import weakref
 
 import numpy as np
 
-from marl_amod.scenario.types import City
+from marl_amod.scenario.types import City, step_rows
 from marl_amod.system import FleetSystem
 
 FEATURE_SCALE = 0.01
+
+
+def n_features(lookahead: int) -> int:
+    """F = 1 + 2T: columns of :func:`node_features` for a look-ahead of T steps."""
+    return 1 + 2 * lookahead
 
 
 def feature_names(lookahead: int = 6) -> list[str]:
@@ -42,7 +47,8 @@ def state_features(
     env passes none, so both paths run this one function.
     """
     steps = np.arange(t + 1, t + lookahead + 1)
-    arriving = arrivals[..., np.minimum(steps, arrivals.shape[-2] - 1), :]  # (..., T, N)
+    inside = (steps < arrivals.shape[-2])[:, None]  # nothing arrives past the buffer (step_rows)
+    arriving = arrivals[..., np.minimum(steps, arrivals.shape[-2] - 1), :] * inside  # (..., T, N)
     feats = np.empty((*idle.shape, 1 + 2 * lookahead))  # (..., N, 1 + 2T), float64 until scaled
     feats[..., 0] = idle
     feats[..., 1 : 1 + lookahead] = np.swapaxes(idle[..., None, :] + arriving, -1, -2)  # supply
@@ -62,10 +68,8 @@ def _value_table(city: City, lookahead: int) -> np.ndarray:
     """
     per_city = _VALUES.setdefault(city, {})
     if lookahead not in per_city:
-        s = city.n_steps
-        value = (city.demand_rate * city.price).sum(axis=2)  # (S, N)
-        steps = np.arange(s)[:, None] + np.arange(1, lookahead + 1)[None, :]  # (S, T)
-        table = value[np.minimum(steps, s - 1)] * (steps < s)[:, :, None]
+        steps = np.arange(city.n_steps)[:, None] + np.arange(1, lookahead + 1)[None, :]  # (S, T)
+        table = step_rows(city.expected_fares, steps)
         table.setflags(write=False)
         per_city[lookahead] = table
     return per_city[lookahead]
@@ -79,6 +83,6 @@ def feature_high(city: City, lookahead: int = 6, scale: float = FEATURE_SCALE) -
     learners that normalise or sample them.
     """
     fleet = city.fleet_size * scale
-    value = float((city.demand_rate * city.price).sum(axis=2).max()) * scale
+    value = float(city.expected_fares.max()) * scale
     high = np.concatenate([np.full(1 + lookahead, fleet), np.full(lookahead, value)])
     return (high * (1 + 1e-6)).astype(np.float32)

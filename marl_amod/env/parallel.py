@@ -7,21 +7,22 @@ simulator advances one step, and the coordinator dispatches the new requests (ex
 margin). Flows are always feasible whatever the agents do.
 
 ==================  ===================================================================================
-Import              ``from marl_amod import parallel_env, env`` (or ``marl_amod.amod_v0``)
+Import              ``from marl_amod import amod_v0`` (or ``from marl_amod import parallel_env, env``)
 Agents              ``region_0`` ... ``region_{N-1}``, all alive for the whole episode
 Parallel API        yes (``env()`` is the AEC version through ``parallel_to_aec``)
 Action space        ``Box(0, 1, (1,), float32)``, identical for every agent
 Observation space   ``Box(float32, (F + 3 + K(F + 1),))``, F = 1 + 2 * lookahead (13), K = max in-degree; finite bounds
 State space         ``Box(float32, (N * F + 3,))``
-Episode             ``horizon - 1`` steps (reset dispatches step 0), then every agent is truncated
+Episode             ``min(horizon - 1, max_cycles)`` steps (reset dispatches step 0), then every agent is truncated
 ==================  ===================================================================================
 
 Actions (see :mod:`marl_amod.env.actions`): ``action_mode="weight"`` (default) reads the
 actions as non-negative weights w; region i's target is floor(w_i / sum(w) * M) idle vehicles
 (M idle vehicles in total); all zeros means "stay" (no rebalancing). ``action_mode="logit"``
-maps a in [0, 1] to a logit 10 * (2a - 1) and takes a softmax across agents. Values outside
-[0, 1] are clipped; NaN/inf, shapes other than (1,), values below -1e-6 and missing agents
-raise :class:`~marl_amod.errors.ActionError`.
+maps a in [0, 1] to a logit 10 * (2a - 1) and takes a softmax across agents. Finite values
+outside [0, 1] (negative ones included) are clipped into the space, as PettingZoo's continuous
+envs do, so Gaussian policies act unmodified; ``strict_actions=True`` raises on them instead.
+NaN/inf, shapes other than (1,) and missing agents raise :class:`~marl_amod.errors.ActionError`.
 
 Observations (see :mod:`marl_amod.env.observations`): own 13 features (idle vehicles, supply
 over the next 6 steps, expected request value over the next 6 steps, all x 0.01), sin/cos of the
@@ -31,7 +32,10 @@ of K slots. :func:`~marl_amod.env.observations.split_local` cuts it back into bl
 Rewards (see :mod:`marl_amod.env.rewards`): ``reward_mode="team"`` gives every agent the
 system's step profit (dispatch profit of the new step minus the rebalancing cost);
 ``"local"`` gives a region its own dispatch profit minus the cost of the vehicles it sent away.
-Local rewards sum to the team reward.
+Local rewards sum to the team reward. ``reward_scale`` multiplies every reward: a float (1.0,
+money as booked, is the default), or ``"auto"`` = 1 / the city's expected fares per step
+(:func:`~marl_amod.env.rewards.typical_step_revenue`), which puts team rewards near [-1, 1] so
+off-the-shelf learners (SB3, tianshou, ...) work without reward normalisation. Infos stay in money.
 
 Infos (per agent, small): ``served`` (trips that left the region this step), ``demand``
 (requests that appeared there this step),
@@ -47,31 +51,43 @@ Global view: ``state()`` / ``state_space``, ``graph()`` -> ``{"x": (N, F) float3
 Arguments: ``scenario`` (a name from ``marl-amod scenarios``, a YAML path or a ``City``; a SUMO
 scenario such as ``sumo_grid`` or ``lux`` runs the same env in SUMO's mesoscopic model),
 ``reward_mode``, ``action_mode``, ``lookahead`` (T), ``max_wait`` (steps a request waits),
-``objective`` (dispatch objective, ``"profit"`` or ``"revenue"``), ``render_mode``
-(``"human"`` or ``"rgb_array"``), and scenario overrides (e.g. ``horizon=10``; unknown keys raise).
+``objective`` (dispatch objective, ``"profit"`` or ``"revenue"``), ``reward_scale``,
+``strict_actions``, ``max_cycles`` (PettingZoo's cap on the number of steps; the episode is
+truncated after ``min(horizon - 1, max_cycles)`` steps), ``render_mode`` (``"human"`` or
+``"rgb_array"``), and scenario overrides (e.g. ``horizon=10``; unknown keys raise).
 
 Seeding: ``reset(seed=s)`` draws demand exactly as ``FleetSystem.reset(s)``; a later
 ``reset()`` without a seed draws the next episode from a seed sequence started by the last
 seeded reset (from fresh entropy if there was none). The env is picklable and writes no files.
+
+Version History (the version changes whenever learning results could change):
+
+* v0: first release. Options added later without changing results at their defaults:
+  ``max_cycles`` (None), ``reward_scale`` (1.0), ``strict_actions`` (False; negative finite
+  actions, which used to raise, are now clipped to 0 like values above 1).
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from gymnasium import logger, spaces
 from pettingzoo import ParallelEnv
+from pettingzoo.utils import parallel_to_aec
+from pettingzoo.utils.env import AECEnv
 
 from marl_amod.coordinator.coordinator import Objective
+from marl_amod.env import ENV_ID, ENV_VERSION
 from marl_amod.env import actions as act
 from marl_amod.env import observations as ob
 from marl_amod.env.features import feature_high as feature_bounds
-from marl_amod.env.rewards import REWARD_MODES, RewardMode, rewards
+from marl_amod.env.rewards import REWARD_MODES, RewardMode, rewards, typical_step_revenue
 from marl_amod.errors import ConfigError
 from marl_amod.metrics import episode_metrics
 from marl_amod.scenario import City, load_city
 from marl_amod.system import FleetSystem, StepOutcome
+from marl_amod.validation import as_seed
 
 RENDER_MODES = ["human", "rgb_array"]
 
@@ -79,7 +95,7 @@ RENDER_MODES = ["human", "rgb_array"]
 class AmodParallelEnv(ParallelEnv):
     """Every region an agent; a thin adapter over :class:`~marl_amod.system.FleetSystem` (see module doc)."""
 
-    metadata = {"name": "amod_v0", "render_modes": RENDER_MODES, "is_parallelizable": True, "render_fps": 4}
+    metadata = {"name": ENV_VERSION, "render_modes": RENDER_MODES, "is_parallelizable": True, "render_fps": 4}
 
     def __init__(
         self,
@@ -90,6 +106,9 @@ class AmodParallelEnv(ParallelEnv):
         lookahead: int = 6,
         max_wait: int = 0,
         objective: Objective = "profit",
+        reward_scale: float | Literal["auto"] = 1.0,
+        strict_actions: bool = False,
+        max_cycles: int | None = None,
         render_mode: str | None = None,
         **scenario_overrides: Any,
     ) -> None:
@@ -101,6 +120,10 @@ class AmodParallelEnv(ParallelEnv):
             raise ConfigError(f"render_mode must be None or one of {RENDER_MODES}, got {render_mode!r}")
         if not isinstance(lookahead, (int, np.integer)) or lookahead < 1:
             raise ConfigError(f"lookahead must be a positive number of steps, got {lookahead!r}")
+        if max_cycles is not None and (not isinstance(max_cycles, (int, np.integer)) or max_cycles < 1):
+            raise ConfigError(f"max_cycles must be None or a positive number of steps, got {max_cycles!r}")
+        if reward_scale != "auto" and not (isinstance(reward_scale, (int, float)) and np.isfinite(reward_scale) and reward_scale > 0):
+            raise ConfigError(f"reward_scale must be a positive number or 'auto', got {reward_scale!r}")
         if isinstance(scenario, City):
             if scenario_overrides:
                 raise ConfigError(f"scenario overrides {sorted(scenario_overrides)} need a scenario name, not a City")
@@ -112,11 +135,14 @@ class AmodParallelEnv(ParallelEnv):
         self.reward_mode = reward_mode
         self.action_mode = action_mode
         self.lookahead = int(lookahead)
+        self.strict_actions = bool(strict_actions)
+        self.max_cycles = city.horizon - 1 if max_cycles is None else min(int(max_cycles), city.horizon - 1)
+        self.reward_scale = 1.0 / typical_step_revenue(city) if reward_scale == "auto" else float(reward_scale)
         self.render_mode = render_mode
         self.system = FleetSystem(city, max_wait=max_wait, objective=objective)
 
         n = city.n_regions
-        self.possible_agents = [f"region_{i}" for i in range(n)]
+        self.possible_agents = ob.agent_names(n)
         self.agents: list[str] = []
         self.max_degree = ob.max_in_degree(city)
         self._table = ob.neighbour_table(city, self.max_degree)
@@ -127,6 +153,7 @@ class AmodParallelEnv(ParallelEnv):
         self.action_spaces = {a: self._action_space for a in self.possible_agents}
         self.state_space = spaces.Box(*ob.state_bounds(feature_high, n), dtype=np.float32)
         self._seeds: np.random.SeedSequence | None = None
+        self._steps = 0
         self._last_outcome: StepOutcome | None = None
         self._viewer: Any = None
 
@@ -150,6 +177,7 @@ class AmodParallelEnv(ParallelEnv):
     # ------------------------------------------------------------------ episode
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         if seed is not None:
+            seed = as_seed(seed)  # numpy integers welcome; a negative seed is a clear error
             self._seeds = np.random.SeedSequence(seed)
             demand_seed: int | np.random.SeedSequence = seed
             self._action_space.seed(seed)
@@ -158,6 +186,7 @@ class AmodParallelEnv(ParallelEnv):
                 self._seeds = np.random.SeedSequence()
             demand_seed = self._seeds.spawn(1)[0]
         self._last_outcome = self.system.reset(demand_seed)
+        self._steps = 0
         self.agents = list(self.possible_agents)
         infos = self._infos(self._last_outcome)
         if self.render_mode == "human":
@@ -167,15 +196,15 @@ class AmodParallelEnv(ParallelEnv):
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         if not self.agents:
             raise RuntimeError("the episode is over (all agents truncated); call reset()")
-        joint = act.joint_action(actions, self.agents)
-        target = self.system.targets_from_weights(act.weights(joint, self.action_mode))
+        target = act.targets(self.system, actions, self.agents, self.action_mode, strict=self.strict_actions)
         outcome = self._last_outcome = self.system.step(target)
-        r = rewards(self.reward_mode, outcome)
+        self._steps += 1
+        r = rewards(self.reward_mode, outcome) * self.reward_scale
         agents = self.agents
         obs = self._observations()
         rew = {a: float(r[i]) for i, a in enumerate(agents)}
         infos = self._infos(outcome)
-        done = self.system.done
+        done = self.system.done or self._steps >= self.max_cycles
         terminations = {a: False for a in agents}
         truncations = {a: done for a in agents}
         if done:
@@ -208,9 +237,11 @@ class AmodParallelEnv(ParallelEnv):
         return None
 
     def close(self) -> None:
+        """Close the viewer and end the simulator's run (a SUMO process); ``reset`` starts anew."""
         if self._viewer is not None:
             self._viewer.close()
             self._viewer = None
+        self.system.close()
 
     # ------------------------------------------------------------------ helpers
     def _observations(self) -> dict[str, np.ndarray]:
@@ -245,3 +276,29 @@ class AmodParallelEnv(ParallelEnv):
         state = self.__dict__.copy()
         state["_viewer"] = None  # a window cannot travel; a copy opens its own
         return state
+
+
+def parallel_env(scenario: str | City = "synthetic", **kwargs: Any) -> AmodParallelEnv:
+    """The parallel env; keyword arguments as :class:`AmodParallelEnv` (see the module doc)."""
+    return AmodParallelEnv(scenario, **kwargs)
+
+
+def raw_env(scenario: str | City = "synthetic", **kwargs: Any) -> AECEnv:
+    """The AEC env through PettingZoo's own conversion (agents act one after another)."""
+    return parallel_to_aec(parallel_env(scenario, **kwargs))
+
+
+env = raw_env
+
+
+def register() -> None:
+    """Add the env to PettingZoo's registry once, where the installed version has one (1.27+)."""
+    import pettingzoo
+
+    if not hasattr(pettingzoo, "register"):
+        return
+    from pettingzoo.env_registry.registration import parallel_registry
+
+    if ENV_ID not in parallel_registry:
+        pettingzoo.register("parallel", ENV_ID, entry_point=f"marl_amod.{ENV_VERSION}:parallel_env")
+        pettingzoo.register("aec", ENV_ID, entry_point=f"marl_amod.{ENV_VERSION}:raw_env")

@@ -14,6 +14,7 @@ from typing import Literal
 
 import numpy as np
 
+from marl_amod.scenario.types import City
 from marl_amod.system import StepOutcome
 
 RewardMode = Literal["team", "local"]
@@ -25,3 +26,13 @@ def rewards(mode: RewardMode, outcome: StepOutcome) -> np.ndarray:
     if mode == "team":
         return np.full(outcome.region_profit.shape, outcome.reward)
     return outcome.region_reward
+
+
+def typical_step_revenue(city: City) -> float:
+    """Expected fares of one step's requests, averaged over the episode: ``reward_scale="auto"`` divides by it.
+
+    A city's own money unit, from its tables alone (no rollout), so scaled rewards are comparable
+    across cities and seeds; 1.0 for a city without demand.
+    """
+    value = float(city.expected_fares[: city.horizon].sum()) / city.horizon
+    return value if value > 0 else 1.0

@@ -6,7 +6,8 @@
 ==================  ===================================================================================
 reset(seed)         observations (B, N, D) float32, infos; ``seed=s`` seeds episode b with s + b (a
                     sequence of B seeds also works), so episode b equals ``parallel_env().reset(seed=s + b)``
-step(actions)       actions (B, N) or (B, N, 1) in [0, 1] (clipped; NaN/inf or < -1e-6 raise ActionError)
+step(actions)       actions (B, N) or (B, N, 1) in [0, 1] (finite values clipped, or an ActionError with
+                    ``strict_actions``; NaN/inf raise ActionError)
                     -> observations (B, N, D), rewards (B, N) float64 (team or local, from the booked
                     money), terminations (B, N) all False, truncations (B, N), infos
 infos               dict of arrays: ``served``, ``demand``, ``rebalancing_cost``, ``idle`` (B, N) and the
@@ -24,7 +25,7 @@ started by the last seeded reset, as the ParallelEnv does. Macro-simulator citie
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from gymnasium import spaces
@@ -34,7 +35,7 @@ from marl_amod.coordinator.coordinator import Objective
 from marl_amod.env import actions as act
 from marl_amod.env import observations as ob
 from marl_amod.env.features import feature_high, state_features
-from marl_amod.env.rewards import REWARD_MODES, RewardMode
+from marl_amod.env.rewards import REWARD_MODES, RewardMode, typical_step_revenue
 from marl_amod.errors import ActionError, ConfigError
 from marl_amod.metrics import metric_arrays
 from marl_amod.scenario import City, load_city
@@ -55,6 +56,9 @@ class AmodVectorEnv:
         lookahead: int = 6,
         max_wait: int = 0,
         objective: Objective = "profit",
+        reward_scale: float | Literal["auto"] = 1.0,
+        strict_actions: bool = False,
+        max_cycles: int | None = None,
         **scenario_overrides: Any,
     ) -> None:
         if reward_mode not in REWARD_MODES:
@@ -63,6 +67,10 @@ class AmodVectorEnv:
             raise ConfigError(f"action_mode must be one of {act.ACTION_MODES}, got {action_mode!r}")
         if not isinstance(lookahead, (int, np.integer)) or lookahead < 1:
             raise ConfigError(f"lookahead must be a positive number of steps, got {lookahead!r}")
+        if max_cycles is not None and (not isinstance(max_cycles, (int, np.integer)) or max_cycles < 1):
+            raise ConfigError(f"max_cycles must be None or a positive number of steps, got {max_cycles!r}")
+        if reward_scale != "auto" and not (isinstance(reward_scale, (int, float)) and np.isfinite(reward_scale) and reward_scale > 0):
+            raise ConfigError(f"reward_scale must be a positive number or 'auto', got {reward_scale!r}")
         if not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ConfigError(f"num_envs must be a positive integer, got {num_envs!r}")
         if isinstance(scenario, City):
@@ -77,6 +85,10 @@ class AmodVectorEnv:
         self.action_mode = action_mode
         self.lookahead = int(lookahead)
         self.num_envs = int(num_envs)
+        self.strict_actions = bool(strict_actions)
+        self.max_cycles = city.horizon - 1 if max_cycles is None else min(int(max_cycles), city.horizon - 1)
+        self.reward_scale = 1.0 / typical_step_revenue(city) if reward_scale == "auto" else float(reward_scale)
+        self._steps = 0
         self.system = BatchFleetSystem(city, self.num_envs, max_wait=max_wait, objective=objective)
         n = city.n_regions
         self.num_agents = n
@@ -111,6 +123,7 @@ class AmodVectorEnv:
             if len(seeds) != b:
                 raise ConfigError(f"reset needs one seed per episode ({b}), got {len(seeds)}")
         self.last_outcome = self.system.reset(seeds)
+        self._steps = 0
         self._running = True
         return self._observations(), self._infos(self.last_outcome)
 
@@ -125,7 +138,9 @@ class AmodVectorEnv:
             rew = np.repeat(outcome.reward[:, None], self.num_agents, axis=1)
         else:
             rew = outcome.region_reward
-        done = self.system.done
+        rew = rew * self.reward_scale
+        self._steps += 1
+        done = self.system.done or self._steps >= self.max_cycles
         self._running = not done
         shape = (self.num_envs, self.num_agents)
         return self._observations(), rew, np.zeros(shape, bool), np.full(shape, done), self._infos(outcome)
@@ -165,9 +180,12 @@ class AmodVectorEnv:
         if not np.all(np.isfinite(a)):
             e, i = np.argwhere(~np.isfinite(a))[0]
             raise ActionError(f"action of region_{i} in episode {e} is not finite: {a[e, i]}")
-        if np.any(a < -act.NEGATIVE_TOLERANCE):
-            e, i = np.argwhere(a < -act.NEGATIVE_TOLERANCE)[0]
-            raise ActionError(f"action of region_{i} in episode {e} is negative ({a[e, i]}); weights must be >= 0")
+        outside = (a < 0.0) | (a > 1.0)
+        if self.strict_actions and outside.any():
+            e, i = np.argwhere(outside)[0]
+            raise ActionError(
+                f"action of region_{i} in episode {e} is {a[e, i]}, outside the action space [0, 1] (strict_actions=True)"
+            )
         return np.clip(a, 0.0, 1.0)
 
     def _infos(self, outcome: BatchOutcome) -> dict[str, np.ndarray]:

@@ -7,14 +7,15 @@ validated strictly: a typo is an error naming the key, never a silent default.
 
 from __future__ import annotations
 
-from functools import lru_cache
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from marl_amod.data import read_yaml, resolve
-from marl_amod.errors import ConfigError, DataError
+from marl_amod.errors import ConfigError
 from marl_amod.scenario.json_city import load_json_city
 from marl_amod.scenario.synthetic import grid_city
 from marl_amod.scenario.types import City
@@ -23,10 +24,25 @@ DEFAULT_SCENARIO = "synthetic"
 
 
 class _Spec(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan=False: an infinite tstep or fare is a config error, not an `inf` result
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     name: str
     description: str = ""
-    horizon: int = Field(20, ge=1, description="control steps (dispatch rounds) per episode")
+    horizon: int = Field(20, ge=1, le=100_000, description="control steps (dispatch rounds) per episode")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _numbers_are_numbers(cls, raw: Any) -> Any:
+        """``rows: true`` or ``tstep: "3"`` would pass pydantic's lax coercion (True == 1); a
+        number field takes a number (numpy scalars included), never a bool or a string."""
+        if isinstance(raw, dict):
+            for key, value in raw.items():
+                field = cls.model_fields.get(key)
+                if field is None or not _is_numeric(field.annotation):
+                    continue
+                if isinstance(value, (bool, np.bool_, str)):
+                    raise ValueError(f"{key} must be a number, got {value!r}")
+        return raw
 
 
 class JsonScenario(_Spec):
@@ -56,6 +72,12 @@ class SyntheticScenario(_Spec):
     trip_length_preference: float = 0.5
     fare_per_step: float = Field(4.0, gt=0)
     vehicles_per_region: int = Field(12, ge=0)
+
+    @model_validator(mode="after")
+    def _two_regions(self) -> SyntheticScenario:
+        if self.rows * self.cols < 2:
+            raise ValueError(f"a grid city needs at least 2 regions, got rows x cols = {self.rows}x{self.cols}")
+        return self
 
 
 class SumoScenario(_Spec):
@@ -99,6 +121,11 @@ class SumoScenario(_Spec):
             if abs(rounds - round(rounds)) > 1e-9 or rounds < 1:
                 raise ValueError(f"dispatch_every_min {self.dispatch_every_min} must divide tstep {self.tstep}")
         return self
+
+
+def _is_numeric(annotation: Any) -> bool:
+    """True for int, float and their optionals (``int | None``)."""
+    return annotation in (int, float) or any(a in (int, float) for a in get_args(annotation))
 
 
 ScenarioSpec = JsonScenario | SyntheticScenario | SumoScenario
@@ -156,7 +183,10 @@ def load_spec(name_or_path: str, **overrides: Any) -> ScenarioSpec:
     try:
         return model(**raw)
     except ValidationError as exc:
-        problems = "; ".join(f"{'.'.join(map(str, e['loc'])) or 'scenario'}: {e['msg']}" for e in exc.errors())
+        problems = "; ".join(
+            (f"{'.'.join(map(str, e['loc']))}: " if e["loc"] else "") + e["msg"].removeprefix("Value error, ")
+            for e in exc.errors()
+        )
         raise ConfigError(f"invalid scenario {path}: {problems}") from exc
 
 
@@ -180,36 +210,76 @@ def build_city(spec: ScenarioSpec) -> City:
 
 
 def _build_sumo_city(spec: SumoScenario) -> City:
-    from marl_amod.scenario.sumo_city import sumo_city
-    from marl_amod.sim.meso import network as nw
-    from marl_amod.sim.meso.traffic import background_routes
+    from marl_amod.scenario.sumo.city import build_sumo_city  # loads the network tools only when needed
 
-    if spec.network == "osm":
-        net_file = nw.build_osm(resolve(spec.osm_file))
-    else:
-        net_file = nw.build_grid(spec.grid_size, spec.grid_length, spec.seed)
-    keys = ("regions", "horizon", "tstep", "start_hour", "fleet", "requests_per_hour", "imbalance",
-            "mean_trip_min", "peak", "fare_base", "fare_per_km", "beta")  # fmt: skip
-    options = {"max_wait_min": spec.max_wait_min, "backend": spec.backend, "step_length": spec.step_length,
-               "sumo_seed": spec.seed, "refresh_travel_times": spec.refresh_travel_times,
-               "dispatch_every_min": spec.dispatch_every_min, "taxi_device": spec.taxi_device,
-               "extra_args": tuple(spec.sumo_args)}  # fmt: skip
-    if spec.background_per_hour > 0 and spec.mode != "macro":
-        begin = 3600.0 * spec.start_hour
-        routes = background_routes(net_file, spec.background_per_hour, begin, begin + 60.0 * spec.tstep * spec.horizon, spec.seed)
-        options["route_files"] = (str(routes),)
-    return sumo_city(name=spec.name, net_file=net_file, region_seed=spec.seed, mode=spec.mode, options=options,
-                     **{k: getattr(spec, k) for k in keys})  # fmt: skip
+    return build_sumo_city(spec)
 
 
-@lru_cache(maxsize=32)
-def _cached(name_or_path: str, frozen_overrides: tuple) -> City:
-    return build_city(load_spec(name_or_path, **dict(frozen_overrides)))
+_CACHE: dict[tuple, City] = {}
+_CACHE_SIZE = 32
+
+
+def _identity(relative: str | None) -> tuple:
+    """A data file's resolved path, modification time and size: a new file is a new city."""
+    if relative is None:
+        return ()
+    path = resolve(relative).resolve()
+    st = path.stat()
+    return (str(path), st.st_mtime_ns, st.st_size)
 
 
 def load_city(name_or_path: str = DEFAULT_SCENARIO, **overrides: Any) -> City:
-    """The city for a scenario name (see :func:`available`) or YAML path, cached per arguments."""
+    """The city for a scenario name (see :func:`available`) or YAML path.
+
+    Cached on the validated scenario keys and the identity (resolved path, mtime, size) of its data
+    file, so pointing ``MARL_AMOD_DATA`` elsewhere or replacing the file gives the new city. The
+    cached city's arrays are read-only, so sharing one object between callers is safe.
+    """
+    spec = load_spec(str(name_or_path), **overrides)
+    data_file = spec.data_file if isinstance(spec, JsonScenario) else getattr(spec, "osm_file", None)
+    key = (type(spec).__name__, spec.model_dump_json(), _identity(data_file))
+    city = _CACHE.get(key)
+    if city is None:
+        city = build_city(spec)
+        if len(_CACHE) >= _CACHE_SIZE:
+            _CACHE.pop(next(iter(_CACHE)))
+        _CACHE[key] = city
+    return city
+
+
+@dataclass(frozen=True)
+class ScenarioInfo:
+    """One row of the scenario catalogue, read from the YAML alone (no city is built, so listing
+    stays instant and a broken file or missing data spoils only its own row)."""
+
+    name: str
+    source: str = "-"  # json | synthetic | sumo meso | sumo micro | sumo macro (+ taxi)
+    regions: int | None = None  # None: known only after reading the data file
+    fleet: int | None = None
+    horizon: int | None = None
+    tstep: float | None = None
+    needs: tuple[str, ...] = ()  # "data" (MARL_AMOD_DATA), "sumo" (the [sumo] extra)
+    description: str = ""
+    error: str | None = None  # the scenario file is invalid
+
+
+def describe(name_or_path: str) -> ScenarioInfo:
+    """What a scenario's YAML says about it, without building the city."""
     try:
-        return _cached(str(name_or_path), tuple(sorted(overrides.items())))
-    except DataError:
-        raise
+        spec = load_spec(name_or_path)
+    except ConfigError as exc:
+        return ScenarioInfo(name=Path(name_or_path).stem, error=str(exc))
+    common = {"name": spec.name, "horizon": spec.horizon, "tstep": spec.tstep, "description": spec.description}
+    if isinstance(spec, SyntheticScenario):
+        n = spec.rows * spec.cols
+        return ScenarioInfo(source="synthetic", regions=n, fleet=n * spec.vehicles_per_region, **common)
+    if isinstance(spec, SumoScenario):
+        source = f"sumo {spec.mode}" + (" taxi" if spec.taxi_device else "")
+        needs = ("data", "sumo") if spec.network == "osm" else ("sumo",)
+        return ScenarioInfo(source=source, regions=spec.regions, fleet=spec.fleet, needs=needs, **common)
+    return ScenarioInfo(source="json", fleet=spec.fleet, needs=("data",), **common)
+
+
+def catalogue() -> list[ScenarioInfo]:
+    """Every bundled scenario, described from its YAML (see :func:`describe`)."""
+    return [describe(name) for name in available()]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from marl_amod.errors import ConfigError
 from marl_amod.scenario.types import City
 
 
@@ -31,9 +32,9 @@ def grid_city(
 ) -> City:
     """Build a synthetic grid city of ``rows * cols`` regions (4 to 400+)."""
     if rows < 1 or cols < 1 or rows * cols < 2:
-        raise ValueError(f"a grid city needs at least 2 regions, got {rows}x{cols}")
+        raise ConfigError(f"a grid city needs at least 2 regions, got {rows}x{cols}")
     if not 0.0 <= imbalance < 1.0:
-        raise ValueError(f"imbalance must be in [0, 1), got {imbalance}")
+        raise ConfigError(f"imbalance must be in [0, 1), got {imbalance}")
     rng = np.random.default_rng(seed)
     n = rows * cols
     r, c = np.divmod(np.arange(n), cols)

@@ -7,12 +7,14 @@ and MPC can look ahead past the last control step.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Any
 
 import numpy as np
+
+from marl_amod.errors import DataError
+from marl_amod.scenario.simspec import MACRO, SimSpec
+from marl_amod.validation import check_array
 
 
 @dataclass(frozen=True, eq=False)
@@ -35,28 +37,45 @@ class City:
     positions: np.ndarray  # (N, 2) float, a drawing position per region
     start_hour: float = 0.0  # clock time of step 0, for the time-of-day feature
     meta: dict = field(default_factory=dict)  # provenance (data file, parameters), shown to users
-    # builds the simulator, called as simulator(city, max_wait=...); None: the macro model.
-    # SUMO scenarios set it, so every consumer of a City gets their simulator unchanged.
-    simulator: Callable[..., Any] | None = field(default=None, repr=False)
+    # which simulator runs this city (data; marl_amod.sim.base.make_simulator builds it). SUMO
+    # scenarios set it, so every consumer of a City gets its simulator without asking.
+    simulator: SimSpec = field(default=MACRO, repr=False)
 
     def __post_init__(self) -> None:
-        s, n, n2 = self.demand_rate.shape
-        if n != n2:
-            raise ValueError(f"demand_rate must be (S, N, N), got {self.demand_rate.shape}")
-        for name in ("price", "trip_time"):
-            if getattr(self, name).shape != (s, n, n):
-                raise ValueError(f"{name} must have shape {(s, n, n)}, got {getattr(self, name).shape}")
-        if self.reb_time.shape != (n, n):
-            raise ValueError(f"reb_time must be {(n, n)}, got {self.reb_time.shape}")
-        if self.initial_vehicles.shape != (n,):
-            raise ValueError(f"initial_vehicles must be {(n,)}, got {self.initial_vehicles.shape}")
-        if self.horizon < 1 or self.horizon > s:
-            raise ValueError(f"horizon {self.horizon} must be in [1, n_steps={s}]")
-        if np.any(self.trip_time < 1) or np.any(np.diag(self.reb_time) != 0):
-            raise ValueError("trip times must be >= 1 step and rebalancing times 0 on the diagonal")
-        if np.any(self.reb_time[~np.eye(n, dtype=bool)] < 1):
-            raise ValueError("rebalancing times between distinct regions must be >= 1 step")
-        for arr in (self.demand_rate, self.price, self.trip_time, self.reb_time, self.initial_vehicles):
+        """Every number checked once here, so no NaN, negative price or impossible time reaches a run."""
+        if not isinstance(self.simulator, SimSpec):
+            raise TypeError(f"City.simulator must be a SimSpec (data), got {type(self.simulator).__name__}")
+        what = f"city {self.name!r}:"
+        shape = np.shape(self.demand_rate)
+        if len(shape) != 3 or shape[1] != shape[2]:
+            raise DataError(f"{what} demand_rate must be (S, N, N), got {shape}")
+        s, n, _ = shape
+        check_array(self.demand_rate, f"{what} demand_rate", minimum=0)
+        check_array(self.price, f"{what} price", shape=(s, n, n), minimum=0)
+        check_array(self.trip_time, f"{what} trip_time (steps)", shape=(s, n, n), minimum=1, integer=True)
+        reb = check_array(self.reb_time, f"{what} reb_time (steps)", shape=(n, n), minimum=0, integer=True)
+        check_array(self.initial_vehicles, f"{what} initial_vehicles", shape=(n,), minimum=0, integer=True)
+        edges = np.asarray(self.edge_index)
+        if edges.ndim != 2 or edges.shape[0] != 2:
+            raise DataError(f"{what} edge_index must be (2, E), got {edges.shape}")
+        check_array(edges, f"{what} edge_index", minimum=0, integer=True)
+        if edges.size and edges.max() >= n:
+            raise DataError(f"{what} edge_index names region {edges.max()} but the city has {n} regions")
+        check_array(self.positions, f"{what} positions", shape=(n, 2))
+        for name in ("tstep", "beta", "start_hour"):
+            check_array(getattr(self, name), f"{what} {name}", minimum=0)
+        if self.tstep <= 0:
+            raise DataError(f"{what} tstep must be > 0 minutes, got {self.tstep}")
+        if isinstance(self.horizon, bool) or not isinstance(self.horizon, (int, np.integer)) or not 1 <= self.horizon <= s:
+            raise DataError(f"{what} horizon {self.horizon!r} must be an integer in [1, n_steps={s}]")
+        if np.any(np.diag(reb) != 0):
+            raise DataError(f"{what} rebalancing times must be 0 on the diagonal (region {np.flatnonzero(np.diag(reb))[0]})")
+        off = (reb < 1) & ~np.eye(n, dtype=bool)
+        if off.any():
+            i, j = np.argwhere(off)[0]
+            raise DataError(f"{what} rebalancing times between distinct regions must be >= 1 step (regions {i}->{j})")
+        for arr in (self.demand_rate, self.price, self.trip_time, self.reb_time, self.initial_vehicles,
+                    self.edge_index, self.positions):  # fmt: skip
             arr.setflags(write=False)
 
     @property
@@ -77,6 +96,16 @@ class City:
         return _frozen(self.beta * self.tstep * self.trip_time)
 
     @cached_property
+    def margin(self) -> np.ndarray:
+        """(S, N, N) profit of serving one request i->j of step t: fare minus operating cost."""
+        return _frozen(self.price - self.trip_cost)
+
+    @cached_property
+    def expected_fares(self) -> np.ndarray:
+        """(S, N) expected fares of the requests out of each region in step t (rate x fare over destinations)."""
+        return _frozen((self.demand_rate * self.price).sum(axis=2))
+
+    @cached_property
     def reb_cost(self) -> np.ndarray:
         """(N, N) cost of one rebalancing move: beta * tstep * duration (computed once)."""
         return _frozen(self.beta * self.tstep * self.reb_time)
@@ -91,6 +120,18 @@ class City:
             "tstep_min": self.tstep,
             "expected_requests": float(self.demand_rate[: self.horizon].sum()),
         }
+
+
+def step_rows(table: np.ndarray, steps: np.ndarray) -> np.ndarray:
+    """``table[steps]`` of a table indexed by step, with zero rows for steps past its end.
+
+    Look-ahead (observations, MPC) reads a few steps past what a city or a simulator tabulates;
+    nothing is requested and nothing arrives there.
+    """
+    steps = np.asarray(steps)
+    rows = table[np.minimum(steps, len(table) - 1)]
+    inside = (steps < len(table)).reshape(steps.shape + (1,) * (table.ndim - 1))
+    return np.where(inside, rows, 0)
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:

@@ -1,8 +1,9 @@
 """What every simulator offers, so that one :class:`~marl_amod.system.FleetSystem` drives any of them.
 
-The macro model (``MacroSim``) and the SUMO model (``MesoSim``) both satisfy this protocol. A
-city picks its simulator through ``City.simulator`` (None means the macro model), so the env,
-the evaluation loop and training need no per-simulator branches.
+The macro model (``MacroSim``) and the SUMO models (``MesoSim``, ``TaxiMesoSim``) all satisfy
+this protocol. A city names its simulator as data (``City.simulator``, a
+:class:`~marl_amod.scenario.simspec.SimSpec`) and :func:`make_simulator` is the one place that
+builds it, so the env, the evaluation loop and training need no per-simulator branches.
 """
 
 from __future__ import annotations
@@ -12,7 +13,9 @@ from typing import Protocol
 import numpy as np
 
 from marl_amod.scenario.types import City
-from marl_amod.sim.macro import EpisodeTotals, MacroSim
+from marl_amod.sim.macro import EpisodeTotals, MacroSim, check_max_wait
+from marl_amod.sim.meso.sumo_sim import MesoSim
+from marl_amod.sim.meso.taxi_sim import TaxiMesoSim
 
 
 class Simulator(Protocol):
@@ -38,10 +41,16 @@ class Simulator(Protocol):
     def advance(self) -> None: ...
     def advance_round(self) -> None: ...  # only called when dispatch_rounds > 1
     def finish(self) -> None: ...
+    def close(self) -> None: ...  # ends what reset started (a SUMO run); reset may follow
 
 
 def make_simulator(city: City, max_wait: int = 0) -> Simulator:
-    """The simulator the city asks for (``city.simulator``), else the macro model."""
-    if city.simulator is None:
+    """The simulator ``city.simulator`` names; ``max_wait`` as MacroSim's (steps), where a positive
+    value also overrides a SUMO scenario's ``max_wait_min``."""
+    spec = city.simulator
+    if spec.kind == "macro":
         return MacroSim(city, max_wait=max_wait)
-    return city.simulator(city, max_wait=max_wait)
+    max_wait = check_max_wait(max_wait, city)
+    minutes = max_wait * city.tstep if max_wait > 0 else spec.sumo.max_wait_min
+    sim = TaxiMesoSim if spec.kind == "taxi" else MesoSim
+    return sim(city, spec.sumo, max_wait_min=minutes)

@@ -17,7 +17,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from marl_amod.scenario.types import City
-from marl_amod.sim.macro import MacroSim
+from marl_amod.sim.macro import MacroSim, check_max_wait
 
 
 class BatchMacroSim(MacroSim):
@@ -27,7 +27,7 @@ class BatchMacroSim(MacroSim):
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         self.num_envs = int(num_envs)
-        self._setup(city, max_wait, (self.num_envs,))
+        self._setup(city, check_max_wait(max_wait, city), (self.num_envs,))
         n = city.n_regions
         self.demand = np.zeros((self.num_envs, city.horizon, n, n), dtype=np.int64)  # (B, H, N, N): the steps an episode sees
 

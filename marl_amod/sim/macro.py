@@ -22,6 +22,7 @@ import numpy as np
 
 from marl_amod.scenario.types import City
 from marl_amod.sim.flows import as_flows, check_dispatch, check_rebalance
+from marl_amod.validation import as_count
 
 _TOL = 1e-9
 
@@ -46,8 +47,29 @@ class EpisodeTotals:
         return cls(**{name: np.zeros((*lead, n)) for name in cls.__dataclass_fields__})
 
     @property
+    def dispatch_profit(self) -> np.ndarray:
+        """(N,) fares minus operating costs of the trips that left each region."""
+        return self.revenue - self.trip_cost
+
+    @property
     def profit(self) -> np.ndarray:
-        return self.revenue - self.trip_cost - self.rebalancing_cost
+        return self.dispatch_profit - self.rebalancing_cost
+
+    def book_trips(self, x: np.ndarray, city: City, t: int) -> float | np.ndarray:
+        """Add the fares and operating costs of dispatch flows x (..., N, N) of step t; returns their
+        profit: a float for one episode, an array over the leading axes for a batch."""
+        revenue = (x * city.price[t]).sum(axis=-1)
+        cost = (x * city.trip_cost[t]).sum(axis=-1)
+        self.revenue += revenue
+        self.trip_cost += cost
+        profit = revenue.sum(axis=-1) - cost.sum(axis=-1)
+        return float(profit) if np.ndim(profit) == 0 else profit
+
+
+def check_max_wait(max_wait: int, city: City) -> int:
+    """Steps a request waits: at most the horizon (a request cannot outwait the episode, and the
+    backlog holds max_wait + 1 copies of the (N, N) demand)."""
+    return as_count(max_wait, "max_wait (steps)", upper=city.horizon, why=f", the horizon of {city.name}")
 
 
 class MacroSim:
@@ -56,12 +78,10 @@ class MacroSim:
     dispatch_rounds = 1  # one dispatch per control step (the SUMO simulator may match more often)
 
     def __init__(self, city: City, *, max_wait: int = 0) -> None:
-        self._setup(city, max_wait, ())
+        self._setup(city, check_max_wait(max_wait, city), ())
 
     def _setup(self, city: City, max_wait: int, lead: tuple[int, ...]) -> None:
         """State arrays with leading axes ``lead``: () for one episode, (B,) for a batch."""
-        if max_wait < 0:
-            raise ValueError(f"max_wait must be >= 0 steps, got {max_wait}")
         self.city = city
         self.max_wait = max_wait
         self._lead = lead
@@ -135,15 +155,11 @@ class MacroSim:
             self.backlog[..., age, :, :] -= take
             remaining -= take
             wait += age * c.tstep * take.sum(axis=-1)
-        revenue = (x * c.price[t]).sum(axis=-1)
-        cost = (x * c.trip_cost[t]).sum(axis=-1)
         tot = self.totals
-        tot.revenue += revenue
-        tot.trip_cost += cost
         tot.served += x.sum(axis=-1)
         tot.wait_minutes += wait
         self.last_dispatch = x
-        return revenue.sum(axis=-1) - cost.sum(axis=-1)
+        return np.asarray(tot.book_trips(x, c, t))
 
     def apply_rebalance(self, y: np.ndarray) -> float:
         """Move idle vehicles with flows y (N, N); returns the step's rebalancing cost."""
@@ -176,6 +192,9 @@ class MacroSim:
         """Count requests still open when the episode ends as lost (call after the last dispatch)."""
         self.totals.lost += self.backlog.sum(axis=(-3, -1))
         self.backlog[:] = 0
+
+    def close(self) -> None:
+        """Nothing to release: the macro model holds arrays only."""
 
     # ------------------------------------------------------------------ helpers
     def _depart(self, flows: np.ndarray, duration: np.ndarray) -> None:

@@ -1,7 +1,7 @@
-"""Where SUMO comes from: the pip-installed ``eclipse-sumo`` binaries and libsumo / TraCI.
+"""Starting and stopping SUMO runs through libsumo (in-process) or TraCI (a ``sumo`` subprocess).
 
-Everything SUMO is imported lazily here, so the rest of marl_amod works without the extra and
-fails, when a SUMO scenario is asked for, with the command that fixes it.
+SUMO is imported lazily here, so the rest of marl_amod works without the extra and fails, when a
+SUMO scenario is run, with the command that fixes it.
 """
 
 from __future__ import annotations
@@ -10,46 +10,14 @@ import contextlib
 import io
 import itertools
 import os
-from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 from marl_amod.errors import ConfigError
+from marl_amod.scenario.simspec import SumoBackend
+from marl_amod.scenario.sumo.install import INSTALL_HINT, binary
 
-Backend = Literal["libsumo", "traci"]
-INSTALL_HINT = 'pip install "marl-amod[sumo]"'
 _labels = itertools.count()
-
-
-def sumo_home() -> Path:
-    """SUMO_HOME of the ``eclipse-sumo`` wheel (importing ``sumo`` sets the variable)."""
-    try:
-        import sumo
-    except ImportError as exc:
-        raise ConfigError(f"SUMO scenarios need the SUMO extra: {INSTALL_HINT}") from exc
-    os.environ.setdefault("SUMO_HOME", sumo.SUMO_HOME)
-    return Path(sumo.SUMO_HOME)
-
-
-def binary(name: str) -> str:
-    """Path of a SUMO tool (``sumo``, ``netconvert``, ``netgenerate``) shipped with the wheel."""
-    path = sumo_home() / "bin" / name
-    if not path.exists():
-        raise ConfigError(f"SUMO tool {name!r} not found at {path}; reinstall with {INSTALL_HINT}")
-    return str(path)
-
-
-def version() -> str:
-    """Version of the installed SUMO, part of every cache key (a new SUMO rebuilds networks)."""
-    from importlib.metadata import PackageNotFoundError
-    from importlib.metadata import version as pkg_version
-
-    try:
-        return pkg_version("eclipse-sumo")
-    except PackageNotFoundError as exc:
-        raise ConfigError(f"SUMO scenarios need the SUMO extra: {INSTALL_HINT}") from exc
-
-
-_libsumo_owner: list[object | None] = [None]  # who started the one in-process libsumo simulation
+_libsumo_owner: list[object | None] = [None]  # token of whoever started the one in-process libsumo run
 
 
 def owns(owner: object) -> bool:
@@ -57,12 +25,13 @@ def owns(owner: object) -> bool:
     return _libsumo_owner[0] is owner
 
 
-def start(args: list[str], backend: Backend, owner: object = None) -> Any:
+def start(args: list[str], backend: SumoBackend, owner: object) -> Any:
     """Start a simulation; returns an object with ``.vehicle``, ``.simulation``, ``.route``,
     ``simulationStep`` and ``close`` (the libsumo module, or one labelled TraCI connection).
 
-    libsumo runs in-process (about 100x cheaper per call) but allows one simulation per process;
-    TraCI runs SUMO as a subprocess and allows several side by side.
+    libsumo runs in-process (about 100x cheaper per call) but allows one simulation per process:
+    starting one ends the previous one, and ``owner`` (any object; compared by identity) marks
+    whose it is now. TraCI runs SUMO as a subprocess and allows several side by side.
     """
     cmd = [binary("sumo"), *args]
     if backend == "libsumo":
@@ -87,3 +56,19 @@ def start(args: list[str], backend: Backend, owner: object = None) -> Any:
         traci.start(cmd, label=label)
         return traci.getConnection(label)
     raise ConfigError(f"backend must be 'libsumo' or 'traci', got {backend!r}")
+
+
+def stop(api: Any, backend: SumoBackend, owner: object) -> None:
+    """End a run that ``owner`` started: a TraCI connection and its ``sumo`` process (waited
+    for), or the libsumo simulation unless another owner has replaced it since. Safe to call
+    from a finalizer: it holds no reference to the simulator."""
+    if backend == "libsumo":
+        if owns(owner):
+            _libsumo_owner[0] = None
+            if api.simulation.isLoaded():
+                api.close()
+        return
+    from traci.exceptions import FatalTraCIError
+
+    with contextlib.suppress(FatalTraCIError, OSError):  # its sumo already died: nothing left to end
+        api.close()

@@ -25,19 +25,23 @@ from typing import Any
 
 import numpy as np
 
-from marl_amod.sim.meso.sumo_sim import OCCUPIED, PICKED, PICKUP, REBALANCING, MesoSim
+from marl_amod.sim.meso import bookkeeping as bk
+from marl_amod.sim.meso.sumo_sim import MesoSim
+from marl_amod.sim.meso.types import VehicleState
 
 TAXI_TYPE = "marl_amod_taxi"
 EMPTY, OCCUPIED_FLEET, PICKUP_AND_OCCUPIED, ALL = 0, 2, 3, -1  # vehicle.getTaxiFleet filters
 
 
 class TaxiMesoSim(MesoSim):
-    """One episode with the fleet as SUMO taxis (``taxi_device: true`` in a SUMO scenario)."""
+    """One episode with the fleet as SUMO taxis (simulator kind "taxi": ``taxi_device: true`` in a SUMO scenario)."""
+
+    taxi_device = True
 
     # ------------------------------------------------------------------ fleet
     def _init_fleet(self) -> None:
         super()._init_fleet()
-        self._taxi = [f"taxi{v}" for v in range(len(self.v_state))]
+        self._taxi = [f"taxi{v}" for v in range(len(self.fleet))]
         self._index = {tid: v for v, tid in enumerate(self._taxi)}
         self._pending: list[tuple[int, str, int, float]] = []  # (vehicle, person, pickup edge, since) not yet sent
         self._to_pickup: set[str] = set()  # taxis driving to a passenger
@@ -52,8 +56,8 @@ class TaxiMesoSim(MesoSim):
         api.vehicletype.setParameter(TAXI_TYPE, "has.taxi.device", "true")
         edges = self.net.edges
         for v, tid in enumerate(self._taxi):
-            start = self.v_edge[v]
-            route = api.simulation.findRoute(edges[start], edges[self._other_edge(start, self.v_region[v])])
+            start = self.fleet.edge[v]
+            route = api.simulation.findRoute(edges[start], edges[self._other_edge(start, self.fleet.region[v])])
             first = list(route.edges[:2])
             api.route.add(tid, first)
             api.vehicle.add(tid, tid, typeID=TAXI_TYPE, depart="now", departSpeed="max")
@@ -83,12 +87,12 @@ class TaxiMesoSim(MesoSim):
 
     # ------------------------------------------------------------------ requests as persons
     def _on_open(self, new: np.ndarray) -> None:
-        api, edges = self.sumo, self.net.edges
+        api, edges, req = self.sumo, self.net.edges, self.ride_requests
         for k in new:
             pid = f"req{k}"
-            e = self.r_oe[k]
+            e = req.origin_edge[k]
             api.person.add(pid, edges[e], float(self.net.length[e]) / 2.0, depart=-3)  # -3: now
-            api.person.appendDrivingStage(pid, edges[self.r_de[k]], "taxi")
+            api.person.appendDrivingStage(pid, edges[req.dest_edge[k]], "taxi")
 
     def _on_lost(self, gone: np.ndarray) -> None:
         if self._api is None:
@@ -99,9 +103,9 @@ class TaxiMesoSim(MesoSim):
 
     # ------------------------------------------------------------------ moves
     def _send_to_pickup(self, v: int, k: int) -> None:
-        self.v_state[v] = PICKUP
-        self.v_target[v] = self.r_de[k]
-        self._pending.append((v, f"req{k}", self.r_oe[k], self.now))
+        """The taxi is sent once SUMO has opened the person's reservation (see :meth:`_dispatch_pending`)."""
+        self.fleet.target[v] = self.ride_requests.dest_edge[k]
+        self._pending.append((v, f"req{k}", self.ride_requests.origin_edge[k], self.now))
 
     def _send_rebalancing(self, v: int, to_edge: int) -> None:
         """A placeholder person at ``to_edge`` rides one hop inside the target region."""
@@ -111,9 +115,8 @@ class TaxiMesoSim(MesoSim):
         pid = f"reb{self._placeholders}"
         api.person.add(pid, edges[to_edge], float(self.net.length[to_edge]) / 2.0, depart=-3)
         api.person.appendDrivingStage(pid, edges[hop], "taxi")
-        self.v_state[v] = REBALANCING
-        self.v_target[v] = hop
-        self.v_eta[v] = self.now + api.simulation.findRoute(edges[self.v_edge[v]], edges[to_edge]).travelTime
+        self.fleet.target[v] = hop
+        self.fleet.eta[v] = self.now + api.simulation.findRoute(edges[self.fleet.edge[v]], edges[to_edge]).travelTime
         self._pending.append((v, pid, to_edge, self.now))
 
     def _after_sumo_step(self, api: Any) -> None:
@@ -123,13 +126,13 @@ class TaxiMesoSim(MesoSim):
         if self._to_pickup or self._carrying:
             empty = set(api.vehicle.getTaxiFleet(EMPTY))
             occupied = set(api.vehicle.getTaxiFleet(OCCUPIED_FLEET)) | set(api.vehicle.getTaxiFleet(PICKUP_AND_OCCUPIED))
-            for tid in sorted((occupied | empty) & self._to_pickup):
-                self._to_pickup.discard(tid)
-                self._taxi_pickup(self._index[tid])
-                self._carrying.add(tid)
-            for tid in sorted(empty & self._carrying):
-                self._carrying.discard(tid)
-                self._taxi_dropoff(self._index[tid], api)
+            picked = sorted((occupied | empty) & self._to_pickup)
+            self._to_pickup -= set(picked)
+            self._carrying |= set(picked)
+            self._taxi_pickup([self._index[tid] for tid in picked])
+            dropped = sorted(empty & self._carrying)
+            self._carrying -= set(dropped)
+            self._taxi_dropoff([self._index[tid] for tid in dropped], api)
         if self._pending:
             self._dispatch_pending(api)
 
@@ -149,7 +152,7 @@ class TaxiMesoSim(MesoSim):
                 waiting.append((v, pid, edge, since))
                 continue
             api.vehicle.dispatchTaxi(tid, [reservation[pid]])
-            (self._to_pickup if self.v_state[v] == PICKUP else self._carrying).add(tid)
+            (self._to_pickup if self.fleet.state[v] == VehicleState.PICKUP else self._carrying).add(tid)
         self._pending = waiting
 
     @property
@@ -165,18 +168,22 @@ class TaxiMesoSim(MesoSim):
         stops = api.vehicle.getStops(tid, 1)
         return bool(stops) and stops[0].arrival >= 0
 
-    def _taxi_pickup(self, v: int) -> None:
-        """The passenger is in: the wait ends; the ride's ETA comes from SUMO's router."""
-        k = self.v_req[v]
-        self.r_status[k] = PICKED
-        self.totals.wait_minutes[self.r_o[k]] += (self.now - self.r_time[k]) / 60.0
-        self.v_state[v] = OCCUPIED
-        edges = self.net.edges
-        self.v_eta[v] = self.now + self.sumo.simulation.findRoute(edges[self.r_oe[k]], edges[self.r_de[k]]).travelTime
+    def _taxi_pickup(self, vs: list[int]) -> None:
+        """The passengers are in: their waits end; each ride's ETA comes from SUMO's router."""
+        if not vs:
+            return
+        fleet, req, edges = self.fleet, self.ride_requests, self.net.edges
+        bk.pick_up(fleet, req, np.array(vs), self.now, self.totals)
+        for v in vs:
+            k = fleet.request[v]
+            fleet.eta[v] = (
+                self.now + self.sumo.simulation.findRoute(edges[req.origin_edge[k]], edges[req.dest_edge[k]]).travelTime
+            )
 
-    def _taxi_dropoff(self, v: int, api: Any) -> None:
-        """Empty again: idle on the edge SUMO has it on (its drop-off edge)."""
-        road = api.vehicle.getRoadID(self._taxi[v])
-        self.v_edge[v] = self.net.index.get(road, self.v_target[v])
-        self._become_idle(v)
-
+    def _taxi_dropoff(self, vs: list[int], api: Any) -> None:
+        """Empty again: idle on the edge SUMO has them on (their drop-off edge)."""
+        if not vs:
+            return
+        for v in vs:
+            self.fleet.edge[v] = self.net.index.get(api.vehicle.getRoadID(self._taxi[v]), self.fleet.target[v])
+        bk.become_idle(self.fleet, np.array(vs), self.now, self.step_s, self.options.of_edge, self.totals)

@@ -1,0 +1,122 @@
+"""Study figures drawn from evaluation results: per-region metrics on the region map.
+
+``region_map`` is the paper's map of the average waiting time per region (one panel per policy,
+a shared colour scale), and the same for any per-region metric of
+:func:`marl_amod.metrics.region_metrics` (the service rate is the usual second row). Regions are
+drawn as the Voronoi cells of ``City.positions``: for regions made by k-means (the SUMO cities)
+those cells are exactly the regions, for a grid city they are its squares, and for cities
+placed by multidimensional scaling they are a faithful-enough sketch. matplotlib is imported
+only here, and only when something is drawn.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from marl_amod.scenario.types import City
+
+ROW_STYLE: dict[str, tuple[str, str]] = {  # per-region metric -> (colour-bar label, colormap)
+    "wait_time": ("mean waiting time (min)", "magma_r"),
+    "service_rate": ("service rate (served / requested)", "viridis"),
+    "served_demand": ("passengers served per episode", "viridis"),
+    "profit": ("profit per episode", "viridis"),
+}
+GINI_OF = {"wait_time": "wait_time_gini", "service_rate": "service_rate_gini"}
+
+
+def _caption(metrics: dict[str, dict[str, float]], key: str) -> str:
+    """City-wide value and Gini of a row's metric, as far as the evaluation reports them."""
+    parts = []
+    if key == "service_rate" and metrics.get("demand", {}).get("mean"):
+        parts.append(f"city {metrics['served_demand']['mean'] / metrics['demand']['mean']:.1%}")
+    elif key in metrics:
+        parts.append(f"city {metrics[key]['mean']:.2f}")
+    if GINI_OF.get(key) in metrics:
+        parts.append(f"Gini {metrics[GINI_OF[key]]['mean']:.3f}")
+    return ", ".join(parts)
+
+
+def region_cells(positions: np.ndarray) -> tuple[list[np.ndarray], tuple[float, float, float, float]]:
+    """Voronoi cell (k, 2) of every region and the (xmin, xmax, ymin, ymax) box that frames them.
+
+    Four far-away helper points close every real cell; the box (the positions plus half the
+    median nearest-neighbour distance) crops what lies outside the city.
+    """
+    from scipy.spatial import Voronoi
+
+    pos = np.asarray(positions, dtype=float)
+    n = pos.shape[0]
+    gap = np.linalg.norm(pos[:, None] - pos[None, :], axis=-1) + np.diag(np.full(n, np.inf))
+    margin = 0.5 * float(np.median(gap.min(axis=1))) if n > 1 else 1.0
+    lo, hi = pos.min(axis=0) - margin, pos.max(axis=0) + margin
+    far = 10.0 * float(np.max(hi - lo)) + 1.0
+    centre = (lo + hi) / 2
+    helpers = centre + far * np.array([[-1.0, -1.0], [-1.0, 1.0], [1.0, -1.0], [1.0, 1.0]])
+    vor = Voronoi(np.vstack([pos, helpers]))
+    cells = [vor.vertices[vor.regions[vor.point_region[i]]] for i in range(n)]
+    return cells, (lo[0], hi[0], lo[1], hi[1])
+
+
+def region_map(
+    results: Sequence[dict[str, Any]],
+    city: City,
+    path: str | Path,
+    rows: Sequence[str] = ("wait_time", "service_rate"),
+    title: str | None = None,
+) -> Path:
+    """Write :func:`region_map_figure` to ``path`` atomically (format from the suffix, png by default)."""
+    from marl_amod.files import atomic_write, check_destination
+
+    path = check_destination(path, what="figure")
+    fig = region_map_figure(results, city, rows, title)
+    return atomic_write(path, lambda fh: fig.savefig(fh, format=path.suffix.lstrip(".") or "png"))
+
+
+def region_map_figure(
+    results: Sequence[dict[str, Any]],
+    city: City,
+    rows: Sequence[str] = ("wait_time", "service_rate"),
+    title: str | None = None,
+) -> Any:
+    """Per-region metrics of several evaluations on the city map: a row per metric, a column per
+    policy, one colour scale per row (so colours compare across policies). A matplotlib Figure
+    on an Agg canvas: it never opens a window."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.collections import PolyCollection
+    from matplotlib.colors import Normalize
+    from matplotlib.figure import Figure
+
+    if not results:
+        raise ValueError("region_map needs at least one evaluation result")
+    for key in rows:
+        if key not in results[0]["per_region"]:
+            raise ValueError(f"no per-region metric {key!r}; known: {', '.join(results[0]['per_region'])}")
+    cells, (x0, x1, y0, y1) = region_cells(city.positions)
+    aspect = (y1 - y0) / max(x1 - x0, 1e-9)
+    width = 3.0
+    fig = Figure(figsize=(width * len(results) + 1.2, (width * aspect + 0.7) * len(rows) + 0.5), dpi=120, layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = np.atleast_2d(fig.subplots(len(rows), len(results), squeeze=False))
+    src, dst = city.edge_index
+    pos = np.asarray(city.positions, dtype=float)
+    for r, key in enumerate(rows):
+        values = np.array([res["per_region"][key] for res in results], dtype=float)  # (P, N)
+        label, cmap = ROW_STYLE.get(key, (key, "viridis"))
+        norm = Normalize(vmin=0.0, vmax=max(float(values.max()), 1e-9) if key != "service_rate" else 1.0)
+        for p, res in enumerate(results):
+            ax = axes[r, p]
+            coll = PolyCollection(cells, array=values[p], cmap=cmap, norm=norm, edgecolors="white", linewidths=0.8)
+            ax.add_collection(coll)
+            ax.plot(np.stack([pos[src, 0], pos[dst, 0]]), np.stack([pos[src, 1], pos[dst, 1]]), color="0.5", lw=0.4, alpha=0.5)
+            ax.scatter(pos[:, 0], pos[:, 1], s=4, color="0.2")
+            ax.set(xlim=(x0, x1), ylim=(y0, y1), xticks=[], yticks=[], aspect="equal")
+            caption = _caption(res["metrics"], key)
+            ax.set_title(f"{res['policy']}\n{caption}" if r == 0 else caption, fontsize=8)
+        fig.colorbar(coll, ax=list(axes[r]), fraction=0.025, pad=0.02, label=label)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    return fig

@@ -1,0 +1,90 @@
+"""Checks on numbers where they enter the library, so a bad value is an error naming its place.
+
+A NaN or infinite price, a negative fleet or a NaN policy weight does not fail by itself: numpy
+carries it to the end of the run (``nan ± nan``, or a NaN weight cast to the integer that means
+"stay"). Every entry point (city files, :class:`~marl_amod.scenario.types.City`, the
+coordinator's public functions, policy outputs, seeds) checks its arrays here once, and the
+error says which array, which entry and, for region-indexed arrays, which region.
+"""
+
+from __future__ import annotations
+
+import numbers
+from typing import Any
+
+import numpy as np
+
+from marl_amod.errors import ConfigError, DataError, MarlAmodError
+
+
+def where(index: tuple[int, ...], lead: int = 0) -> str:
+    """A region-indexed position in words: (N,) 'region i', (N, N) 'regions i->j', (S, N, N) 'step t, regions i->j';
+    the first ``lead`` axes are a batch of episodes ('episode b, region i')."""
+    idx = tuple(int(k) for k in index)
+    if lead:
+        b = idx[0] if lead == 1 else idx[:lead]
+        return f"episode {b}, {where(idx[lead:])}"
+    if len(idx) == 1:
+        return f"region {idx[0]}"
+    if len(idx) == 2:
+        return f"regions {idx[0]}->{idx[1]}"
+    if len(idx) == 3:
+        return f"step {idx[0]}, regions {idx[1]}->{idx[2]}"
+    return f"index {idx}"
+
+
+def check_array(
+    value: Any,
+    what: str,
+    *,
+    shape: tuple[int, ...] | None = None,
+    minimum: float | None = None,
+    integer: bool = False,
+    error: type[MarlAmodError] = DataError,
+    lead: int = 0,
+) -> np.ndarray:
+    """``value`` as a float or int64 array, or ``error`` naming ``what`` and the first bad entry.
+
+    Rejects strings, booleans, complex numbers and objects; a shape other than ``shape``; NaN and
+    infinity; values below ``minimum``; and, with ``integer``, non-integral values. ``lead``
+    leading axes are a batch of episodes, named as such in the error.
+    """
+    arr = np.asarray(value)
+    if arr.dtype.kind not in "iuf":
+        raise error(f"{what} must be real numbers, got an array of {arr.dtype}")
+    if shape is not None and arr.shape != tuple(shape):
+        raise error(f"{what} must have shape {tuple(shape)}, got {arr.shape}")
+    if arr.dtype.kind == "f":
+        bad = ~np.isfinite(arr)
+        if bad.any():
+            k = np.unravel_index(int(np.argmax(bad)), arr.shape) if arr.ndim else ()
+            raise error(f"{what} is not finite ({arr[k]}) at {where(k, lead)}" if arr.ndim else f"{what} is not finite ({arr})")
+    if minimum is not None:
+        low = arr < minimum
+        if low.any():
+            k = np.unravel_index(int(np.argmax(low)), arr.shape) if arr.ndim else ()
+            at = f" at {where(k, lead)}" if arr.ndim else ""
+            raise error(f"{what} must be >= {minimum:g}, got {arr[k]}{at}")
+    if integer:
+        if arr.dtype.kind == "f":
+            frac = arr != np.round(arr)
+            if frac.any():
+                k = np.unravel_index(int(np.argmax(frac)), arr.shape) if arr.ndim else ()
+                at = f" at {where(k, lead)}" if arr.ndim else ""
+                raise error(f"{what} must be whole numbers, got {arr[k]}{at}")
+        return arr.astype(np.int64)
+    return arr
+
+
+def as_seed(seed: Any, what: str = "seed") -> int:
+    """A seed as a Python int: integers of any kind (numpy included), never negative or a bool."""
+    return as_count(seed, what)
+
+
+def as_count(value: Any, what: str, *, upper: int | None = None, why: str = "") -> int:
+    """A whole number in [0, upper] (numpy integers welcome, bools not), else a ConfigError."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral) or value < 0:
+        raise ConfigError(f"{what} must be a non-negative integer, got {value!r}")
+    if upper is not None and value > upper:
+        raise ConfigError(f"{what} must be at most {upper}{why}, got {int(value)}")
+    return int(value)

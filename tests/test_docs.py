@@ -1,0 +1,75 @@
+"""The documentation runs: every ```python block of README.md and docs/*.md (the blocks of one page
+in order, in one namespace, as a reader pastes them), every script in examples/, and the results
+tables equal what benchmarks/results_tables.py generates from docs/results/*.json.
+
+Training calls in the docs (``.learn(N)``) run with a small budget, ``MARL_AMOD_DOCS_STEPS``
+(default 512) agent-steps, so the suite stays fast; training examples take ``--steps``."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+PYTHON_BLOCK = re.compile(r"^```python\n(.*?)^```", re.DOTALL | re.MULTILINE)
+BUDGET = int(os.environ.get("MARL_AMOD_DOCS_STEPS", "512"))
+EXAMPLE_ARGS = {"sb3_parameter_sharing.py": ["--steps", str(BUDGET), "--copies", "1", "--eval-episodes", "1"]}
+
+sys.path.insert(0, str(ROOT / "benchmarks"))
+import results_tables  # noqa: E402
+
+
+def _quick(code: str) -> str:
+    return re.sub(r"\.learn\([\d_]+\)", f".learn({BUDGET})", code)
+
+
+@pytest.mark.parametrize("page", [p for p in PAGES if PYTHON_BLOCK.search(p.read_text())], ids=lambda p: p.name)
+def test_python_blocks_run(page: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.chdir(tmp_path)  # anything a block writes stays out of the repository
+    namespace: dict = {"__name__": "__docs__"}
+    for i, block in enumerate(PYTHON_BLOCK.findall(page.read_text())):
+        exec(compile(_quick(block), f"{page.name}[python block {i}]", "exec"), namespace)  # noqa: S102
+
+
+@pytest.mark.parametrize("script", sorted((ROOT / "examples").glob("*.py")), ids=lambda p: p.name)
+def test_examples_run(script: Path, tmp_path: Path) -> None:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    out = subprocess.run([sys.executable, str(script), *EXAMPLE_ARGS.get(script.name, [])], cwd=tmp_path, env=env,
+                         capture_output=True, text=True, timeout=300)  # fmt: skip
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.strip(), "an example should print what it shows"
+
+
+def test_results_tables_match_the_committed_json() -> None:
+    """No hand-edited numbers: README.md and docs/results.md tables are exactly the generator's output."""
+    tables = results_tables.load()
+    for doc in results_tables.DOCUMENTS:
+        text = doc.read_text()
+        assert results_tables.BLOCK.search(text), f"{doc.name} has no results block"
+        assert results_tables.render(text, tables) == text, f"{doc.name}: run python benchmarks/results_tables.py"
+
+
+def test_results_generator_scores_and_merges(tmp_path: Path) -> None:
+    """ED scores 0 and MPC-Oracle 100; an evaluate record replaces a policy's numbers but keeps its notes."""
+    doc = {"table": "x", "results": [
+        {"policy": "equal-distribution", "metrics": {"profit": {"mean": 10.0, "std": 1.0}}},
+        {"policy": "mpc-oracle", "metrics": {"profit": {"mean": 30.0, "std": 1.0}}},
+        {"policy": "mine", "kind": "trained", "label": "my GNN", "training": "1 min", "metrics": {"profit": {"mean": 1.0}}},
+    ]}  # fmt: skip
+    assert [results_tables.score(p, doc) for p in (10.0, 30.0, 25.0)] == [0.0, 100.0, 75.0]
+    (tmp_path / "x.json").write_text(__import__("json").dumps(doc))
+    record = {"scenario": "x", "policy": "policies/mine.pt", "episodes": 3, "seed": 0,
+              "metrics": {"profit": {"mean": 25.0, "std": 2.0}}}  # fmt: skip
+    results_tables.merge([record], "x", tmp_path)
+    merged = results_tables.load(tmp_path)["x"]["results"][2]
+    assert merged["metrics"]["profit"]["mean"] == 25.0 and merged["label"] == "my GNN" and merged["training"] == "1 min"
+    table = results_tables.table_markdown(results_tables.load(tmp_path)["x"], full=True)
+    assert "| 75 |" in table and "**30 ± 1**" in table
+    with pytest.raises(KeyError, match="nowhere"):
+        results_tables.render("<!-- results:full nowhere -->\n<!-- /results -->", {})
