@@ -31,10 +31,19 @@ def _quick(code: str) -> str:
 
 @pytest.mark.parametrize("page", [p for p in PAGES if PYTHON_BLOCK.search(p.read_text())], ids=lambda p: p.name)
 def test_python_blocks_run(page: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from marl_amod.algos.registry import ALGOS
+    from marl_amod.policies import POLICIES
+
     monkeypatch.chdir(tmp_path)  # anything a block writes stays out of the repository
+    registries = [(r, dict(r)) for r in (ALGOS, POLICIES)]  # pages register toy policies and algorithms
     namespace: dict = {"__name__": "__docs__"}
-    for i, block in enumerate(PYTHON_BLOCK.findall(page.read_text())):
-        exec(compile(_quick(block), f"{page.name}[python block {i}]", "exec"), namespace)  # noqa: S102
+    try:
+        for i, block in enumerate(PYTHON_BLOCK.findall(page.read_text())):
+            exec(compile(_quick(block), f"{page.name}[python block {i}]", "exec"), namespace)  # noqa: S102
+    finally:
+        for registry, saved in registries:
+            registry.clear()
+            registry.update(saved)
 
 
 @pytest.mark.parametrize("script", sorted((ROOT / "examples").glob("*.py")), ids=lambda p: p.name)
