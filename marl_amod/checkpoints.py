@@ -268,7 +268,7 @@ class ActorPolicy(WeightPolicy):
 
     def __init__(self, actor: torch.nn.Module, city: City, lookahead: int = 6, name: str = "actor") -> None:
         self.actor, self.lookahead, self.name = actor, lookahead, name
-        self.edge_index = torch.as_tensor(city.edge_index, dtype=torch.long)
+        self.edge_index = torch.tensor(np.array(city.edge_index), dtype=torch.long)
         self.agents = ob.agent_names(city.n_regions)
 
     def weights(self, system: FleetSystem) -> np.ndarray:

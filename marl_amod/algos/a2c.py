@@ -88,7 +88,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     C.seed_everything(args.seed)
     city = load_city(args.scenario)
     rollout = Rollout(city, args.mode, args.lookahead)
-    edge_index = torch.as_tensor(city.edge_index, dtype=torch.long)
+    edge_index = torch.tensor(np.array(city.edge_index), dtype=torch.long)
     n_features = feature_count(args.lookahead)
     local_critic = args.mode == "decentralised" and not args.central_critic
     if args.mode == "decentralised":

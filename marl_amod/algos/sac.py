@@ -127,7 +127,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     city = load_city(args.scenario)
     local = args.mode == "decentralised"
     rollout = Rollout(city, args.mode, args.lookahead)
-    edge_index = torch.as_tensor(city.edge_index, dtype=torch.long)
+    edge_index = torch.tensor(np.array(city.edge_index), dtype=torch.long)
     n_features = feature_count(args.lookahead)
     actor = LocalActor(n_features, args.hidden) if local else build_actor(args.actor, city, n_features, args.hidden, args.conv)
     critic = TwinQ(n_features, args.hidden, "sage" if local else args.conv)
