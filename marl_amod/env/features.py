@@ -5,7 +5,8 @@ For region i at step t, with look-ahead T (6 by default) and scale 0.01:
 * ``idle``: idle vehicles now (after dispatch), 1 column;
 * ``supply[k]``: idle now plus vehicles arriving at i in step t+k, k = 1..T (T columns);
 * ``value[k]``: expected requests out of i in step t+k times their price, summed over
-  destinations, k = 1..T (T columns).
+  destinations, k = 1..T (T columns); expected = ``city.forecast_rate``, which does not know a
+  scenario's events (policies see a demand shock only through the state it leaves).
 
 Steps past the tabulated horizon count as zero.
 """
@@ -34,7 +35,7 @@ def node_features(system: FleetSystem, lookahead: int = 6, scale: float = FEATUR
     idx = np.minimum(steps, city.n_steps - 1)
     arriving = sim.arrivals[np.minimum(steps, sim.arrivals.shape[0] - 1)]  # (T, N)
     supply = sim.idle[None, :] + arriving
-    value = (city.demand_rate[idx] * city.price[idx]).sum(axis=2) * valid[:, None]  # (T, N)
+    value = (city.forecast_rate[idx] * city.price[idx]).sum(axis=2) * valid[:, None]  # (T, N), expected: not a scenario's events
     feats = np.concatenate([sim.idle[None, :], supply, value], axis=0).T * scale
     return feats.astype(np.float32)
 
@@ -47,6 +48,6 @@ def feature_high(city: City, lookahead: int = 6, scale: float = FEATURE_SCALE) -
     learners that normalise or sample them.
     """
     fleet = city.fleet_size * scale
-    value = float((city.demand_rate * city.price).sum(axis=2).max()) * scale
+    value = float((city.forecast_rate * city.price).sum(axis=2).max()) * scale
     high = np.concatenate([np.full(1 + lookahead, fleet), np.full(lookahead, value)])
     return (high * (1 + 1e-6)).astype(np.float32)

@@ -37,6 +37,9 @@ class City:
     edge_index: np.ndarray  # (2, E) int, region adjacency for message passing (no self loops)
     positions: np.ndarray  # (N, 2) float, a drawing position per region
     start_hour: float = 0.0  # clock time of step 0, for the time-of-day feature
+    # (S, N, N) the usual expected requests, what planners and observations believe; differs from
+    # demand_rate (what is drawn) only under a scenario's events. None: demand_rate.
+    forecast_rate: np.ndarray | None = None
     meta: dict = field(default_factory=dict)  # provenance (data file, parameters), shown to users
     # builds the simulator, called as simulator(city, max_wait=...); None: the macro model.
     # SUMO scenarios set it, so every consumer of a City gets their simulator unchanged.
@@ -50,6 +53,9 @@ class City:
             raise DataError(f"{what} demand_rate must be (S, N, N), got {shape}")
         s, n, _ = shape
         check_array(self.demand_rate, f"{what} demand_rate", minimum=0)
+        if self.forecast_rate is None:
+            object.__setattr__(self, "forecast_rate", self.demand_rate)
+        check_array(self.forecast_rate, f"{what} forecast_rate", shape=(s, n, n), minimum=0)
         check_array(self.price, f"{what} price", shape=(s, n, n), minimum=0)
         check_array(self.trip_time, f"{what} trip_time (steps)", shape=(s, n, n), minimum=1, integer=True)
         reb = check_array(self.reb_time, f"{what} reb_time (steps)", shape=(n, n), minimum=0, integer=True)
@@ -73,7 +79,7 @@ class City:
         if off.any():
             i, j = np.argwhere(off)[0]
             raise DataError(f"{what} rebalancing times between distinct regions must be >= 1 step (regions {i}->{j})")
-        for arr in (self.demand_rate, self.price, self.trip_time, self.reb_time, self.initial_vehicles,
+        for arr in (self.demand_rate, self.forecast_rate, self.price, self.trip_time, self.reb_time, self.initial_vehicles,
                     self.edge_index, self.positions):  # fmt: skip
             arr.setflags(write=False)
 
