@@ -16,7 +16,8 @@ import time
 from pathlib import Path
 
 from marl_amod.errors import DataError
-from marl_amod.evaluation import evaluate, make_policy
+from marl_amod.evaluation import evaluate
+from marl_amod.policies import make_policy
 from marl_amod.scenario import load_city
 
 CITIES = ["synthetic", "nyc_brooklyn", "san_francisco", "shenzhen_downtown_west"]
@@ -34,7 +35,7 @@ def run(cities: list[str], policies: list[str], episodes: int, seed: int) -> lis
         for pol_name in policies:
             policy = make_policy(pol_name, city)
             start = time.perf_counter()
-            result = evaluate(city, policy, episodes=episodes, seed=seed)
+            result = evaluate(policy, city, episodes, seed)
             seconds = time.perf_counter() - start
             profit = result["metrics"]["profit"]
             rows.append({

@@ -7,7 +7,7 @@ machine may be shared), and the wall time (from before ``ray.init``) until the d
 ``--target`` validation profit (equal distribution: about 8,266; native GNN A2C: about 8,841),
 with the ratios of 2 runners to 1.
 
-    python benchmarks/rllib_runners.py [--config configs/ppo_rllib_synthetic.yaml] [--target 8700] [--time-limit 240]
+    python benchmarks/rllib_runners.py [--config configs/ppo_rllib/synthetic.yaml] [--target 8700] [--time-limit 240]
 """
 
 from __future__ import annotations
@@ -53,7 +53,7 @@ def run(config: Path, runners: int, target: float, time_limit: float, eval_every
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--config", type=Path, default=Path("configs/ppo_rllib_synthetic.yaml"))
+    p.add_argument("--config", type=Path, default=Path("configs/ppo_rllib/synthetic.yaml"))
     p.add_argument("--target", type=float, default=8700.0)
     p.add_argument("--time-limit", type=float, default=240.0, help="per run; to_target_s is nan if not reached")
     p.add_argument("--eval-every", type=int, default=5)

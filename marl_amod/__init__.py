@@ -1,8 +1,10 @@
 """marl_amod: robo-taxi fleet coordination as a multi-agent RL benchmark.
 
 ``parallel_env(...)`` makes the PettingZoo ParallelEnv (every region an agent), ``env(...)`` its
-AEC version; see :mod:`marl_amod.env.parallel` for the documentation. Importing the package
-loads numpy-level code only (no torch); the env's modules load on first use.
+AEC version; see :mod:`marl_amod.env.parallel` for the documentation. ``evaluate(policy, ...)``
+scores any policy (a name, a checkpoint, a callable on observations) on the benchmark's seeds;
+``load_policy(path)`` returns a trained policy as such a callable. Importing the package loads
+numpy-level code only (no torch); the env's modules load on first use.
 """
 
 from __future__ import annotations
@@ -13,10 +15,14 @@ from typing import TYPE_CHECKING, Any
 from marl_amod import env
 
 __version__ = "0.1.0"
-__all__ = ["amod_v0", "env", "parallel_env"]
+__all__ = ["amod_v0", "env", "evaluate", "load_policy", "parallel_env"]
 
 if TYPE_CHECKING:
+    from pathlib import Path
+
+    from marl_amod.checkpoints import ActorPolicy
     from marl_amod.env.parallel import AmodParallelEnv
+    from marl_amod.policies import PolicyLike
     from marl_amod.scenario.types import City
 
 
@@ -29,6 +35,29 @@ def parallel_env(scenario: str | City = "synthetic", **kwargs: Any) -> AmodParal
     from marl_amod.amod_v0 import parallel_env as make
 
     return make(scenario, **kwargs)
+
+
+def evaluate(
+    policy: PolicyLike, scenario: str | City = "synthetic", episodes: int = 10, seed: int = 0, **options: Any
+) -> dict[str, Any]:
+    """Score ``policy`` as ``marl-amod evaluate`` does, on the same demand draws (episode k: (seed, k)).
+
+    ``policy``: a name (``marl-amod evaluate --help``), a checkpoint path (``.pt``), or any
+    callable from the env's observations dict to its actions dict (PettingZoo convention; an SB3
+    or TorchRL policy wrapped in a function). Options: ``max_wait``, ``objective``, ``solver``,
+    and the policy's own (a callable's ``lookahead`` and ``action_mode``, MPC's ``horizon``).
+    Returns exactly the JSON that ``marl-amod evaluate --output`` writes.
+    """
+    from marl_amod.evaluation import evaluate as run
+
+    return run(policy, scenario, episodes, seed, **options)
+
+
+def load_policy(path: str | Path, scenario: str | City | None = None) -> ActorPolicy:
+    """A trained policy (``.pt``) as a callable on the env's observations (default city: its card's)."""
+    from marl_amod.checkpoints import load_policy as load
+
+    return load(path, scenario)
 
 
 def __getattr__(name: str) -> Any:

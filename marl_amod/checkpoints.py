@@ -1,54 +1,223 @@
-"""Trained policies on disk: a small torch file (actor weights + card) and a JSON/markdown card.
+"""Trained policies on disk: one :class:`PolicyCard` type, one writer, one careful reader.
 
-``load_policy(path, city)`` returns a :class:`~marl_amod.baselines.WeightPolicy` that runs the
-actor deterministically (the Dirichlet mean), so ``marl-amod evaluate --policy policies/x.pt``
-treats a trained policy exactly like a baseline and writes the same JSON.
+A policy is ``x.pt`` (the actor's weights and its card) with two views of the card beside it:
+``x.json`` for programs and ``x.md`` for people. Each file is written atomically
+(:mod:`marl_amod.files`), the ``.pt`` first; the views record the SHA-256 of the ``.pt`` they
+describe, so :func:`read_card` refuses a ``.json`` left over from another run (an interrupted
+save, a copied file) instead of reporting another policy's numbers. The ``.pt`` carries its own
+card and is the authority.
+
+``load_policy(path, city)`` returns an :class:`ActorPolicy` that runs the actor deterministically
+(the Dirichlet mean), so ``marl-amod evaluate --policy policies/x.pt`` treats a trained policy
+exactly like a baseline; it is also a callable on the env's observations. A file that is empty, truncated, not a checkpoint, damaged, or whose
+sizes do not fit the city is a :class:`DataError` naming the file and the problem.
 """
 
 from __future__ import annotations
 
-import json
+import hashlib
+import io
+import subprocess
+import zipfile
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
+from pydantic import BaseModel, ConfigDict, ValidationError
 
-from marl_amod.baselines import WeightPolicy
-from marl_amod.errors import ConfigError
+from marl_amod.baselines.base import WeightPolicy
+from marl_amod.env import observations as ob
+from marl_amod.env.features import node_features
+from marl_amod.errors import ConfigError, DataError
+from marl_amod.files import atomic_write, write_json
 from marl_amod.scenario import City
 from marl_amod.system import FleetSystem
 
-CARD_KEYS = ("scenario", "algorithm", "mode", "actor", "conv", "hidden", "n_features", "lookahead", "seed")
+FORMAT = "marl_amod.policy/2"
+REGION_BOUND = ("mlp", "cnn")  # actors whose weights are tied to the city's region count
 
 
-def save_policy(path: str | Path, actor: torch.nn.Module, card: dict[str, Any]) -> Path:
-    """Write ``path`` (.pt: actor state dict + card) and ``path`` with .json beside it."""
-    missing = [k for k in CARD_KEYS if k not in card]
-    if missing:
-        raise ValueError(f"policy card lacks {missing}")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    state = {k: v.detach().cpu().clone() for k, v in actor.state_dict().items()}
-    torch.save({"format": "marl_amod.policy/1", "card": card, "state_dict": state}, path)
-    path.with_suffix(".json").write_text(json.dumps(card, indent=2, default=float) + "\n")
-    return path
+class PolicyCard(BaseModel):
+    """What a policy is and how it was made; the same type for native and RLlib trainers.
+
+    Algorithm-specific facts (episodes trained, RLlib iterations, ...) ride along as extra fields.
+    Fields added in format 2 are optional so format-1 cards (no env version, no commit) still load.
+    """
+
+    model_config = ConfigDict(extra="allow")
+
+    scenario: str
+    algorithm: str
+    mode: str
+    actor: str
+    conv: str
+    hidden: int
+    n_features: int
+    lookahead: int
+    seed: int
+    env_version: str | None = None
+    """the env module the policy was trained on: amod_v0 -> "v0" (results change with it)"""
+    n_regions: int | None = None
+    """regions of the training city (MLP and CNN actors only run on cities of this size)"""
+    eval_episodes: int | None = None
+    eval_seed: int | None = None
+    profit_mean: float | None = None
+    profit_std: float | None = None
+    served_demand_mean: float | None = None
+    training_wall_s: float | None = None
+    config: str | None = None
+    """the config file that reproduces the run"""
+    args: dict[str, Any] | None = None
+    """the validated training arguments (after the config's extends: and defaults)"""
+    git_commit: str | None = None
+    """the code's commit when trained (with +dirty if the tree had changes)"""
+
+    def to_dict(self) -> dict[str, Any]:
+        return self.model_dump(exclude_none=True)
 
 
-def write_card_markdown(path: str | Path, card: dict[str, Any]) -> Path:
-    """A human-readable card next to the checkpoint (policies/x.md)."""
-    path = Path(path).with_suffix(".md")
-    lines = [f"# Policy `{Path(path).stem}`", "", "| field | value |", "|---|---|"]
+def env_version() -> str:
+    """The env's version tag, from the versioned module's id: ``marl_amod/amod-v0`` -> ``v0``."""
+    from marl_amod.amod_v0 import ENV_ID
+
+    return ENV_ID.rsplit("-", 1)[-1]
+
+
+def git_commit() -> str | None:
+    """The commit of the code being run (None outside a git checkout)."""
+    root = Path(__file__).resolve().parent.parent
+    try:
+        sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=5, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root, capture_output=True, text=True, timeout=5).stdout
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return f"{sha}+dirty" if dirty.strip() else sha
+
+
+def make_card(**fields: Any) -> PolicyCard:
+    """A card for a policy trained now: env version and commit filled in."""
+    return PolicyCard(env_version=env_version(), git_commit=git_commit(), **fields)
+
+
+# --------------------------------------------------------------------------------------------
+# Writing
+# --------------------------------------------------------------------------------------------
+def card_markdown(path: Path, card: dict[str, Any]) -> str:
+    """The human-readable view of the card of policy ``path`` (policies/x.md)."""
+    lines = [f"# Policy `{path.stem}`", "", "| field | value |", "|---|---|"]
     for k, v in card.items():
+        if k == "args":
+            continue
         if isinstance(v, float):
             v = f"{v:,.2f}"
         lines.append(f"| {k} | {v} |")
-    if "config" in card:
-        backend = " --backend rllib" if str(card.get("algorithm", "")).startswith("rllib") else ""
-        lines += ["", f"Reproduce: `marl-amod train{backend} --config {card['config']}`"]
-    lines += ["", f"Evaluate: `marl-amod evaluate --scenario {card['scenario']} --policy {Path(path).with_suffix('.pt')} --episodes 10`", ""]
-    path.write_text("\n".join(lines))
+    if card.get("config"):
+        config = card["config"]
+        if "/compare/" in config or Path(config).stem.startswith("compare"):
+            lines += ["", f"Reproduce: `marl-amod compare --config {config}` (trains it when the file is missing)"]
+        else:
+            backend = " --backend rllib" if str(card.get("algorithm", "")).startswith("rllib") else ""
+            lines += ["", f"Reproduce: `marl-amod train{backend} --config {config}`"]
+    lines += ["", f"Evaluate: `marl-amod evaluate --scenario {card['scenario']} --policy {path} --episodes 10`", ""]
+    return "\n".join(lines)
+
+
+def write_policy(path: str | Path, state_dict: dict[str, torch.Tensor], card: PolicyCard | dict[str, Any]) -> Path:
+    """Write ``path`` (.pt: weights + card), then its .json and .md views, each atomically.
+
+    The views name the SHA-256 of the .pt bytes, so a reader can tell a view from another run.
+    """
+    card = card if isinstance(card, PolicyCard) else PolicyCard.model_validate(card)
+    path = Path(path).with_suffix(".pt")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    blob = {"format": FORMAT, "card": card.to_dict(), "state_dict": {k: v.detach().cpu().clone() for k, v in state_dict.items()}}
+    buffer = io.BytesIO()
+    torch.save(blob, buffer)
+    data = buffer.getvalue()
+    atomic_write(path, data)
+    view = {**card.to_dict(), "pt_sha256": hashlib.sha256(data).hexdigest()}
+    write_json(path.with_suffix(".json"), view)
+    atomic_write(path.with_suffix(".md"), card_markdown(path, view))
     return path
+
+
+def save_policy(path: str | Path, actor: torch.nn.Module, card: PolicyCard | dict[str, Any]) -> Path:
+    """Write an actor's policy file and its card views (see :func:`write_policy`)."""
+    return write_policy(path, actor.state_dict(), card)
+
+
+# --------------------------------------------------------------------------------------------
+# Reading
+# --------------------------------------------------------------------------------------------
+def check_torch_file(path: Path, what: str = "policy checkpoint") -> None:
+    """Raise a DataError saying in plain words why ``path`` is not an intact torch file.
+
+    Checked before ``torch.load``, whose errors on damaged files are cryptic (or a crash).
+    """
+    if not path.is_file():
+        raise ConfigError(f"{what} {path} not found")
+    if path.stat().st_size == 0:
+        raise DataError(f"{path} is empty (0 bytes): an interrupted copy? Copy or train it again")
+    if not zipfile.is_zipfile(path):
+        head = path.read_bytes()[:64]
+        if head.startswith(b"PK"):
+            kind = "truncated (the archive's end record is missing: an interrupted save or copy?)"
+        else:
+            kind = "a text file" if head.isascii() else "not a torch checkpoint"
+        raise DataError(f"{path} is not a {what}: {kind} (a torch .pt file is a zip archive)")
+    try:
+        with zipfile.ZipFile(path) as zf:
+            bad = zf.testzip()  # CRC of every member: catches bit flips and partial copies
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
+        raise DataError(f"{path} is damaged: {exc}") from None
+    if bad is not None:
+        raise DataError(f"{path} is damaged: {bad} fails its checksum (a bit flip or a partial copy)")
+
+
+def _read_blob(path: Path) -> dict[str, Any]:
+    """The checkpoint's dict, or a DataError saying in plain words why the file is not one."""
+    check_torch_file(path)
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - torch raises many types for bad files; all mean the same here
+        raise DataError(f"{path} cannot be read as a policy checkpoint: {str(exc).splitlines()[0]}") from None
+    if not isinstance(blob, dict) or not isinstance(blob.get("state_dict"), dict) or not isinstance(blob.get("card"), dict):
+        raise DataError(f"{path} is not a marl_amod policy checkpoint (it has no card and state_dict)")
+    return blob
+
+
+def _card_of(path: Path, raw: dict[str, Any]) -> PolicyCard:
+    try:
+        return PolicyCard.model_validate(raw)
+    except ValidationError as exc:
+        what = "; ".join(f"{'.'.join(map(str, e['loc']))}: {'missing' if e['type'] == 'missing' else e['msg']}" for e in exc.errors())
+        raise DataError(f"{path}: its card is incomplete ({what})") from None
+
+
+def read_card(path: str | Path) -> dict[str, Any]:
+    """The card of policy ``path`` from its .json view, checked to describe this very .pt."""
+    path = Path(path).with_suffix(".pt")
+    view = path.with_suffix(".json")
+    if not view.is_file():
+        return _card_of(path, _read_blob(path)["card"]).to_dict()
+    from marl_amod.data import read_json
+
+    card = read_json(view)
+    expected = card.pop("pt_sha256", None)
+    if expected is not None and path.is_file() and hashlib.sha256(path.read_bytes()).hexdigest() != expected:
+        raise DataError(f"{view} describes another version of {path.name} (an interrupted save or a copied file): retrain, or delete the .json")
+    return card
+
+
+def _trained_regions(kind: str, card: PolicyCard, state: dict[str, torch.Tensor]) -> int:
+    if card.n_regions is not None:
+        return card.n_regions
+    if kind == "cnn":
+        return int(state["cells"].numel()) if "cells" in state else -1
+    weights = [v for k, v in state.items() if k.endswith("weight")]
+    return int(weights[-1].shape[0]) if weights else -1  # the MLP's output layer has one unit per region
 
 
 def load_actor(path: str | Path, city: City) -> tuple[torch.nn.Module, dict[str, Any]]:
@@ -56,46 +225,72 @@ def load_actor(path: str | Path, city: City) -> tuple[torch.nn.Module, dict[str,
     from marl_amod.models import build_actor
 
     path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"policy checkpoint {path} not found")
-    blob = torch.load(path, map_location="cpu", weights_only=True)
-    if not isinstance(blob, dict) or "state_dict" not in blob:
-        raise ConfigError(f"{path} is not a marl_amod policy checkpoint")
-    card = blob["card"]
-    actor = build_actor(card["actor"], city, card["n_features"], card["hidden"], card["conv"])
-    actor.load_state_dict(blob["state_dict"])
+    blob = _read_blob(path)
+    card, state = _card_of(path, blob["card"]), blob["state_dict"]
+    if card.n_features != 1 + 2 * card.lookahead:
+        raise DataError(f"{path}: card says lookahead {card.lookahead} but {card.n_features} features (expected {1 + 2 * card.lookahead})")
+    if card.actor in REGION_BOUND:
+        trained = _trained_regions(card.actor, card, state)
+        if trained != city.n_regions:
+            raise DataError(
+                f"{path}: trained for {trained} regions; {city.name} has {city.n_regions}; "
+                "MLP and CNN actors are tied to a region count — use a GNN policy"
+            )
+    try:
+        actor = build_actor(card.actor, city, card.n_features, card.hidden, card.conv)
+    except ValueError as exc:
+        raise DataError(f"{path}: {exc}") from None
+    expected = actor.state_dict()
+    missing, unexpected = sorted(set(expected) - set(state)), sorted(set(state) - set(expected))
+    if missing or unexpected:
+        raise DataError(f"{path}: weights are not a {card.actor} actor's (missing {missing[:3]}, unexpected {unexpected[:3]})")
+    for key, value in expected.items():
+        if tuple(state[key].shape) != tuple(value.shape):
+            raise DataError(
+                f"{path}: weights do not fit its card (hidden {card.hidden}, lookahead {card.lookahead} = {card.n_features} features): "
+                f"{key} is {tuple(state[key].shape)} in the file, {tuple(value.shape)} expected"
+            )
+    actor.load_state_dict(state)
     actor.eval()
-    return actor, card
+    return actor, card.to_dict()
 
 
 class ActorPolicy(WeightPolicy):
-    """Runs an actor deterministically: weights = Dirichlet mean of its concentrations."""
+    """Runs an actor deterministically: weights = Dirichlet mean of its concentrations.
+
+    It is also a callable on the env's observations (PettingZoo convention: observations dict
+    -> actions dict), so a trained policy runs wherever an outside one does (``record_episode``,
+    ``marl_amod.evaluate``). Both paths feed the actor the same node features: each agent's
+    observation begins with its region's row of them.
+    """
 
     def __init__(self, actor: torch.nn.Module, city: City, lookahead: int = 6, name: str = "actor") -> None:
         self.actor, self.lookahead, self.name = actor, lookahead, name
         self.edge_index = torch.as_tensor(city.edge_index, dtype=torch.long)
+        self.agents = ob.agent_names(city.n_regions)
+
+    def weights(self, system: FleetSystem) -> np.ndarray:
+        return self._mean(node_features(system, self.lookahead))
+
+    def __call__(self, observations: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """Actions (each agent's weight, shape (1,)) for the env's local observations."""
+        stacked = np.stack([np.asarray(observations[a], dtype=np.float32) for a in self.agents])
+        own = ob.split_local(stacked, ob.n_features(self.lookahead))[0]  # (N, F)
+        w = self._mean(own).astype(np.float32)  # exact: the weights are float32 values
+        return {a: w[i : i + 1] for i, a in enumerate(self.agents)}
 
     @torch.no_grad()
-    def weights(self, system: FleetSystem) -> np.ndarray:
-        from marl_amod.env.features import node_features
-
-        x = torch.as_tensor(node_features(system, self.lookahead))  # (N, F)
-        alpha = self.actor(x, self.edge_index)  # (N,)
+    def _mean(self, features: np.ndarray) -> np.ndarray:
+        alpha = self.actor(torch.as_tensor(features), self.edge_index)  # (N,)
         return (alpha / alpha.sum()).numpy().astype(np.float64)
 
 
-def load_policy(path: str | Path, city: City) -> ActorPolicy:
-    """A deterministic policy from a checkpoint, ready for :func:`marl_amod.evaluation.evaluate`."""
+def load_policy(path: str | Path, city: City | str | None = None) -> ActorPolicy:
+    """A deterministic policy from a checkpoint, for ``city`` (a City or a scenario name; default:
+    the scenario on its card). It runs on the simulator and as a callable on env observations."""
+    if not isinstance(city, City):
+        from marl_amod.scenario import load_city
+
+        city = load_city(city if city is not None else _card_of(Path(path), _read_blob(Path(path))["card"]).scenario)
     actor, card = load_actor(path, city)
     return ActorPolicy(actor, city, card["lookahead"], name=Path(path).stem)
-
-
-def update_card(path: str | Path, **fields: Any) -> dict[str, Any]:
-    """Add fields (e.g. the config that reproduces the run) to a policy's card in .pt, .json and .md."""
-    path = Path(path)
-    blob = torch.load(path, map_location="cpu", weights_only=True)
-    blob["card"].update(fields)
-    torch.save(blob, path)
-    path.with_suffix(".json").write_text(json.dumps(blob["card"], indent=2, default=float) + "\n")
-    write_card_markdown(path, blob["card"])
-    return blob["card"]

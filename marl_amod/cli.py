@@ -22,6 +22,7 @@ from rich.table import Table
 from marl_amod.data import ENV_VAR
 from marl_amod.errors import ConfigError, MarlAmodError
 from marl_amod.files import check_destination, save_or_fallback, write_json
+from marl_amod.policies import policy_names
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Robo-taxi fleet coordination as a multi-agent RL benchmark.")
 # wide enough for the metrics table when output is piped (rich would assume 80 columns)
@@ -88,7 +89,9 @@ def metrics_table(results: list[dict], title: str) -> Table:
 @app.command()
 def evaluate(
     scenario: Annotated[str, typer.Option(help="scenario name or YAML path")] = "synthetic",
-    policy: Annotated[list[str], typer.Option(help="policy name or checkpoint; repeat to compare")] = ["equal-distribution"],  # noqa: B006
+    policy: Annotated[
+        list[str], typer.Option(help=f"{', '.join(policy_names())} or a checkpoint .pt; repeat to compare")
+    ] = ["equal-distribution"],  # noqa: B006
     episodes: Annotated[int, typer.Option(min=1)] = 10,
     seed: Annotated[int, typer.Option(min=0)] = 0,
     output: Annotated[Path | None, typer.Option(help="write the results JSON here")] = None,
@@ -99,7 +102,7 @@ def evaluate(
 ) -> None:
     """Run policies for whole episodes and print (and save) their metrics."""
     from marl_amod.evaluation import evaluate as run_eval
-    from marl_amod.evaluation import make_policy
+    from marl_amod.evaluation import results_payload
     from marl_amod.scenario import load_city
 
     _use_data_dir(data_dir)
@@ -109,17 +112,16 @@ def evaluate(
     results = []
     with progress_bar() as bar:
         for name in policy:
-            pol = make_policy(name, city)
             task = bar.add_task(f"{name} on {city.name}", total=episodes)
             results.append(
                 run_eval(
-                    city, pol, episodes=episodes, seed=seed, max_wait=max_wait, objective=objective, solver=solver,
+                    name, city, episodes, seed, max_wait=max_wait, objective=objective, solver=solver,
                     progress=lambda _k, task=task: bar.advance(task),
                 )
             )
     console.print(metrics_table(results, f"{city.name}: {episodes} episodes, seed {seed}"))
     if output is not None:
-        payload = results[0] if len(results) == 1 else {"scenario": city.name, "results": results}
+        payload = results_payload(results)
         save_or_fallback(output, lambda path: write_json(path, payload), what="the results")
         console.print(f"wrote {output}")
 
@@ -136,7 +138,7 @@ def collect(
 ) -> None:
     """Roll a behaviour policy and write an offline dataset (observation, action, reward, next observation, done)."""
     from marl_amod.datasets import collect as collect_dataset
-    from marl_amod.evaluation import make_policy
+    from marl_amod.policies import make_policy
     from marl_amod.scenario import load_city
 
     _use_data_dir(data_dir)
@@ -154,7 +156,7 @@ def collect(
 
 @app.command()
 def train(
-    config: Annotated[Path, typer.Option(help="training config YAML (configs/<run>.yaml)")],
+    config: Annotated[Path, typer.Option(help="training config YAML (configs/<algo>/<city>.yaml)")],
     resume: Annotated[Path | None, typer.Option(help="resume from a training state (runs/<run>/state.pt)")] = None,
     backend: Annotated[str, typer.Option(help="native (A2C/SAC in-process) or rllib (PPO on Ray RLlib)")] = "native",
     num_env_runners: Annotated[
@@ -176,31 +178,37 @@ def train(
         raise ConfigError(f"--backend must be native or rllib, got {backend!r}")
     if num_env_runners is not None or address is not None:
         raise ConfigError("--num-env-runners and --address need --backend rllib")
-    from marl_amod.training import load_train_config, run_training
+    from marl_amod.algos.common import TrainingInterrupted
+    from marl_amod.algos.registry import load_train_config, run_training
 
     algo, args = load_train_config(config)
     last_eval: dict[str, float] = {}
-    with progress_bar() as bar:
-        task = bar.add_task(f"{algo} {args.mode} on {args.scenario}", total=args.episodes)
+    try:
+        with progress_bar() as bar:
+            task = bar.add_task(f"{algo} {args.mode} on {args.scenario}", total=args.episodes)
 
-        def progress(ep: int, total: int, stats: dict) -> None:
-            if "eval/profit" in stats:
-                last_eval["profit"] = stats["eval/profit"]
-            desc = f"{algo} {args.mode} on {args.scenario}"
-            if last_eval:
-                desc += f" | val profit {last_eval['profit']:,.0f}"
-            bar.update(task, completed=ep, description=desc)
+            def progress(ep: int, total: int, stats: dict) -> None:
+                if "eval/profit" in stats:
+                    last_eval["profit"] = stats["eval/profit"]
+                desc = f"{algo} {args.mode} on {args.scenario}"
+                if last_eval:
+                    desc += f" | val profit {last_eval['profit']:,.0f}"
+                bar.update(task, completed=ep, description=desc)
 
-        summary = run_training(algo, args, resume=str(resume) if resume else None, progress=progress)
+            summary = run_training(algo, args, resume=str(resume) if resume else None, progress=progress, config_path=str(config))
+    except TrainingInterrupted as stop:
+        console.print(
+            f"interrupted at episode {stop.episode}: training state in {stop.path}; "
+            f"resume with: marl-amod train --config {config} --resume {stop.path}",
+            soft_wrap=True,  # one line, however long the paths
+        )
+        raise typer.Exit(130) from None
     card = summary["card"]
     console.print(
         f"{card['scenario']}: profit {card['profit_mean']:,.1f} ± {card['profit_std']:,.1f} over {card['eval_episodes']} episodes "
         f"(seed {card['eval_seed']}), trained {card['episodes_trained']} episodes in {card['training_wall_s'] / 60:.1f} min"
     )
     if "policy" in summary:
-        from marl_amod.checkpoints import update_card
-
-        update_card(summary["policy"], config=str(config))
         console.print(f"wrote {summary['policy']} (+ .json, .md); logs in {args.run_dir}")
 
 
@@ -238,7 +246,7 @@ def _train_rllib(config: Path, num_env_runners: int | None, address: str | None)
 
 @app.command()
 def compare(
-    config: Annotated[Path, typer.Option(help="comparison config YAML (configs/compare_<city>.yaml)")],
+    config: Annotated[Path, typer.Option(help="comparison config YAML (configs/compare/<city>.yaml)")],
     data_dir: DataDir = None,
 ) -> None:
     """Learned policies (centralised, decentralised, ablations) vs baselines on the same seeds: table + plots."""
@@ -246,7 +254,7 @@ def compare(
 
     _use_data_dir(data_dir)
     cfg = load_compare_config(config)
-    payload = run_compare(cfg, log=console.print)
+    payload = run_compare(cfg, log=console.print, config_path=str(config))
     console.print((Path(cfg.output) / "compare.md").read_text())
     console.print(f"best baseline: {payload['best_baseline']}")
 

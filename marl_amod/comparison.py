@@ -1,6 +1,6 @@
 """``marl-amod compare``: trained policies against baselines and ablations on the same seeds.
 
-A compare config (configs/compare_<city>.yaml) names the scenario, the evaluation seeds, the
+A compare config (configs/compare/<city>.yaml) names the scenario, the evaluation seeds, the
 baselines, and the learned runs. Each run either points at an existing policy file or is trained
 from its algorithm Args (with the same budget as its siblings). Everything is then evaluated on
 the same demand streams and written as a markdown table, a JSON file and three plots.
@@ -8,30 +8,31 @@ the same demand streams and written as a markdown table, a JSON file and three p
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from marl_amod.data import read_yaml
+from marl_amod.config import problems, read_config
 from marl_amod.errors import ConfigError
+from marl_amod.files import atomic_write, write_json
 
 
 class RunSpec(BaseModel):
-    """One learned policy in the comparison."""
+    """One learned policy in the comparison: a training config (plus overrides) or an algorithm and its args."""
 
     model_config = ConfigDict(extra="forbid")
     label: str = Field(description="row name in the table and plots")
-    algo: Literal["a2c", "sac"]
+    config: str | None = Field(None, description="a training config, relative to this file; args override its args")
+    algo: str | None = Field(None, description="a name in marl_amod.algos.registry.ALGOS (default: the config's)")
     args: dict[str, Any] = Field(default_factory=dict, description="the algorithm's Args (checked strictly)")
     retrain: bool = Field(False, description="train even if args.policy_out already exists")
 
 
 class CompareConfig(BaseModel):
-    """configs/compare_<city>.yaml."""
+    """configs/compare/<city>.yaml."""
 
     model_config = ConfigDict(extra="forbid")
     scenario: str
@@ -42,27 +43,44 @@ class CompareConfig(BaseModel):
     output: str = Field("results/compare", description="folder for compare.md, compare.json and plots")
 
 
-def load_compare_config(path: str | Path) -> CompareConfig:
-    from marl_amod.training import make_args
+def _resolve_run(path: Path, run: RunSpec) -> RunSpec:
+    """The run with its training config (if any) folded in: algo set, args complete."""
+    if run.config is None:
+        if run.algo is None:
+            raise ConfigError(f"{path} run {run.label!r}: give a training config or an algo")
+        return run
+    base = read_config(path.parent / run.config)
+    algo = run.algo or base.get("algo")
+    if base.get("algo") != algo:
+        raise ConfigError(f"{path} run {run.label!r}: algo {run.algo} differs from {run.config}'s {base.get('algo')}")
+    return run.model_copy(update={"algo": algo, "args": {**(base.get("args") or {}), **run.args}})
 
-    raw = read_yaml(path)
+
+def load_compare_config(path: str | Path) -> CompareConfig:
+    from marl_amod.algos.registry import args_for
+
+    path = Path(path)
+    raw = read_config(path)
     try:
         cfg = CompareConfig.model_validate(raw)
     except ValidationError as exc:
-        raise ConfigError(f"{path}: {exc}") from None
-    for run in cfg.runs:  # fail on a typo before any training starts
-        args = make_args(run.algo, {"scenario": cfg.scenario, **run.args}, f"{path} run {run.label!r}")
+        raise problems(str(path), exc) from None
+    cfg.runs = [_resolve_run(path, run) for run in cfg.runs]
+    for run in cfg.runs:  # fail on a typo or a scenario mismatch before any training starts
+        if run.args.get("scenario", cfg.scenario) != cfg.scenario:
+            raise ConfigError(f"{path} run {run.label!r}: args.scenario: {run.args['scenario']} is not the comparison's {cfg.scenario}")
+        args = args_for(run.algo, {**run.args, "scenario": cfg.scenario}, f"{path} run {run.label!r}")
         if not args.policy_out:
             raise ConfigError(f"{path} run {run.label!r}: args.policy_out is required (where the trained policy lives)")
     return cfg
 
 
-def run_compare(cfg: CompareConfig, log: Callable[[str], None] = print) -> dict[str, Any]:
+def run_compare(cfg: CompareConfig, log: Callable[[str], None] = print, config_path: str | None = None) -> dict[str, Any]:
     """Train what is missing, evaluate everything on the same seeds, write table + plots."""
-    from marl_amod.checkpoints import load_policy
+    from marl_amod.algos.registry import args_for, run_training
+    from marl_amod.checkpoints import read_card
     from marl_amod.evaluation import evaluate
     from marl_amod.scenario import load_city
-    from marl_amod.training import make_args, run_training
 
     city = load_city(cfg.scenario)
     out = Path(cfg.output)
@@ -70,15 +88,15 @@ def run_compare(cfg: CompareConfig, log: Callable[[str], None] = print) -> dict[
     rows: list[dict[str, Any]] = []
     for name in cfg.baselines:
         log(f"evaluating {name}")
-        rows.append({"label": name, "kind": "baseline", "result": evaluate(city, name, episodes=cfg.episodes, seed=cfg.seed)})
+        rows.append({"label": name, "kind": "baseline", "result": evaluate(name, city, cfg.episodes, cfg.seed)})
     for run in cfg.runs:
-        args = make_args(run.algo, {"scenario": cfg.scenario, **run.args})
+        args = args_for(run.algo, {**run.args, "scenario": cfg.scenario})
         if run.retrain or not Path(args.policy_out).is_file():
             log(f"training {run.label} ({run.algo}, {args.mode})")
-            run_training(run.algo, args)
-        card = json.loads(Path(args.policy_out).with_suffix(".json").read_text())
+            run_training(run.algo, args, config_path=config_path)
+        card = read_card(args.policy_out)
         log(f"evaluating {run.label}")
-        result = evaluate(city, load_policy(args.policy_out, city), episodes=cfg.episodes, seed=cfg.seed)
+        result = evaluate(args.policy_out, city, cfg.episodes, cfg.seed)
         rows.append({"label": run.label, "kind": "learned", "result": result, "card": card, "run_dir": args.run_dir})
 
     best = max((r for r in rows if r["kind"] == "baseline"), key=lambda r: r["result"]["metrics"]["profit"]["mean"], default=None)
@@ -91,8 +109,8 @@ def run_compare(cfg: CompareConfig, log: Callable[[str], None] = print) -> dict[
         "rows": [{k: v for k, v in r.items() if k != "result"} | {"metrics": r["result"]["metrics"],
                   "per_region": r["result"]["per_region"]} for r in rows],
     }
-    (out / "compare.json").write_text(json.dumps(payload, indent=2, default=float))
-    (out / "compare.md").write_text(markdown_table(rows, city.name, cfg.episodes, cfg.seed, best["label"] if best else "-"))
+    write_json(out / "compare.json", payload)
+    atomic_write(out / "compare.md", markdown_table(rows, city.name, cfg.episodes, cfg.seed, best["label"] if best else "-"))
     plot_all(rows, out, city.name)
     log(f"wrote {out}/compare.md, compare.json, learning_curves.png, profit.png, served_by_region.png")
     return payload
@@ -124,7 +142,7 @@ def plot_all(rows: list[dict], out: Path, scenario: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from marl_amod.training import read_curve
+    from marl_amod.algos.common import read_curve
 
     fig, ax = plt.subplots(figsize=(7, 4))
     for r in rows:

@@ -1,43 +1,27 @@
-"""Run policies for whole episodes on a scenario and collect the metrics JSON."""
+"""Run a policy for whole episodes on a scenario and collect the metrics JSON.
+
+:func:`evaluate` is the one evaluation path: ``marl-amod evaluate``, ``marl_amod.evaluate``,
+``compare`` and training's validation all call it, so every policy (a baseline, MPC, a trained
+checkpoint, or an outside callable on observations) is scored on the same demand draws.
+"""
 
 from __future__ import annotations
 
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from marl_amod.baselines import BASELINES, Policy
+from marl_amod.baselines.base import Policy
 from marl_amod.errors import ConfigError
 from marl_amod.metrics import episode_metrics, region_metrics, result_record
+from marl_amod.policies import PolicyLike, make_policy
 from marl_amod.scenario import City, load_city
 from marl_amod.system import FleetSystem
 from marl_amod.validation import as_count, as_seed
 
-PolicyFactory = Callable[[City], Policy]
-_EXTRA_POLICIES: dict[str, PolicyFactory] = {}
-
-
-def register_policy(name: str, factory: PolicyFactory) -> None:
-    """Make a policy available by name to :func:`make_policy` and the CLI."""
-    _EXTRA_POLICIES[name] = factory
-
-
-def policy_names() -> list[str]:
-    return sorted(set(BASELINES) | set(_EXTRA_POLICIES))
-
-
-def make_policy(name: str, city: City) -> Policy:
-    """A policy by name (a baseline or a registered one) or from a checkpoint path (.pt)."""
-    if name in BASELINES:
-        return BASELINES[name]()
-    if name in _EXTRA_POLICIES:
-        return _EXTRA_POLICIES[name](city)
-    if name.endswith(".pt"):
-        from marl_amod.checkpoints import load_policy
-
-        return load_policy(name, city)
-    raise ConfigError(f"unknown policy {name!r}; known: {', '.join(policy_names())} or a checkpoint .pt path")
+SYSTEM_OPTIONS = ("max_wait", "objective", "solver")  # FleetSystem's; every other option is the policy's
 
 
 def episode_seeds(seed: int, episode: int) -> tuple[np.random.SeedSequence, np.random.Generator]:
@@ -57,21 +41,31 @@ def run_episode(system: FleetSystem, policy: Policy, seed: int, episode: int = 0
 
 
 def evaluate(
-    scenario: str | City,
-    policy: str | Policy,
-    *,
+    policy: PolicyLike,
+    scenario: str | Path | City = "synthetic",
     episodes: int = 10,
     seed: int = 0,
+    *,
     progress: Callable[[int], None] | None = None,
-    **system_kwargs: Any,
+    **options: Any,
 ) -> dict[str, Any]:
-    """Evaluate one policy for ``episodes`` episodes; episode k draws demand from (seed, k)."""
+    """Evaluate one policy for ``episodes`` episodes; episode k draws demand from (seed, k).
+
+    ``policy``: a registered name, a checkpoint path, a Policy, or a callable from the env's
+    observations dict to its actions dict. ``options``: ``max_wait``, ``objective`` and
+    ``solver`` set up the system; the rest go to the policy (e.g. MPC's ``horizon``, a
+    callable's ``lookahead`` and ``action_mode``). Returns exactly the JSON that
+    ``marl-amod evaluate --output`` writes for this policy.
+    """
+    if isinstance(policy, City) or isinstance(scenario, Policy):
+        raise ConfigError("evaluate(policy, scenario, ...) takes the policy first, then the scenario")
     if as_count(episodes, "episodes") < 1:
         raise ConfigError(f"episodes must be >= 1, got {episodes}")
     seed = as_seed(seed)
-    city = load_city(scenario) if isinstance(scenario, str) else scenario
-    pol = make_policy(policy, city) if isinstance(policy, str) else policy
-    system = FleetSystem(city, **system_kwargs)
+    city = scenario if isinstance(scenario, City) else load_city(str(scenario))
+    system_options = {key: options.pop(key) for key in SYSTEM_OPTIONS if key in options}
+    pol = make_policy(policy, city, **options)
+    system = FleetSystem(city, **system_options)
     per_episode, per_region = [], []
     for k in range(episodes):
         m, r = run_episode(system, pol, seed, k)
@@ -79,4 +73,11 @@ def evaluate(
         per_region.append(r)
         if progress is not None:
             progress(k)
-    return result_record(city.name, getattr(pol, "name", str(policy)), seed, per_episode, per_region)
+    return result_record(city.name, pol.name, seed, per_episode, per_region)
+
+
+def results_payload(results: list[dict[str, Any]]) -> dict[str, Any]:
+    """What ``evaluate --output`` writes: one policy's record as is, several under their scenario."""
+    if len(results) == 1:
+        return results[0]
+    return {"scenario": results[0]["scenario"], "results": results}

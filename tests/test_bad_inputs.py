@@ -233,7 +233,7 @@ class NanPolicy(WeightPolicy):
 
 def test_nan_policy_weights_raise_instead_of_meaning_stay(tiny_city):
     with pytest.raises(ActionError, match=r"rebalancing weights is not finite \(nan\) at region 3"):
-        evaluate(tiny_city, NanPolicy(), episodes=1)
+        evaluate(NanPolicy(), tiny_city, episodes=1)
 
 
 def test_a_diverged_network_raises_instead_of_meaning_stay(tiny_city):
@@ -247,7 +247,7 @@ def test_a_diverged_network_raises_instead_of_meaning_stay(tiny_city):
         for param in actor.parameters():
             param.fill_(float("nan"))
     with pytest.raises(ActionError, match="rebalancing weights is not finite"):
-        evaluate(tiny_city, ActorPolicy(actor, tiny_city), episodes=1)
+        evaluate(ActorPolicy(actor, tiny_city), tiny_city, episodes=1)
 
 
 # --------------------------------------------------------------------------- coordinator
@@ -324,7 +324,7 @@ def test_numpy_seeds_are_seeds_and_negative_seeds_a_clear_error():
     with pytest.raises(ConfigError, match="seed must be a non-negative integer, got 1.5"):
         env.reset(seed=1.5)
     with pytest.raises(ConfigError, match="seed must be a non-negative integer"):
-        evaluate("synthetic", "equal-distribution", episodes=1, seed=-1)
+        evaluate("equal-distribution", "synthetic", episodes=1, seed=-1)
     result = runner.invoke(app, ["evaluate", "--episodes", "1", "--seed", "-1"])
     assert result.exit_code == 2 and "--seed" in result.output
 
@@ -336,7 +336,7 @@ def test_max_wait_and_episode_counts_are_bounded_up_front(tiny_city):
         MacroSim(tiny_city, max_wait=True)
     assert FleetSystem(tiny_city, max_wait=np.int64(6)).sim.max_wait == 6
     with pytest.raises(ConfigError, match="episodes must be >= 1"):
-        evaluate(tiny_city, "equal-distribution", episodes=0)
+        evaluate("equal-distribution", tiny_city, episodes=0)
     with pytest.raises(ConfigError, match="episodes must be >= 1"):
         collect(tiny_city, NanPolicy(), episodes=0)
 

@@ -7,7 +7,8 @@ import pytest
 
 from marl_amod.baselines.behaviour import DynamicTripVehicle, Informed, Proportional
 from marl_amod.errors import ConfigError
-from marl_amod.evaluation import evaluate, make_policy, policy_names
+from marl_amod.evaluation import evaluate
+from marl_amod.policies import make_policy, policy_names
 from marl_amod.system import FleetSystem
 
 NAMES = ["inf", "dtv", "prop", "mpc-oracle", "mpc-forecast"]
@@ -54,7 +55,7 @@ def test_prop_weights_follow_the_forecast_not_the_draw(tiny_city):
 
 
 def test_inf_sends_nothing_beyond_max_reb_and_is_deterministic(tiny_city):
-    result = [evaluate(tiny_city, Informed(max_reb=2), episodes=2, seed=0)["per_episode"] for _ in range(2)]
+    result = [evaluate(Informed(max_reb=2), tiny_city, episodes=2, seed=0)["per_episode"] for _ in range(2)]
     assert result[0] == result[1]
     with pytest.raises(ConfigError):
         Informed(max_reb=0)

@@ -9,7 +9,7 @@ from typer.testing import CliRunner
 from marl_amod.cli import app
 from marl_amod.datasets import ARRAY_KEYS, OfflineDataset, agent_transitions, collect
 from marl_amod.errors import DataError
-from marl_amod.evaluation import make_policy
+from marl_amod.policies import make_policy
 
 
 @pytest.fixture
@@ -41,7 +41,7 @@ def test_dataset_contents_are_consistent(tiny_city, dataset):
 def test_dataset_rewards_match_evaluation(tiny_city, dataset):
     from marl_amod.evaluation import evaluate
 
-    profits = evaluate(tiny_city, "prop", episodes=2, seed=3)["per_episode"]
+    profits = evaluate("prop", tiny_city, episodes=2, seed=3)["per_episode"]
     # episode profit = first dispatch (not a transition) + transition rewards; transitions are the larger part
     for ep, m in enumerate(profits):
         assert dataset.reward[dataset.episode == ep].sum() <= m["profit"] + 1e-3

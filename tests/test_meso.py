@@ -101,8 +101,8 @@ def test_meso_env_passes_pettingzoo_parallel_api():
 
 
 def test_meso_evaluate_gives_the_macro_json_schema():
-    res = evaluate("sumo_grid", "equal-distribution", episodes=1, seed=0)
-    macro = evaluate(load_city("synthetic", horizon=3), "equal-distribution", episodes=1, seed=0)
+    res = evaluate("equal-distribution", "sumo_grid", episodes=1, seed=0)
+    macro = evaluate("equal-distribution", load_city("synthetic", horizon=3), episodes=1, seed=0)
     assert res["metrics"].keys() == macro["metrics"].keys()
     assert res["per_region"].keys() == macro["per_region"].keys()
     assert len(res["per_region"]["wait_time"]) == 4
@@ -112,7 +112,7 @@ def test_meso_evaluate_gives_the_macro_json_schema():
 def test_mpc_plans_on_meso_with_the_requests_that_will_still_wait(taxi_device):
     city = load_city("sumo_grid", fleet=6, requests_per_hour=900, max_wait_min=3, taxi_device=taxi_device)
     for policy in ("mpc-oracle", "mpc-forecast"):
-        assert evaluate(city, policy, episodes=1, seed=0)["metrics"]["served_demand"]["mean"] > 0
+        assert evaluate(policy, city, episodes=1, seed=0)["metrics"]["served_demand"]["mean"] > 0
     system = FleetSystem(city)
     system.reset(0)
     sim, leaving = system.sim, 0

@@ -6,18 +6,11 @@ import numpy as np
 import pytest
 
 from marl_amod.baselines import EqualDistribution
-from marl_amod.baselines.mpc import (
-    CvxpyMPC,
-    MPCForecast,
-    MPCOracle,
-    lp_matrices,
-    plan_data,
-    round_preserving_sum,
-    solve_scipy,
-    target_from_flows,
-)
+from marl_amod.baselines.base import round_preserving_sum, target_from_flows
+from marl_amod.baselines.mpc import CvxpyMPC, MPCForecast, MPCOracle, lp_matrices, plan_data, solve_scipy
 from marl_amod.errors import SolverError
-from marl_amod.evaluation import evaluate, make_policy
+from marl_amod.evaluation import evaluate
+from marl_amod.policies import make_policy
 from marl_amod.scenario import City
 from marl_amod.system import FleetSystem
 
@@ -155,14 +148,14 @@ def _one_hub_city() -> City:
 
 def test_mpc_oracle_beats_equal_distribution_where_rebalancing_pays():
     city = _one_hub_city()
-    ed = evaluate(city, "equal-distribution", episodes=3)["metrics"]["profit"]["mean"]
-    oracle = evaluate(city, MPCOracle(horizon=8), episodes=3)["metrics"]["profit"]["mean"]
-    none = evaluate(city, "no-rebalancing", episodes=3)["metrics"]["profit"]["mean"]
+    ed = evaluate("equal-distribution", city, episodes=3)["metrics"]["profit"]["mean"]
+    oracle = evaluate(MPCOracle(horizon=8), city, episodes=3)["metrics"]["profit"]["mean"]
+    none = evaluate("no-rebalancing", city, episodes=3)["metrics"]["profit"]["mean"]
     assert oracle > 1.2 * ed and ed > none
 
 
 def test_mpc_forecast_noise_is_seeded_and_targets_are_feasible(tiny_city):
-    results = [evaluate(tiny_city, MPCForecast(horizon=4, noise=0.3), episodes=2, seed=1) for _ in range(2)]
+    results = [evaluate(MPCForecast(horizon=4, noise=0.3), tiny_city, episodes=2, seed=1) for _ in range(2)]
     assert results[0]["per_episode"] == results[1]["per_episode"]
     system = FleetSystem(tiny_city)
     system.reset(0)

@@ -18,7 +18,7 @@ from marl_amod.evaluation import evaluate
 @needs_data
 def test_random_policy_on_brooklyn_matches_the_reference_performance_file():
     ref = read_json(data_dir() / "macro" / "nyc_brooklyn_no_control_performance.json")
-    m = evaluate("nyc_brooklyn", "random", episodes=20, seed=0)["metrics"]
+    m = evaluate("random", "nyc_brooklyn", episodes=20, seed=0)["metrics"]
     profit = m["profit"]["mean"] / 1e3
     rebalancing = m["rebalancing_cost"]["mean"] / 1e3
     assert profit == pytest.approx(ref["reward"], rel=0.04)

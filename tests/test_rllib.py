@@ -23,9 +23,9 @@ pytest.importorskip("ray.rllib")
 
 from typer.testing import CliRunner  # noqa: E402
 
+from marl_amod.algos.rollout import WEIGHT_DIVISOR  # noqa: E402
 from marl_amod.cli import app  # noqa: E402
 from marl_amod.integrations import rllib as rl  # noqa: E402
-from marl_amod.training import WEIGHT_DIVISOR  # noqa: E402
 
 
 def test_require_ray_names_the_extra_when_ray_is_missing(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -40,12 +40,12 @@ def test_rllib_config_rejects_unknown_keys_and_native_configs(tmp_path: Path) ->
     with pytest.raises(ConfigError, match="learning_rate"):
         rl.load_rllib_config(typo)
     with pytest.raises(ConfigError, match="without --backend rllib"):
-        rl.load_rllib_config(Path(__file__).parents[1] / "configs" / "a2c_synthetic.yaml")
-    assert rl.load_rllib_config(Path(__file__).parents[1] / "configs" / "ppo_rllib_synthetic.yaml").scenario == "synthetic"
+        rl.load_rllib_config(Path(__file__).parents[1] / "configs" / "a2c" / "synthetic.yaml")
+    assert rl.load_rllib_config(Path(__file__).parents[1] / "configs" / "ppo_rllib" / "synthetic.yaml").scenario == "synthetic"
 
 
 def test_train_cli_keeps_rllib_options_to_the_rllib_backend() -> None:
-    native = str(Path(__file__).parents[1] / "configs" / "a2c_synthetic.yaml")
+    native = str(Path(__file__).parents[1] / "configs" / "a2c" / "synthetic.yaml")
     out = CliRunner().invoke(app, ["train", "--config", native, "--num-env-runners", "2"])
     assert isinstance(out.exception, ConfigError) and "--backend rllib" in str(out.exception)
     out = CliRunner().invoke(app, ["train", "--config", native, "--backend", "spark"])
@@ -135,6 +135,7 @@ def test_rllib_ppo_trains_saves_restores_converts_and_evaluates(
     assert not list(home.iterdir()), "Ray or RLlib wrote into the home directory"
     card = json.loads(policy.with_suffix(".json").read_text())
     assert card["actor"] == "local" and card["algorithm"] == "rllib-ppo" and card["iterations"] == 2
+    assert card["config"] == str(config) and card["env_version"] == "v0" and card["args"]["num_epochs"] == 1  # the one card type
 
     # restore the shared module from the RLlib checkpoint (no Ray needed) and convert it
     checkpoint = tmp_path / "run" / "checkpoint"

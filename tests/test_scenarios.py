@@ -160,6 +160,6 @@ def test_every_real_city_loads_and_runs_an_episode(name):
     city = load_city(name)
     assert city.n_regions >= 10 and city.fleet_size > 0 and city.demand_rate[:20].sum() > 0
     assert city.edge_index.max() < city.n_regions
-    result = evaluate(city, "equal-distribution", episodes=1, seed=0)
+    result = evaluate("equal-distribution", city, episodes=1, seed=0)
     m = result["metrics"]
     assert 0 < m["served_demand"]["mean"] <= m["demand"]["mean"]

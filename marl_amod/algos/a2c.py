@@ -14,40 +14,46 @@ Each update uses ``episodes_per_update`` whole episodes: discounted returns, adv
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+from pydantic import Field
 
-from marl_amod import training as T
+from marl_amod.algos import common as C
+from marl_amod.algos.rollout import Obs, Rollout, train_seed
 from marl_amod.models import GNNValueCritic, LocalActor, LocalValueCritic, build_actor, dirichlet, gamma, gamma_log_prob
 from marl_amod.scenario import load_city
 
 
-@dataclass
-class Args(T.RunArgs):
-    hidden: int = 32
+class Args(C.RunArgs):
+    hidden: int = Field(32, ge=1)
     """hidden units of the actor and critic MLPs (the paper's A2C uses 32)"""
-    episodes: int = 2000
+    episodes: int = Field(2000, ge=1)
     """training episodes"""
-    episodes_per_update: int = 4
+    episodes_per_update: int = Field(4, ge=1)
     """whole episodes per gradient step (more: less noisy advantages)"""
-    lr_actor: float = 1e-3
+    lr_actor: float = Field(1e-3, gt=0)
     """Adam learning rate of the actor"""
-    lr_critic: float = 1e-3
+    lr_critic: float = Field(1e-3, gt=0)
     """Adam learning rate of the critic"""
     normalize_returns: bool = True
     """standardise the batch's returns before computing advantages (as RL4AMOD's A2C)"""
-    entropy_coef: float = 0.0
+    entropy_coef: float = Field(0.0, ge=0)
     """weight of the policy entropy bonus"""
     run_dir: str = "runs/a2c"
     """TensorBoard + CSV logs and the resumable training state"""
 
+    def ignored_keys(self) -> dict[str, str]:
+        ignored = super().ignored_keys()
+        if self.mode == "decentralised" and not self.central_critic:
+            ignored["conv"] = "decentralised A2C with local critics uses the local actor only (SAGE)"
+        return ignored
 
-def act(actor: torch.nn.Module, obs: T.Obs, edge_index: torch.Tensor, mode: str) -> tuple[np.ndarray, torch.Tensor, torch.Tensor]:
+
+def act(actor: torch.nn.Module, obs: Obs, edge_index: torch.Tensor, mode: str) -> tuple[np.ndarray, torch.Tensor, torch.Tensor]:
     """Sample an action; returns (weights (N,), log pi (), entropy ())."""
     if mode == "centralised":
         alpha = actor(obs.x, edge_index)  # (N,)
@@ -60,7 +66,7 @@ def act(actor: torch.nn.Module, obs: T.Obs, edge_index: torch.Tensor, mode: str)
     return g.numpy(), gamma_log_prob(g, alpha), gamma(alpha).entropy().sum()
 
 
-def value(critic: torch.nn.Module, obs: T.Obs, edge_index: torch.Tensor, local: bool) -> torch.Tensor:
+def value(critic: torch.nn.Module, obs: Obs, edge_index: torch.Tensor, local: bool) -> torch.Tensor:
     """V(s) as a scalar tensor."""
     if local:
         return critic.forward_local(obs.own[None], obs.nbrs[None], obs.mask[None])[0]
@@ -75,11 +81,12 @@ def discounted_returns(rewards: list[float], gamma_: float) -> torch.Tensor:
     return torch.tensor(out[::-1], dtype=torch.float32)  # (T,)
 
 
-def train(args: Args, resume: str | None = None, progress: Callable[[int, int, dict], None] | None = None) -> dict[str, Any]:
+def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
+    """Train, keep the best validation actor, write its policy card; returns the run summary."""
     torch.set_num_threads(args.threads)
-    T.seed_everything(args.seed)
+    C.seed_everything(args.seed)
     city = load_city(args.scenario)
-    rollout = T.Rollout(city, args.mode, args.lookahead)
+    rollout = Rollout(city, args.mode, args.lookahead)
     edge_index = torch.as_tensor(city.edge_index, dtype=torch.long)
     n_features = 1 + 2 * args.lookahead
     local_critic = args.mode == "decentralised" and not args.central_critic
@@ -91,61 +98,68 @@ def train(args: Args, resume: str | None = None, progress: Callable[[int, int, d
     opt_a = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
     opt_c = torch.optim.Adam(critic.parameters(), lr=args.lr_critic)
 
-    start_ep, prior_wall, best = 0, 0.0, T.BestActor.of(actor)
+    start_ep, prior_wall, best = 0, 0.0, C.BestActor.of(actor)
     if resume:
-        st = T.load_state(resume)
+        st = C.load_state(resume, "a2c")
         actor.load_state_dict(st["actor"]), critic.load_state_dict(st["critic"])
         opt_a.load_state_dict(st["opt_a"]), opt_c.load_state_dict(st["opt_c"])
-        start_ep, prior_wall, best = st["episode"], st["wall_s"], T.BestActor(st["best_val"], st["best_actor"])
-    log = T.Logger(args.run_dir)
-    timer = T.Timer()
+        start_ep, prior_wall, best = st["episode"], st["wall_s"], C.BestActor(st["best_val"], st["best_actor"])
+    log = C.Logger(args.run_dir, resume_from=start_ep if resume else None)
+    timer = C.Timer(prior_wall)
+    done_ep = ep = start_ep  # done_ep: episodes whose update has been applied
 
-    ep = start_ep
-    while ep < args.episodes:
-        # ---- collect a batch of whole episodes ----
-        logps, values, returns, ents, ep_rewards = [], [], [], [], []
-        for _ in range(args.episodes_per_update):
-            obs = rollout.reset(T.train_seed(args.seed, ep))
-            rewards: list[float] = []
-            while not rollout.done:
-                w, logp, ent = act(actor, obs, edge_index, args.mode)
-                values.append(value(critic, obs, edge_index, local_critic))
-                logps.append(logp)
-                ents.append(ent)
-                obs, r = rollout.step(w)
-                rewards.append(r * args.reward_scale)
-            returns.append(discounted_returns(rewards, args.gamma))
-            ep_rewards.append(sum(rewards) / args.reward_scale)
-            ep += 1
-        ret = torch.cat(returns)  # (B*T,)
-        if args.normalize_returns:
-            ret = (ret - ret.mean()) / (ret.std() + 1e-8)
-        v = torch.stack(values)  # (B*T,)
-        adv = ret - v.detach()
+    def save() -> tuple[Path, int]:
+        path = C.state_path(args)
+        C.save_state(
+            path, algorithm="a2c", actor=actor.state_dict(), critic=critic.state_dict(), opt_a=opt_a.state_dict(),
+            opt_c=opt_c.state_dict(), episode=done_ep, best_val=best.value, best_actor=best.state, wall_s=timer(),
+        )
+        return path, done_ep
 
-        # ---- one actor and one critic step ----
-        loss_pi = -(torch.stack(logps) * adv).mean() - args.entropy_coef * torch.stack(ents).mean()
-        loss_v = F.smooth_l1_loss(v, ret)
-        opt_a.zero_grad()
-        loss_pi.backward()
-        torch.nn.utils.clip_grad_norm_(actor.parameters(), args.max_grad_norm)
-        opt_a.step()
-        opt_c.zero_grad()
-        loss_v.backward()
-        torch.nn.utils.clip_grad_norm_(critic.parameters(), args.max_grad_norm)
-        opt_c.step()
+    with C.interruptible(save):
+        while ep < args.episodes:
+            # ---- collect a batch of whole episodes ----
+            logps, values, returns, ents, ep_rewards = [], [], [], [], []
+            for _ in range(args.episodes_per_update):
+                obs = rollout.reset(train_seed(args.seed, ep))
+                rewards: list[float] = []
+                while not rollout.done:
+                    w, logp, ent = act(actor, obs, edge_index, args.mode)
+                    values.append(value(critic, obs, edge_index, local_critic))
+                    logps.append(logp)
+                    ents.append(ent)
+                    obs, r = rollout.step(w)
+                    rewards.append(r * args.reward_scale)
+                returns.append(discounted_returns(rewards, args.gamma))
+                ep_rewards.append(sum(rewards) / args.reward_scale)
+                ep += 1
+            ret = torch.cat(returns)  # (B*T,)
+            if args.normalize_returns:
+                ret = (ret - ret.mean()) / (ret.std() + 1e-8)
+            v = torch.stack(values)  # (B*T,)
+            adv = ret - v.detach()
 
-        stats = {"train/episode_reward": float(np.mean(ep_rewards)), "loss/policy": loss_pi.item(), "loss/value": loss_v.item()}
-        # ---- periodic validation, best-actor selection, resumable state ----
-        if ep // args.eval_every != (ep - args.episodes_per_update) // args.eval_every or ep >= args.episodes:
-            stats["eval/profit"] = best.validate(actor, city, args)
-            T.save_state(
-                f"{args.run_dir}/state.pt", actor=actor.state_dict(), critic=critic.state_dict(), opt_a=opt_a.state_dict(),
-                opt_c=opt_c.state_dict(), episode=ep, best_val=best.value, best_actor=best.state, wall_s=prior_wall + timer(),
-            )
-        if T.close_episode(log, rollout, ep, stats, args, prior_wall + timer(), progress):
-            break
+            # ---- one actor and one critic step ----
+            loss_pi = -(torch.stack(logps) * adv).mean() - args.entropy_coef * torch.stack(ents).mean()
+            loss_v = F.smooth_l1_loss(v, ret)
+            opt_a.zero_grad()
+            loss_pi.backward()
+            torch.nn.utils.clip_grad_norm_(actor.parameters(), args.max_grad_norm)
+            opt_a.step()
+            opt_c.zero_grad()
+            loss_v.backward()
+            torch.nn.utils.clip_grad_norm_(critic.parameters(), args.max_grad_norm)
+            opt_c.step()
+            done_ep = ep
+
+            stats = {"train/episode_reward": float(np.mean(ep_rewards)), "loss/policy": loss_pi.item(), "loss/value": loss_v.item()}
+            # ---- periodic validation, best-actor selection, resumable state ----
+            if ep // args.eval_every != (ep - args.episodes_per_update) // args.eval_every or ep >= args.episodes:
+                stats["eval/profit"] = best.validate(actor, city, args)
+                save()
+            if C.close_episode(log, rollout, ep, stats, args, timer(), progress):
+                break
 
     log.close()
     actor.load_state_dict(best.state)
-    return T.finish_run(args, "a2c", actor, city, prior_wall + timer(), ep)
+    return C.finish_run(args, "a2c", actor, city, timer(), ep, config_path)

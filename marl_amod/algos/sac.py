@@ -16,47 +16,55 @@ a log pi(y|s) - min Q(s, y); Polyak-averaged targets; clipped gradients.
 from __future__ import annotations
 
 import copy
-from collections.abc import Callable
-from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+from pydantic import Field
 
-from marl_amod import training as T
+from marl_amod.algos import common as C
+from marl_amod.algos.rollout import Obs, Rollout, train_seed
 from marl_amod.models import LocalActor, TwinQ, build_actor, dirichlet, gamma, gamma_log_prob
 from marl_amod.scenario import load_city
 
 
-@dataclass
-class Args(T.RunArgs):
-    hidden: int = 256
+class Args(C.RunArgs):
+    hidden: int = Field(256, ge=1)
     """hidden units of the actor and critic MLPs (the paper's SAC uses 256)"""
-    central_critic: bool = True
-    """kept for symmetry with A2C: SAC's Q critics always read the global graph (state())"""
-    batch_size: int = 100
+    batch_size: int = Field(100, ge=1)
     """transitions per gradient step"""
-    buffer_size: int = 100_000
+    buffer_size: int = Field(100_000, ge=1)
     """replay capacity (transitions)"""
-    warmup_steps: int = 1000
+    warmup_steps: int = Field(1000, ge=0)
     """transitions collected before the first update (an untrained critic misleads the actor)"""
-    updates_per_step: int = 1
+    updates_per_step: int = Field(1, ge=1)
     """gradient steps per environment step"""
-    lr_actor: float = 1e-4
+    lr_actor: float = Field(1e-4, gt=0)
     """Adam learning rate of the actor (1e-3 collapsed the policy within 100 episodes here)"""
-    lr_critic: float = 1e-3
+    lr_critic: float = Field(1e-3, gt=0)
     """Adam learning rate of the twin critics"""
-    alpha: float = 0.3
+    lr_alpha: float = Field(1e-3, gt=0)
+    """Adam learning rate of the entropy temperature (auto_entropy only)"""
+    alpha: float = Field(0.3, gt=0)
     """entropy temperature (fixed unless auto_entropy); its effect scales inversely with reward_scale"""
     auto_entropy: bool = False
     """tune the temperature towards target entropy -N"""
-    polyak: float = 0.995
+    polyak: float = Field(0.995, ge=0, le=1)
     """target-network averaging factor"""
-    eval_every: int = 50
+    eval_every: int = Field(50, ge=1)
     """episodes between validation evaluations"""
     run_dir: str = "runs/sac"
     """TensorBoard + CSV logs and the resumable training state"""
+
+    def ignored_keys(self) -> dict[str, str]:
+        ignored = {**super().ignored_keys(), "central_critic": "SAC's Q critics always read the global graph"}
+        if self.mode == "decentralised":
+            ignored["conv"] = "decentralised SAC uses the local actor and SAGE critics"
+        if not self.auto_entropy:
+            ignored["lr_alpha"] = "the temperature is fixed unless auto_entropy: true"
+        return ignored
 
 
 class Replay:
@@ -75,12 +83,23 @@ class Replay:
         self.ptr = (self.ptr + 1) % self.capacity
         self.size = min(self.size + 1, self.capacity)
 
+    def state_dict(self) -> dict[str, Any]:
+        """The filled part only (a resumed run continues with the same transitions)."""
+        return {"capacity": self.capacity, "size": self.size, "ptr": self.ptr, "data": {k: v[: self.size].clone() for k, v in self.data.items()}}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.size, self.ptr = state["size"], state["ptr"]
+        self.data = {}
+        for k, v in state["data"].items():
+            self.data[k] = torch.zeros((self.capacity, *v.shape[1:]), dtype=torch.float32)
+            self.data[k][: self.size] = v
+
     def sample(self, batch: int, gen: torch.Generator) -> dict[str, torch.Tensor]:
         idx = torch.randint(0, self.size, (batch,), generator=gen)
         return {k: v[idx] for k, v in self.data.items()}
 
 
-def _obs_items(obs: T.Obs, prefix: str, local: bool) -> dict[str, torch.Tensor]:
+def _obs_items(obs: Obs, prefix: str, local: bool) -> dict[str, torch.Tensor]:
     items = {f"{prefix}x": obs.x}
     if local:
         items.update({f"{prefix}own": obs.own, f"{prefix}nbrs": obs.nbrs, f"{prefix}mask": obs.mask})
@@ -99,13 +118,14 @@ def policy_sample(actor, b: dict[str, torch.Tensor], prefix: str, edge_index: to
     return y, dirichlet(alpha).log_prob(y)
 
 
-def train(args: Args, resume: str | None = None, progress: Callable[[int, int, dict], None] | None = None) -> dict[str, Any]:
+def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
+    """Train, keep the best validation actor, write its policy card; returns the run summary."""
     torch.set_num_threads(args.threads)
-    T.seed_everything(args.seed)
+    C.seed_everything(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
     city = load_city(args.scenario)
     local = args.mode == "decentralised"
-    rollout = T.Rollout(city, args.mode, args.lookahead)
+    rollout = Rollout(city, args.mode, args.lookahead)
     edge_index = torch.as_tensor(city.edge_index, dtype=torch.long)
     n_features = 1 + 2 * args.lookahead
     actor = LocalActor(n_features, args.hidden) if local else build_actor(args.actor, city, n_features, args.hidden, args.conv)
@@ -114,19 +134,33 @@ def train(args: Args, resume: str | None = None, progress: Callable[[int, int, d
     opt_a = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
     opt_c = torch.optim.Adam(critic.parameters(), lr=args.lr_critic)
     log_alpha = torch.tensor(float(np.log(args.alpha)), requires_grad=True)
-    opt_alpha = torch.optim.Adam([log_alpha], lr=1e-3)
+    opt_alpha = torch.optim.Adam([log_alpha], lr=args.lr_alpha)
     target_entropy = -float(city.n_regions)
     buffer = Replay(args.buffer_size)
 
-    start_ep, prior_wall, n_steps, best = 0, 0.0, 0, T.BestActor.of(actor)
+    start_ep, prior_wall, n_steps, best = 0, 0.0, 0, C.BestActor.of(actor)
     if resume:
-        st = T.load_state(resume)
+        st = C.load_state(resume, "sac")
         actor.load_state_dict(st["actor"]), critic.load_state_dict(st["critic"]), critic_targ.load_state_dict(st["critic_targ"])
-        opt_a.load_state_dict(st["opt_a"]), opt_c.load_state_dict(st["opt_c"])
-        start_ep, prior_wall, best = st["episode"], st["wall_s"], T.BestActor(st["best_val"], st["best_actor"])
+        opt_a.load_state_dict(st["opt_a"]), opt_c.load_state_dict(st["opt_c"]), opt_alpha.load_state_dict(st["opt_alpha"])
+        start_ep, prior_wall, best = st["episode"], st["wall_s"], C.BestActor(st["best_val"], st["best_actor"])
         log_alpha.data.fill_(st["log_alpha"])
-    log = T.Logger(args.run_dir)
-    timer = T.Timer()
+        buffer.load_state_dict(st["replay"])
+        gen.set_state(st["gen"])
+        n_steps = st["n_steps"]
+    log = C.Logger(args.run_dir, resume_from=start_ep if resume else None)
+    timer = C.Timer(prior_wall)
+    ep = start_ep
+
+    def save() -> tuple[Path, int]:
+        path = C.state_path(args)
+        C.save_state(
+            path, algorithm="sac", actor=actor.state_dict(), critic=critic.state_dict(), critic_targ=critic_targ.state_dict(),
+            opt_a=opt_a.state_dict(), opt_c=opt_c.state_dict(), opt_alpha=opt_alpha.state_dict(), log_alpha=log_alpha.item(),
+            replay=buffer.state_dict(), gen=gen.get_state(), n_steps=n_steps, episode=ep, best_val=best.value,
+            best_actor=best.state, wall_s=timer(),
+        )
+        return path, ep
 
     def update() -> dict[str, float]:
         b = buffer.sample(args.batch_size, gen)
@@ -161,40 +195,36 @@ def train(args: Args, resume: str | None = None, progress: Callable[[int, int, d
                 pt.mul_(args.polyak).add_((1 - args.polyak) * p)
         return {"loss/q": loss_q.item(), "loss/policy": loss_pi.item(), "alpha": a.item()}
 
-    ep = start_ep
-    while ep < args.episodes:
-        obs = rollout.reset(T.train_seed(args.seed, ep))
-        ep_reward, stats = 0.0, {}
-        while not rollout.done:
-            with torch.no_grad():
-                if local:
-                    alpha_i = actor.forward_local(obs.own, obs.nbrs, obs.mask)  # (N,), each row from its own obs
-                    w = gamma(alpha_i).sample().clamp_min(1e-8)  # agents' Gamma weights
-                    y = w / w.sum()
-                else:
-                    y = dirichlet(actor(obs.x, edge_index)).sample().clamp_min(1e-6)
-                    y = w = y / y.sum()
-            nxt, r = rollout.step(w.numpy())
-            ep_reward += r
-            buffer.add(**_obs_items(obs, "", local), action=y, reward=r * args.reward_scale, done=float(rollout.done),
-                       **_obs_items(nxt, "next_", local))
-            obs = nxt
-            n_steps += 1
-            if buffer.size >= max(args.warmup_steps, args.batch_size):
-                for _ in range(args.updates_per_step):
-                    stats = update()
-        ep += 1
-        stats["train/episode_reward"] = ep_reward
-        if ep % args.eval_every == 0 or ep >= args.episodes:
-            stats["eval/profit"] = best.validate(actor, city, args)
-            T.save_state(
-                f"{args.run_dir}/state.pt", actor=actor.state_dict(), critic=critic.state_dict(), critic_targ=critic_targ.state_dict(),
-                opt_a=opt_a.state_dict(), opt_c=opt_c.state_dict(), log_alpha=log_alpha.item(), episode=ep, best_val=best.value,
-                best_actor=best.state, wall_s=prior_wall + timer(),
-            )
-        if T.close_episode(log, rollout, ep, stats, args, prior_wall + timer(), progress):
-            break
+    with C.interruptible(save):
+        while ep < args.episodes:
+            obs = rollout.reset(train_seed(args.seed, ep))
+            ep_reward, stats = 0.0, {}
+            while not rollout.done:
+                with torch.no_grad():
+                    if local:
+                        alpha_i = actor.forward_local(obs.own, obs.nbrs, obs.mask)  # (N,), each row from its own obs
+                        w = gamma(alpha_i).sample().clamp_min(1e-8)  # agents' Gamma weights
+                        y = w / w.sum()
+                    else:
+                        y = dirichlet(actor(obs.x, edge_index)).sample().clamp_min(1e-6)
+                        y = w = y / y.sum()
+                nxt, r = rollout.step(w.numpy())
+                ep_reward += r
+                buffer.add(**_obs_items(obs, "", local), action=y, reward=r * args.reward_scale, done=float(rollout.done),
+                           **_obs_items(nxt, "next_", local))
+                obs = nxt
+                n_steps += 1
+                if buffer.size >= max(args.warmup_steps, args.batch_size):
+                    for _ in range(args.updates_per_step):
+                        stats = update()
+            ep += 1
+            stats["train/episode_reward"] = ep_reward
+            if ep % args.eval_every == 0 or ep >= args.episodes:
+                stats["eval/profit"] = best.validate(actor, city, args)
+                save()
+            if C.close_episode(log, rollout, ep, stats, args, timer(), progress):
+                break
 
     log.close()
     actor.load_state_dict(best.state)
-    return T.finish_run(args, "sac", actor, city, prior_wall + timer(), ep)
+    return C.finish_run(args, "sac", actor, city, timer(), ep, config_path)

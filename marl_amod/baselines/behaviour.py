@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from marl_amod.baselines.base import WeightPolicy
+from marl_amod.baselines.base import Policy, WeightPolicy
 from marl_amod.errors import ConfigError, SolverError
 from marl_amod.system import FleetSystem
 
@@ -52,7 +52,7 @@ def _expected_outflow(system: FleetSystem, first: int, count: int) -> np.ndarray
     return rate[steps].sum(axis=2).sum(axis=0) / count
 
 
-class Informed(WeightPolicy):
+class Informed(Policy):
     """INF: send vehicles toward regions with many expected requests, nearer ones first."""
 
     name = "inf"
@@ -84,7 +84,7 @@ class Informed(WeightPolicy):
         return _targets_from_moves(idle, z)
 
 
-class DynamicTripVehicle(WeightPolicy):
+class DynamicTripVehicle(Policy):
     """DTV: move idle vehicles to this step's request origins with the least total travel time."""
 
     name = "dtv"
@@ -124,7 +124,3 @@ class Proportional(WeightPolicy):
     def weights(self, system: FleetSystem) -> np.ndarray:
         return _expected_outflow(system, system.t + 1, self.lookahead)
 
-
-BEHAVIOUR_POLICIES: dict[str, type[WeightPolicy]] = {
-    cls.name: cls for cls in (Informed, DynamicTripVehicle, Proportional)
-}

@@ -36,6 +36,7 @@ from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 
+from marl_amod.baselines.base import FlowPolicy
 from marl_amod.errors import ConfigError, SolverError
 from marl_amod.scenario.types import City
 from marl_amod.system import FleetSystem
@@ -205,29 +206,8 @@ class CvxpyMPC:
         return FlowPlan(x=x, y=y, objective=float(self.problem.value))
 
 
-# ---------------------------------------------------------------------------------- plan -> target
-def round_preserving_sum(values: np.ndarray, total: int) -> np.ndarray:
-    """Non-negative integers close to ``values`` that sum to ``total`` (largest remainder)."""
-    values = np.maximum(values, 0.0)
-    base = np.floor(values + 1e-9).astype(np.int64)
-    short = int(total - base.sum())
-    if short > 0:
-        base[np.argsort(-(values - base), kind="stable")[:short]] += 1
-    elif short < 0:  # only from float noise: take from the largest entries
-        for idx in np.argsort(-values, kind="stable")[: -short]:
-            base[idx] -= 1 if base[idx] > 0 else 0
-    return base
-
-
-def target_from_flows(idle: np.ndarray, y0: np.ndarray) -> np.ndarray:
-    """Per-region targets that make the coordinator's min-cost flow move vehicles as ``y0`` plans."""
-    off = y0 * (1.0 - np.eye(y0.shape[0]))
-    dist = idle + off.sum(axis=0) - off.sum(axis=1)
-    return round_preserving_sum(dist, int(np.asarray(idle).sum()))
-
-
 # ---------------------------------------------------------------------------------- policies
-class MPCPolicy:
+class MPCPolicy(FlowPolicy):
     """Receding-horizon MPC: solve the fleet LP after each dispatch and apply its first rebalancing."""
 
     name = "mpc"
@@ -245,7 +225,7 @@ class MPCPolicy:
         self.last_plan: FlowPlan | None = None
 
     def reset(self, system: FleetSystem, rng: np.random.Generator) -> None:
-        self.rng = rng
+        super().reset(system, rng)
         self.solve_seconds = []
         if self.backend == "cvxpy" and self._cvx_city is not system.city:
             self._cvx = CvxpyMPC(system.city, self.horizon)  # compiled once, reused every episode
@@ -278,8 +258,8 @@ class MPCPolicy:
         self.last_plan = plan
         return plan
 
-    def target(self, system: FleetSystem) -> np.ndarray:
-        return target_from_flows(system.sim.idle, self.plan(system).y[0])
+    def flows(self, system: FleetSystem) -> np.ndarray:
+        return self.plan(system).y[0]
 
 
 class MPCOracle(MPCPolicy):

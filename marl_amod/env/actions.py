@@ -23,6 +23,7 @@ from typing import Any, Literal
 import numpy as np
 
 from marl_amod.errors import ActionError
+from marl_amod.system import FleetSystem
 
 ActionMode = Literal["weight", "logit"]
 ACTION_MODES: tuple[str, ...] = ("weight", "logit")
@@ -64,6 +65,11 @@ def weights(action: np.ndarray, mode: ActionMode) -> np.ndarray:
     logits = LOGIT_RANGE * (2.0 * action - 1.0)
     z = np.exp(logits - logits.max())
     return z / z.sum()
+
+
+def targets(system: FleetSystem, actions: Mapping[str, Any], agents: Sequence[str], mode: ActionMode) -> np.ndarray:
+    """(N,) coordinator targets of a joint action: the env's step and policies written for it share this path."""
+    return system.targets_from_weights(weights(joint_action(actions, agents), mode))
 
 
 def _numeric(value: Any) -> bool:

@@ -37,6 +37,11 @@ from marl_amod.system import FleetSystem
 N_CONTEXT = 3  # sin(time of day), cos(time of day), step fraction
 
 
+def agent_names(n_regions: int) -> list[str]:
+    """The agents' names, region by region: ``region_0`` ... ``region_{N-1}``."""
+    return [f"region_{i}" for i in range(n_regions)]
+
+
 def n_features(lookahead: int) -> int:
     """F: columns of :func:`node_features` for a look-ahead of T steps."""
     return 1 + 2 * lookahead

@@ -117,7 +117,7 @@ class AmodParallelEnv(ParallelEnv):
         self.system = FleetSystem(city, max_wait=max_wait, objective=objective)
 
         n = city.n_regions
-        self.possible_agents = [f"region_{i}" for i in range(n)]
+        self.possible_agents = ob.agent_names(n)
         self.agents: list[str] = []
         self.max_degree = ob.max_in_degree(city)
         self._table = ob.neighbour_table(city, self.max_degree)
@@ -169,8 +169,7 @@ class AmodParallelEnv(ParallelEnv):
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         if not self.agents:
             raise RuntimeError("the episode is over (all agents truncated); call reset()")
-        joint = act.joint_action(actions, self.agents)
-        target = self.system.targets_from_weights(act.weights(joint, self.action_mode))
+        target = act.targets(self.system, actions, self.agents, self.action_mode)
         outcome = self._last_outcome = self.system.step(target)
         r = rewards(self.reward_mode, outcome)
         agents = self.agents

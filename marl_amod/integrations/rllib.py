@@ -24,7 +24,6 @@ results folder in places this run owns; or it joins a running cluster (``address
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import secrets
 import shutil
@@ -32,15 +31,15 @@ import tempfile
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import torch
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import Field
 
-from marl_amod.data import read_yaml
+from marl_amod.config import CommonArgs, load_config
 from marl_amod.errors import ConfigError
 
 EXTRA = 'pip install "marl-amod[rllib]"'
@@ -65,25 +64,18 @@ def require_ray() -> Any:
 # --------------------------------------------------------------------------------------------
 # Config
 # --------------------------------------------------------------------------------------------
-class RllibArgs(BaseModel):
-    """``args`` of an RLlib config (configs/ppo_rllib_*.yaml); every key is checked."""
+class RllibArgs(CommonArgs):
+    """``args`` of an RLlib config (configs/ppo_rllib/*.yaml): the native runs' common args, plus PPO's and Ray's."""
 
-    model_config = ConfigDict(extra="forbid")
-    scenario: str = "synthetic"
-    lookahead: int = Field(6, ge=1)
     central_critic: bool = True
     """critic on the env's global state() (centralised training, decentralised execution)"""
-    hidden: int = Field(32, ge=1)
     critic_hidden: int = Field(64, ge=1)
     reward_scale: float = Field(0.001, gt=0)
     """multiplies the team profit per step so value targets stay O(1)"""
     iterations: int = Field(50, ge=1)
-    time_limit_s: float = Field(0.0, ge=0)
-    """stop early after this wall time (0: no limit)"""
     target_profit: float = 0.0
     """stop early once a validation profit reaches this (0: never)"""
     lr: float = Field(3e-4, gt=0)
-    gamma: float = Field(0.97, gt=0, le=1)
     lambda_: float = Field(0.95, ge=0, le=1)
     train_batch_env_steps: int = Field(304, ge=1)
     """env steps per iteration (x regions agent steps); 304 = 16 synthetic episodes"""
@@ -99,35 +91,23 @@ class RllibArgs(BaseModel):
     """remote env runners (0: sample in the driver); --num-env-runners overrides it"""
     num_cpus: int = Field(2, ge=1)
     """CPUs of the local Ray instance (ignored when joining a cluster)"""
-    seed: int = 0
     eval_every: int = Field(5, ge=0)
     """validate the deterministic policy every k iterations (0: only at the end)"""
     eval_episodes: int = Field(3, ge=1)
-    eval_seed: int = 1000
-    final_eval_episodes: int = Field(10, ge=1)
-    final_eval_seed: int = 0
     run_dir: str = "runs/ppo_rllib"
     """log.csv, RLlib checkpoint (checkpoint/), results"""
-    policy_out: str = ""
     ray_temp_dir: str = ""
     """Ray's session folder (default: a fresh temp dir, removed at the end)"""
 
 
-class RllibConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-    algo: Literal["ppo"]
-    args: RllibArgs = RllibArgs()
-
-
 def load_rllib_config(path: str | Path) -> RllibArgs:
-    """Strictly validated RLlib training args from a YAML config."""
-    raw = read_yaml(path)
-    if raw.get("algo") in ("a2c", "sac"):
-        raise ConfigError(f"{path} is a native {raw['algo']} config; train it without --backend rllib")
-    try:
-        return RllibConfig.model_validate(raw).args
-    except ValidationError as exc:
-        raise ConfigError(f"{path}: {exc}") from None
+    """Strictly validated RLlib training args from a YAML config (``extends:`` resolved)."""
+    from marl_amod.config import read_config
+
+    algo = read_config(path).get("algo")
+    if algo != "ppo" and isinstance(algo, str):
+        raise ConfigError(f"{path}: algo: {algo} is a native algorithm; train it without --backend rllib")
+    return load_config(path, {"ppo": RllibArgs})[1]  # type: ignore[return-value]
 
 
 # --------------------------------------------------------------------------------------------
@@ -337,10 +317,11 @@ def train_rllib(
     config_path: str | None = None,
 ) -> dict[str, Any]:
     """Train PPO on Ray, checkpoint under ``run_dir``, convert, evaluate; returns the run summary."""
-    from marl_amod.checkpoints import save_policy, write_card_markdown
+    from marl_amod.algos.common import BestActor, Logger, evaluate_actor, seed_everything
+    from marl_amod.checkpoints import make_card, save_policy
+    from marl_amod.files import write_json
     from marl_amod.models import LocalActor
     from marl_amod.scenario import load_city
-    from marl_amod.training import BestActor, Logger, evaluate_actor, seed_everything
 
     seed_everything(args.seed)
     city = load_city(args.scenario)
@@ -392,35 +373,17 @@ def train_rllib(
     result = evaluate_actor(actor, city, args.final_eval_episodes, args.final_eval_seed, args.lookahead)
     profit = result["metrics"]["profit"]
     env_steps = history[-1]["env_steps"] if history else 0.0
-    card = {
-        "scenario": city.name,
-        "algorithm": "rllib-ppo",
-        "mode": "decentralised",
-        "actor": "local",
-        "conv": "sage",
-        "hidden": args.hidden,
-        "n_features": n_features,
-        "lookahead": args.lookahead,
-        "seed": args.seed,
-        "central_critic": args.central_critic,
-        "iterations": len(history),
-        "best_iteration": best_iteration,
-        "env_steps": int(env_steps),
-        "num_env_runners": runners,
-        "eval_episodes": args.final_eval_episodes,
-        "eval_seed": args.final_eval_seed,
-        "profit_mean": profit["mean"],
-        "profit_std": profit["std"],
-        "served_demand_mean": result["metrics"]["served_demand"]["mean"],
-        "training_wall_s": round(wall, 1),
-        "env_steps_per_s": round(env_steps / wall, 1) if wall > 0 else 0.0,
-    }
-    if config_path:
-        card["config"] = str(config_path)
+    card = make_card(
+        scenario=city.name, n_regions=city.n_regions, algorithm="rllib-ppo", mode="decentralised", actor="local", conv="sage",
+        hidden=args.hidden, n_features=n_features, lookahead=args.lookahead, seed=args.seed,
+        central_critic=args.central_critic, iterations=len(history), best_iteration=best_iteration, env_steps=int(env_steps),
+        num_env_runners=runners, eval_episodes=args.final_eval_episodes, eval_seed=args.final_eval_seed,
+        profit_mean=profit["mean"], profit_std=profit["std"], served_demand_mean=result["metrics"]["served_demand"]["mean"],
+        training_wall_s=round(wall, 1), env_steps_per_s=round(env_steps / wall, 1) if wall > 0 else 0.0,
+        config=str(config_path) if config_path else None, args=args.model_dump(mode="json"),
+    ).to_dict()
     summary: dict[str, Any] = {"card": card, "result": result, "checkpoint": str(checkpoint), "history": history}
     if args.policy_out:
-        path = save_policy(args.policy_out, actor, card)
-        write_card_markdown(path, card)
-        summary["policy"] = str(path)
-    (run_dir / "final_eval.json").write_text(json.dumps(result, indent=2))
+        summary["policy"] = str(save_policy(args.policy_out, actor, card))
+    write_json(run_dir / "final_eval.json", result)
     return summary

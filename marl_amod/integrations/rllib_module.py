@@ -6,7 +6,7 @@ Import it only through :func:`marl_amod.integrations.rllib.require_ray`, which s
 environment first.
 
 Why a scaled Gamma. Agent i samples g_i ~ Gamma(alpha_i, 1) and sends a_i = g_i / c into the
-env's ``Box(0, 1)`` (c = :data:`marl_amod.training.WEIGHT_DIVISOR`, exactly what the native
+env's ``Box(0, 1)`` (c = :data:`marl_amod.algos.rollout.WEIGHT_DIVISOR`, exactly what the native
 decentralised actor sends); the env normalises the weights, so the joint action is the paper's
 Dirichlet(alpha). RLlib stores a_i and asks for ``logp(a_i)`` later (PPO's ratio), so the density
 is that of a_i itself: log Gamma(c a_i; alpha_i) + log c. Nothing is clipped or squashed on the
@@ -27,10 +27,10 @@ from ray.rllib.core.distribution.torch.torch_distribution import TorchDeterminis
 from ray.rllib.core.rl_module.apis import InferenceOnlyAPI, ValueFunctionAPI
 from ray.rllib.core.rl_module.torch import TorchRLModule
 
+from marl_amod.algos.rollout import WEIGHT_DIVISOR
 from marl_amod.env.observations import split_local
 from marl_amod.models.gnn import mlp_head
 from marl_amod.models.local import LocalActor
-from marl_amod.training import WEIGHT_DIVISOR
 
 _LOG_C = math.log(WEIGHT_DIVISOR)
 

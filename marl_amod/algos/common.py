@@ -1,0 +1,274 @@
+"""What every native algorithm shares: run args, logging, validation, the training state, the card.
+
+The algorithm files (:mod:`marl_amod.algos.a2c`, :mod:`marl_amod.algos.sac`) read top to bottom;
+everything here is plumbing they would otherwise repeat. The rollout driver is
+:mod:`marl_amod.algos.rollout`; the registry of algorithms is :mod:`marl_amod.algos.registry`.
+
+Interrupts: an algorithm wraps its loop in :func:`interruptible`; Ctrl-C then saves the training
+state of the last finished update (atomically) and raises :class:`TrainingInterrupted`, which
+the CLI prints as one line saying where the state is and how to resume. A resumed run rewrites
+``log.csv`` without the rows logged after that state, so no episode appears twice.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import csv
+import io
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal, Protocol
+
+import numpy as np
+import torch
+from pydantic import Field
+
+from marl_amod.algos.rollout import Mode, Rollout
+from marl_amod.checkpoints import ActorPolicy, check_torch_file, make_card, save_policy
+from marl_amod.config import CommonArgs
+from marl_amod.errors import DataError, MarlAmodError
+from marl_amod.files import atomic_write, torch_save, write_json
+from marl_amod.scenario import City
+
+Progress = Callable[[int, int, dict], None]
+
+
+class RunArgs(CommonArgs):
+    """What every native training run has, whatever the algorithm; each algorithm's ``Args`` extends it."""
+
+    mode: Mode = "centralised"
+    """centralised: one learner on the global graph; decentralised: shared actor on local observations"""
+    actor: Literal["gnn", "mlp", "cnn"] = "gnn"
+    """centralised actor architecture (decentralised always uses the local GNN actor)"""
+    conv: Literal["gcn", "sage"] = "gcn"
+    """message passing: gcn (the paper's) or sage (mean aggregation, what the local actor computes)"""
+    central_critic: bool = True
+    """decentralised mode only: critic on the global graph (env.state()) instead of sum of local values"""
+    episodes: int = Field(1000, ge=1)
+    """training episodes"""
+    max_grad_norm: float = Field(10.0, gt=0)
+    """gradient clipping (global L2 norm per network)"""
+    threads: int = Field(1, ge=1)
+    """torch CPU threads (the machine is shared)"""
+
+    def ignored_keys(self) -> dict[str, str]:
+        if self.mode == "centralised":
+            return {"central_critic": "only decentralised runs choose their critic"}
+        return {"actor": "decentralised runs always use the local GNN actor"}
+
+
+# --------------------------------------------------------------------------------------------
+# Logging
+# --------------------------------------------------------------------------------------------
+class Logger:
+    """TensorBoard scalars plus a long-format CSV (episode, metric, value) under ``run_dir``.
+
+    Long format because validation rows are sparser than training rows; plots pivot it back.
+    ``resume_from=k`` drops the rows logged after episode k (they belong to the run being
+    replaced), so a resumed run never logs an episode twice.
+    """
+
+    def __init__(self, run_dir: str | Path, tensorboard: bool = True, resume_from: int | None = None) -> None:
+        self.dir = Path(run_dir)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        path = self.dir / "log.csv"
+        if resume_from is not None and path.exists():
+            with open(path, newline="") as fh:
+                kept = [row for row in csv.reader(fh) if row and (row[0] == "episode" or int(row[0]) <= resume_from)]
+            out = io.StringIO()
+            csv.writer(out).writerows(kept)
+            atomic_write(path, out.getvalue())
+        elif resume_from is None and path.exists():
+            path.unlink()  # a fresh run starts a fresh log
+        self.writer = None
+        if tensorboard:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.writer = SummaryWriter(str(self.dir), purge_step=None if resume_from is None else resume_from + 1)
+        new = not path.exists()
+        self._csv = open(path, "a", newline="")  # noqa: SIM115 - closed in close()
+        self._w = csv.writer(self._csv)
+        if new:
+            self._w.writerow(["episode", "metric", "value"])
+
+    def log(self, step: int, **scalars: float) -> None:
+        for k, v in scalars.items():
+            self._w.writerow([step, k, float(v)])
+            if self.writer is not None:
+                self.writer.add_scalar(k, v, step)
+        self._csv.flush()
+
+    def close(self) -> None:
+        self._csv.close()
+        if self.writer is not None:
+            self.writer.close()
+
+
+def read_curve(run_dir: str | Path, metric: str) -> tuple[list[int], list[float]]:
+    """(episodes, values) of one metric from a run's log.csv."""
+    xs, ys = [], []
+    path = Path(run_dir) / "log.csv"
+    if path.exists():
+        with open(path, newline="") as fh:
+            for row in csv.DictReader(fh):
+                if row["metric"] == metric:
+                    xs.append(int(row["episode"]))
+                    ys.append(float(row["value"]))
+    return xs, ys
+
+
+class Timer:
+    """Wall seconds since construction, plus what earlier (resumed) sessions already spent."""
+
+    def __init__(self, prior: float = 0.0) -> None:
+        self.start, self.prior = time.perf_counter(), prior
+
+    def __call__(self) -> float:
+        return self.prior + time.perf_counter() - self.start
+
+
+# --------------------------------------------------------------------------------------------
+# Validation and the best actor
+# --------------------------------------------------------------------------------------------
+def evaluate_actor(actor: torch.nn.Module, city: City, episodes: int, seed: int, lookahead: int = 6) -> dict[str, Any]:
+    """Deterministic (Dirichlet mean) evaluation with the same loop and JSON as the baselines."""
+    from marl_amod.evaluation import evaluate
+
+    was_training = actor.training
+    actor.eval()
+    try:
+        return evaluate(ActorPolicy(actor, city, lookahead), city, episodes, seed)
+    finally:
+        actor.train(was_training)
+
+
+class ValidationArgs(Protocol):
+    """What validation reads from a run's args (native RunArgs and RLlib's args both have it)."""
+
+    eval_episodes: int
+    eval_seed: int
+    lookahead: int
+
+
+@dataclass
+class BestActor:
+    """The actor with the best validation profit so far: what a run keeps and ships, not the last one."""
+
+    value: float
+    state: dict[str, torch.Tensor]
+
+    @classmethod
+    def of(cls, actor: torch.nn.Module) -> BestActor:
+        """Start from the untrained actor (kept if no validation ever beats -inf)."""
+        return cls(-np.inf, copy.deepcopy(actor.state_dict()))
+
+    def validate(self, actor: torch.nn.Module, city: City, args: ValidationArgs) -> float:
+        """Mean profit of the deterministic actor on the validation seeds; kept when it is the best yet."""
+        val = evaluate_actor(actor, city, args.eval_episodes, args.eval_seed, args.lookahead)["metrics"]["profit"]["mean"]
+        if val > self.value:
+            self.value, self.state = val, copy.deepcopy(actor.state_dict())
+        return val
+
+
+def close_episode(log: Logger, rollout: Rollout, ep: int, stats: dict[str, float], args: RunArgs, wall_s: float, progress: Progress | None) -> bool:
+    """Log one episode's stats and report progress; returns True when the time limit says stop."""
+    stats["time/wall_s"] = wall_s
+    if rollout.env is not None:
+        stats["env/clipped_actions"] = rollout.clipped  # cumulative; should stay 0
+    log.log(ep, **stats)
+    if progress is not None:
+        progress(ep, args.episodes, stats)
+    return bool(args.time_limit_s) and wall_s > args.time_limit_s
+
+
+# --------------------------------------------------------------------------------------------
+# Training state (resume) and interrupts
+# --------------------------------------------------------------------------------------------
+STATE_FORMAT = "marl_amod.train_state/1"
+
+
+def seed_everything(seed: int) -> None:
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def state_path(args: CommonArgs) -> Path:
+    return Path(args.run_dir) / "state.pt"
+
+
+def save_state(path: str | Path, **state: Any) -> Path:
+    """Full training state (networks, optimisers, buffers, RNGs) for ``--resume``, written atomically."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    rng = {"torch": torch.get_rng_state(), "numpy": np.random.get_state()}
+    return torch_save(path, {"format": STATE_FORMAT, "rng": rng, **state})
+
+
+def load_state(path: str | Path, algorithm: str) -> dict[str, Any]:
+    """A training state written by :func:`save_state` for ``algorithm``; global RNGs restored."""
+    path = Path(path)
+    check_torch_file(path, "training state")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # noqa: BLE001 - every unreadable file means the same to the user
+        raise DataError(f"{path} cannot be read as a training state (empty, truncated or damaged?): {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+    if not isinstance(state, dict) or "episode" not in state:
+        raise DataError(f"{path} is not a marl_amod training state (a policy file? resume takes runs/<run>/state.pt)")
+    if state.get("algorithm", algorithm) != algorithm:
+        raise DataError(f"{path} is a {state['algorithm']} training state; this config trains {algorithm}")
+    if "rng" in state:
+        torch.set_rng_state(state["rng"]["torch"])
+        np.random.set_state(state["rng"]["numpy"])
+    return state
+
+
+class TrainingInterrupted(MarlAmodError):
+    """Ctrl-C during training; the state of the last finished update is saved at ``path``."""
+
+    def __init__(self, path: Path, episode: int) -> None:
+        self.path, self.episode = path, episode
+        super().__init__(f"interrupted: training state of episode {episode} saved to {path}; resume with --resume {path}")
+
+
+@contextlib.contextmanager
+def interruptible(save: Callable[[], tuple[Path, int]]) -> Iterator[None]:
+    """Turn Ctrl-C inside the block into a saved state and :class:`TrainingInterrupted`.
+
+    ``save`` writes the state of the last finished update and returns (path, episode).
+    """
+    try:
+        yield
+    except KeyboardInterrupt:
+        path, episode = save()
+        raise TrainingInterrupted(path, episode) from None
+
+
+# --------------------------------------------------------------------------------------------
+# The end of a run: final evaluation and the policy card
+# --------------------------------------------------------------------------------------------
+def finish_run(
+    args: RunArgs, algorithm: str, actor: torch.nn.Module, city: City, wall_s: float, episodes_done: int, config_path: str | None = None,
+) -> dict[str, Any]:
+    """Final evaluation on the report seeds, then the policy file and its card (written once)."""
+    result = evaluate_actor(actor, city, args.final_eval_episodes, args.final_eval_seed, args.lookahead)
+    profit = result["metrics"]["profit"]
+    card = make_card(
+        scenario=city.name, n_regions=city.n_regions, algorithm=algorithm, mode=args.mode,
+        actor="local" if args.mode == "decentralised" else args.actor,
+        conv="sage" if args.mode == "decentralised" else args.conv,
+        hidden=args.hidden, n_features=1 + 2 * args.lookahead, lookahead=args.lookahead, seed=args.seed,
+        episodes_trained=episodes_done, eval_episodes=args.final_eval_episodes, eval_seed=args.final_eval_seed,
+        profit_mean=profit["mean"], profit_std=profit["std"], served_demand_mean=result["metrics"]["served_demand"]["mean"],
+        training_wall_s=round(wall_s, 1), torch_threads=torch.get_num_threads(),
+        config=config_path, args=args.model_dump(mode="json"),
+    ).to_dict()
+    summary: dict[str, Any] = {"card": card, "result": result}
+    if args.policy_out:
+        summary["policy"] = str(save_policy(args.policy_out, actor, card))
+    run_dir = Path(args.run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    write_json(run_dir / "final_eval.json", result)
+    return summary

@@ -1,0 +1,104 @@
+"""The rollout driver both native algorithms share: one city, episode by episode, in either mode.
+
+* ``centralised``: one learner sees the global graph (N, F) and acts for every region.
+* ``decentralised``: every region acts from its own local observation (own features plus its
+  in-neighbours' features and a mask), with one shared parameter set. Observations come through
+  the PettingZoo env (``marl_amod.parallel_env``), exactly as a deployed agent would see them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import torch
+
+from marl_amod.scenario import City
+from marl_amod.system import FleetSystem
+
+Mode = Literal["centralised", "decentralised"]
+WEIGHT_DIVISOR = 1000.0  # Gamma weights / this constant fit the env's Box(0, 1) almost surely (alpha stays < 100)
+
+
+@dataclass
+class Obs:
+    """One decision point. x (N, F) global node features; own (N, F), nbrs (N, K, F), mask (N, K) local."""
+
+    x: torch.Tensor
+    own: torch.Tensor | None = None
+    nbrs: torch.Tensor | None = None
+    mask: torch.Tensor | None = None
+
+
+class Rollout:
+    """Drives one city episode by episode; ``step(weights)`` takes (N,) non-negative weights."""
+
+    def __init__(self, city: City, mode: Mode = "centralised", lookahead: int = 6) -> None:
+        from marl_amod import parallel_env
+        from marl_amod.env.observations import neighbour_table
+
+        self.city, self.mode, self.lookahead = city, mode, lookahead
+        self.table = neighbour_table(city)
+        if mode == "decentralised":  # agents act on their own PettingZoo observations
+            self.env = parallel_env(city, reward_mode="team", action_mode="weight", lookahead=lookahead)
+            self.system = self.env.system
+        else:
+            self.env = None
+            self.system = FleetSystem(city)
+        self.done = False
+        self.clipped = 0  # agent actions the env had to clip to its Box(0, 1)
+
+    def _obs_from_system(self) -> Obs:
+        from marl_amod.env.features import node_features
+        from marl_amod.env.observations import local_observations, split_local
+
+        x = torch.as_tensor(node_features(self.system, self.lookahead))
+        if self.mode == "centralised":
+            return Obs(x)
+        own, _ctx, nbrs, mask = split_local(torch.as_tensor(local_observations(self.system, self.lookahead, table=self.table)), x.shape[1])
+        return Obs(x, own, nbrs, mask)
+
+    def _obs_from_env(self, obs: dict[str, np.ndarray]) -> Obs:
+        from marl_amod.env.observations import split_local
+
+        stacked = torch.as_tensor(np.stack([obs[a] for a in self.agents]))  # (N, D)
+        x = torch.as_tensor(self.env.graph()["x"])  # (N, F): only the centralised critic reads it
+        own, _ctx, nbrs, mask = split_local(stacked, x.shape[1])
+        return Obs(x, own, nbrs, mask)
+
+    def reset(self, seed: int | np.random.SeedSequence) -> Obs:
+        self.done = False
+        if self.env is not None:
+            if isinstance(seed, np.random.SeedSequence):
+                seed = int(seed.generate_state(1)[0])
+            obs, _ = self.env.reset(seed=seed)
+            self.agents = list(self.env.possible_agents)
+            return self._obs_from_env(obs)
+        self.system.reset(seed)
+        return self._obs_from_system()
+
+    def step(self, weights: np.ndarray) -> tuple[Obs, float]:
+        """Apply (N,) weights; returns the next observation and the team reward (money)."""
+        if self.env is not None:
+            # The env's Box(0, 1) clips; weights are scale-free, so every agent divides by the same
+            # constant. Counted so a clipped (law-changing) action never goes unnoticed.
+            sent = np.asarray(weights, dtype=np.float64) / WEIGHT_DIVISOR
+            self.clipped += int((sent > 1.0).sum())
+            actions = {a: np.array([w], dtype=np.float32) for a, w in zip(self.agents, sent, strict=True)}
+            obs, rewards, terms, truncs, _ = self.env.step(actions)
+            reward = float(rewards[self.agents[0]])
+            self.done = not self.env.agents
+            if self.done:  # final obs is not used for bootstrapping past the horizon
+                return self._obs_from_system(), reward
+            return self._obs_from_env(obs), reward
+        out = self.system.step(self.system.targets_from_weights(np.asarray(weights, dtype=np.float64)))
+        self.done = self.system.done
+        return self._obs_from_system(), out.reward
+
+
+def train_seed(seed: int, episode: int) -> np.random.SeedSequence:
+    """Training demand of episode k: never one of the evaluation streams (seed, k)."""
+    return np.random.SeedSequence([seed, episode, 7919])
+
+
