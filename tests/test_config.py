@@ -117,7 +117,7 @@ def test_rllib_args_are_the_same_model_with_the_same_bounds(tmp_path):
 
 def test_configs_are_grouped_by_algorithm_and_variants_extend_a_base():
     groups = {p.parent.name for p in CONFIGS.rglob("*.yaml")}
-    assert groups == {"a2c", "sac", "ppo_rllib", "compare"}
+    assert groups == {"a2c", "sac", "ppo_rllib", "compare", "meta"}
     assert not list(CONFIGS.glob("*.yaml"))
     for variant in ("a2c/nyc_brooklyn_sage.yaml", "a2c/nyc_brooklyn_dec.yaml", "sac/nyc_brooklyn_long.yaml"):
         assert "extends" in yaml.safe_load((CONFIGS / variant).read_text())

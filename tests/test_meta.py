@@ -75,20 +75,24 @@ def test_the_deployed_policy_replays_the_trained_agent_exactly():
     assert got == pytest.approx(np.mean(np.add(want, first)), rel=1e-9)
 
 
-def test_meta_training_runs_resumes_and_ships_a_policy_that_adapts(tmp_path):
+def test_meta_training_resumes_exactly_and_ships_a_policy_that_adapts(tmp_path):
     tasks = [_city_yaml(tmp_path, "small", rows=2, cols=3, vehicles_per_region=5),
              _city_yaml(tmp_path, "large", rows=3, cols=3, vehicles_per_region=40, requests_per_region=20)]  # fmt: skip
     args = meta.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, episodes=8, trial_episodes=2,
-                     trials_per_update=2, eval_every=4, final_eval_episodes=2, run_dir=str(tmp_path / "run"),
-                     policy_out=str(tmp_path / "meta.pt"))  # fmt: skip
+                     trials_per_update=2, eval_every=4, final_eval_episodes=2, run_dir=str(tmp_path / "full"),
+                     policy_out=str(tmp_path / "full.pt"))  # fmt: skip
     assert "meta" in ALGOS
     summary = ALGOS["meta"].train(args)
     assert summary["card"]["algorithm"] == "meta" and summary["card"]["episodes_trained"] == 8
-    resumed = ALGOS["meta"].train(args.model_copy(update={"episodes": 12}), resume=str(tmp_path / "run" / "state.pt"))
-    assert resumed["card"]["episodes_trained"] == 12
+    half = args.model_copy(update={"run_dir": str(tmp_path / "half"), "policy_out": str(tmp_path / "resumed.pt")})
+    ALGOS["meta"].train(half.model_copy(update={"episodes": 4}))
+    ALGOS["meta"].train(half, resume=str(tmp_path / "half" / "state.pt"))
+    full, resumed = (torch.load(tmp_path / f, weights_only=True)["state_dict"] for f in ("full.pt", "resumed.pt"))
+    for key in full:
+        torch.testing.assert_close(full[key], resumed[key], rtol=0, atol=0)
     # the checkpoint evaluates like any policy file: it adapts (1 episode) to the city first
-    result = evaluate(str(tmp_path / "meta.pt"), "synthetic", episodes=1)
-    assert result["policy"] == "meta" and np.isfinite(result["metrics"]["profit"]["mean"])
+    result = evaluate(str(tmp_path / "full.pt"), "synthetic", episodes=1)
+    assert result["policy"] == "full" and np.isfinite(result["metrics"]["profit"]["mean"])
 
 
 def test_held_out_cities_cannot_be_training_tasks():
