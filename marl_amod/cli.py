@@ -291,14 +291,19 @@ def transfer_table(
     out: Annotated[Path, typer.Option(help="folder for <study>.md and <study>.json")] = Path("docs/meta"),
     episodes: Annotated[int, typer.Option(min=1)] = 10,
     seed: Annotated[int, typer.Option(min=0)] = 0,
+    strategy: Annotated[
+        list[str] | None, typer.Option(help="rerun only these rows (repeat); the others come from <out>/<study>.json")
+    ] = None,
     data_dir: DataDir = None,
 ) -> None:
     """Every transfer strategy on a study's cities: the tables of docs/meta (markdown + JSON)."""
-    from marl_amod.transfer import run_study, study_markdown
+    from marl_amod.data import read_json
+    from marl_amod.transfer import STRATEGIES, run_study, study_markdown
 
     _use_data_dir(data_dir)
     out.mkdir(parents=True, exist_ok=True)
-    payload = run_study(study, episodes=episodes, seed=seed,
+    previous = read_json(out / f"{study}.json") if strategy and (out / f"{study}.json").is_file() else None
+    payload = run_study(study, episodes=episodes, seed=seed, strategies=tuple(strategy or STRATEGIES), previous=previous,
                         progress=lambda city, name, p: console.print(f"{city}: {name} {p:,.0f}"))  # fmt: skip
     text = f"<!-- marl-amod transfer-table --study {study} --episodes {episodes} --seed {seed} -->\n" + study_markdown(payload)
     write_json(out / f"{study}.json", payload)

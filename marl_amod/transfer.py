@@ -159,21 +159,35 @@ def normalised(profit: float, ed: float, oracle: float) -> float:
     return 100.0 * (profit - ed) / (oracle - ed) if oracle != ed else float("nan")
 
 
-def run_study(study: str, *, episodes: int = 10, seed: int = 0, meta_policy: str = META_POLICY,
-              progress: Any = None) -> dict[str, Any]:  # fmt: skip
-    """Every strategy (and equal distribution, the 0 of the score) on every target of ``study``."""
+def run_study(study: str, *, episodes: int = 10, seed: int = 0, meta_policy: str = META_POLICY, strategies: tuple[str, ...] = STRATEGIES,
+              previous: dict[str, Any] | None = None, progress: Any = None) -> dict[str, Any]:  # fmt: skip
+    """Every strategy (and equal distribution, the 0 of the score) on every target of ``study``.
+
+    With ``strategies`` a subset, the other rows come from ``previous`` (an earlier payload of the
+    same study, episodes and seed), so retraining one policy reruns one row, not the MPC rows.
+    """
     if study not in STUDIES:
         raise ConfigError(f"unknown study {study!r}; known: {', '.join(STUDIES)}")
+    unknown = sorted(set(strategies) - set(STRATEGIES))
+    if unknown:
+        raise ConfigError(f"unknown strategy {unknown[0]!r}; known: {', '.join(STRATEGIES)}")
+    if previous is not None and (previous.get("study"), previous.get("episodes"), previous.get("seed")) != (study, episodes, seed):
+        previous = None  # another run's rows are not comparable
     out: dict[str, Any] = {"study": study, "episodes": episodes, "seed": seed, "targets": {}}
     for scenario in STUDIES[study]:
-        rows = {"equal-distribution": evaluate("equal-distribution", scenario, episodes, seed)}
+        old = (previous or {}).get("targets", {}).get(scenario, {})
+        rows = {"equal-distribution": old.get("equal-distribution") or evaluate("equal-distribution", scenario, episodes, seed)}
         for strategy in STRATEGIES:
-            rows[strategy] = run_strategy(strategy, scenario, episodes=episodes, seed=seed, meta_policy=meta_policy)
-            if progress is not None:
-                progress(scenario, strategy, rows[strategy]["metrics"]["profit"]["mean"])
-        ed, oracle = (rows[k]["metrics"]["profit"]["mean"] for k in ("equal-distribution", "mpc-oracle"))
-        for rec in rows.values():
-            rec["normalised_score"] = normalised(rec["metrics"]["profit"]["mean"], ed, oracle)
+            if strategy in strategies:
+                rows[strategy] = run_strategy(strategy, scenario, episodes=episodes, seed=seed, meta_policy=meta_policy)
+                if progress is not None:
+                    progress(scenario, strategy, rows[strategy]["metrics"]["profit"]["mean"])
+            elif strategy in old:
+                rows[strategy] = old[strategy]  # a row not asked for: kept from the previous run
+        if "mpc-oracle" in rows:
+            ed, oracle = (rows[k]["metrics"]["profit"]["mean"] for k in ("equal-distribution", "mpc-oracle"))
+            for rec in rows.values():
+                rec["normalised_score"] = normalised(rec["metrics"]["profit"]["mean"], ed, oracle)
         out["targets"][scenario] = rows
     return out
 

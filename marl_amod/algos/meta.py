@@ -22,6 +22,12 @@ the next; the previous action and reward are reset to zero at each episode start
 treats the trial as one sequence (discount ``gamma``, GAE ``gae_lambda``; back-propagation through
 the whole trial), so the memory learns to infer the city from what happened in earlier episodes.
 
+Warm start (optional, ``bc_trials`` > 0). Before the RL² updates, the model imitates MPC-Forecast
+(the expected-demand planner, never the oracle) on trials of the training cities: Dirichlet
+log-likelihood of MPC's desired distribution plus the critic fitted to the trials' returns. A2C
+from scratch learns slowly on a shared 2-core machine; the warm start gives it a competent
+starting point, and the RL² updates then train the memory to adapt. Training cities only.
+
 Adaptation. In a new city the policy runs ``trial_episodes - 1`` episodes (stochastic actions,
 their own demand streams, never the report streams), and each evaluation episode starts from
 the memory those left: a handful of episodes and no gradient step.
@@ -194,6 +200,12 @@ class Args(C.RunArgs):
     """weight of the policy entropy bonus"""
     max_grad_norm: float = Field(1.0, gt=0)
     """gradient clipping (recurrent nets need it tight)"""
+    bc_trials: int = Field(0, ge=0)
+    """warm start: MPC-Forecast trials per training city to imitate before RL² (0: none)"""
+    bc_epochs: int = Field(20, ge=1)
+    """passes over the demonstrations"""
+    bc_lr: float = Field(3e-3, gt=0)
+    """Adam learning rate of the warm start"""
     val_cities: list[str] = Field(default_factory=lambda: ["porto", "nyc_man_north", "shenzhen_north", "washington_dc"], min_length=1)
     """training cities whose adapted profit (validation seeds) picks the best model"""
     eval_every: int = Field(600, ge=1)
@@ -228,6 +240,71 @@ def validate(model: RecurrentGNN, args: Args, systems: dict[str, FleetSystem]) -
     return float(np.mean(scores))
 
 
+@dataclass
+class Demo:
+    """One demonstrated trial on one city: per step the model's inputs and MPC's distribution."""
+
+    city: str
+    x: list[torch.Tensor]  # (N, F) each
+    prev_action: list[torch.Tensor]  # (N,)
+    prev_reward: list[torch.Tensor]  # ()
+    target: list[torch.Tensor]  # (N,) MPC's desired share of the idle fleet per region
+    returns: torch.Tensor  # (S,) discounted scaled returns over the trial
+
+
+def demonstrate(args: Args, systems: dict[str, FleetSystem]) -> list[Demo]:
+    """MPC-Forecast trials (``trial_episodes`` episodes each) on every training city, training streams."""
+    from marl_amod.baselines.mpc import MPCForecast
+
+    demos, mpc = [], MPCForecast()
+    for c, name in enumerate(args.cities):
+        system, scale = systems[name], CityScale.of(systems[name].city)
+        n = system.city.n_regions
+        for trial in range(args.bc_trials):
+            demo, rewards = Demo(name, [], [], [], [], torch.zeros(0)), []
+            for k in range(args.trial_episodes):
+                episode = 10**6 + (c * args.bc_trials + trial) * args.trial_episodes + k  # apart from the RL² streams
+                system.reset(train_seed(args.seed, episode))
+                mpc.reset(system, np.random.default_rng([args.seed, episode]))
+                prev_a, prev_r = torch.zeros(n), torch.zeros(())
+                while not system.done:
+                    target = mpc.target(system).astype(np.float64)
+                    share = target / target.sum() if target.sum() > 0 else np.full(n, 1.0 / n)
+                    demo.x.append(torch.as_tensor(task_features(system, scale, args.lookahead)))
+                    demo.prev_action.append(prev_a), demo.prev_reward.append(prev_r), demo.target.append(torch.as_tensor(share, dtype=torch.float32))
+                    r = system.step(system.targets_from_weights(share)).reward / scale.reward
+                    prev_a, prev_r = torch.as_tensor(share * n, dtype=torch.float32), torch.tensor(r, dtype=torch.float32)
+                    rewards.append(r)
+            demo.returns = advantages(rewards, torch.zeros(len(rewards)), args.gamma, 1.0)[1]
+            demos.append(demo)
+    return demos
+
+
+def imitate(model: RecurrentGNN, demos: list[Demo], args: Args, systems: dict[str, FleetSystem]) -> float:
+    """Fit the policy to MPC's distributions (Dirichlet NLL) and the critic to the returns; last epoch's loss."""
+    opt = torch.optim.Adam(model.parameters(), lr=args.bc_lr)
+    edges = {name: torch.as_tensor(np.array(s.city.edge_index), dtype=torch.long) for name, s in systems.items()}
+    order = np.random.default_rng([args.seed, 23])
+    for _ in range(args.bc_epochs):
+        total = 0.0
+        for i in order.permutation(len(demos)):
+            demo = demos[i]
+            memory = model.initial_memory(demo.x[0].shape[0])
+            nll, values = [], []
+            for x, a, r, y in zip(demo.x, demo.prev_action, demo.prev_reward, demo.target, strict=True):
+                alpha, v, memory = model(x, a, r, memory, edges[demo.city])
+                y = y.clamp_min(1e-3)
+                nll.append(-dirichlet(alpha).log_prob(y / y.sum()) / x.shape[0])  # per region: cities differ in N
+                values.append(v)
+            loss = torch.stack(nll).mean() + args.value_coef * F.smooth_l1_loss(torch.stack(values), demo.returns)
+            opt.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), args.max_grad_norm)
+            opt.step()
+            total += loss.item()
+    return total / max(len(demos), 1)
+
+
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
     """Meta-train over trials on the training cities, keep the best validated model, write its card."""
     _check_tasks(args)
@@ -247,6 +324,11 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     log = C.Logger(args.run_dir, resume_from=start_ep if resume else None)
     timer = C.Timer(prior_wall)
     done_ep = ep = start_ep
+    if args.bc_trials and not resume:
+        demos = demonstrate(args, systems)
+        log.log(0, **{"bc/loss": imitate(model, demos, args, systems), "bc/episodes": len(demos) * args.trial_episodes})
+        best = C.BestActor(validate(model, args, systems), copy.deepcopy(model.state_dict()))
+        log.log(0, **{"eval/scaled_return": best.value, "time/wall_s": timer()})
 
     def save() -> tuple[Path, int]:
         path = C.state_path(args)
