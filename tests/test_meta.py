@@ -124,3 +124,18 @@ def test_fine_tuning_takes_k_episodes_and_changes_the_actor():
     assert any(changed)
     rec = run_strategy("fine-tune", "synthetic", policy="policies/a2c_gnn_synthetic.pt", adapt_episodes=2, episodes=1)
     assert rec["transfer"]["target_episodes"] == 2
+
+
+def test_a_study_reruns_only_the_rows_asked_for(monkeypatch):
+    from marl_amod import transfer
+
+    monkeypatch.setitem(transfer.STUDIES, "toy", ("synthetic",))
+    first = transfer.run_study("toy", episodes=1, strategies=("mpc-forecast", "mpc-oracle"))
+    rows = first["targets"]["synthetic"]
+    assert set(rows) == {"equal-distribution", "mpc-forecast", "mpc-oracle"}
+    assert rows["equal-distribution"]["normalised_score"] == 0.0 and rows["mpc-oracle"]["normalised_score"] == 100.0
+    again = transfer.run_study("toy", episodes=1, strategies=("mpc-forecast",), previous=first)
+    assert again["targets"]["synthetic"]["mpc-oracle"] is rows["mpc-oracle"]  # kept, not rerun
+    assert "# toy" not in transfer.study_markdown(again) and "| mpc-forecast |" in transfer.study_markdown(again)
+    other_seed = transfer.run_study("toy", episodes=1, seed=1, strategies=("mpc-forecast",), previous=first)
+    assert "mpc-oracle" not in other_seed["targets"]["synthetic"]  # rows of another seed are never mixed in
