@@ -32,7 +32,7 @@ from marl_amod.scenario import City, load_city
 Strategy = Literal["zero-shot", "fine-tune", "meta-rl", "single-city", "mpc-forecast", "mpc-oracle"]
 STRATEGIES: tuple[Strategy, ...] = ("zero-shot", "fine-tune", "meta-rl", "single-city", "mpc-forecast", "mpc-oracle")
 K_FINE_TUNE = 10  # online episodes fine-tuning gets in the target city
-META_POLICY = "policies/meta_rl_cities.pt"
+META_POLICY = "policies/meta_rl_cities_rl_only.pt"  # chosen over the warm-started run by validation on training cities
 
 
 @dataclass(frozen=True)

@@ -103,5 +103,5 @@ def test_brooklyn_special_event_hurts_the_forecast_planner_more_than_the_oracle(
 
     city = load_city("nyc_brooklyn_event")
     assert city.meta["events"] and not np.array_equal(city.demand_rate, city.forecast_rate)
-    profit = {p: evaluate(city, p, episodes=1)["metrics"]["profit"]["mean"] for p in ("mpc-forecast", "mpc-oracle")}
+    profit = {p: evaluate(p, city, episodes=1)["metrics"]["profit"]["mean"] for p in ("mpc-forecast", "mpc-oracle")}
     assert profit["mpc-oracle"] > profit["mpc-forecast"]
