@@ -287,12 +287,18 @@ class ActorPolicy(WeightPolicy):
         return dirichlet_mean(alpha).numpy().astype(np.float64)
 
 
-def load_policy(path: str | Path, city: City | str | None = None) -> ActorPolicy:
+def load_policy(path: str | Path, city: City | str | None = None) -> WeightPolicy:
     """A deterministic policy from a checkpoint, for ``city`` (a City or a scenario name; default:
-    the scenario on its card). It runs on the simulator and as a callable on env observations."""
+    the scenario on its card). It runs on the simulator and as a callable on env observations; a
+    meta-RL policy (algorithm "meta") runs its adaptation episodes in ``city`` first."""
+    card = _card_of(Path(path), _read_blob(Path(path))["card"])
     if not isinstance(city, City):
         from marl_amod.scenario import load_city
 
-        city = load_city(city if city is not None else _card_of(Path(path), _read_blob(Path(path))["card"]).scenario)
+        city = load_city(city if city is not None else card.scenario)
+    if card.algorithm == "meta":  # a recurrent meta-policy: adapt to the city first (no gradient step)
+        from marl_amod.algos import meta
+
+        return meta.load_policy(path, city)
     actor, card = load_actor(path, city)
     return ActorPolicy(actor, city, card["lookahead"], name=Path(path).stem)

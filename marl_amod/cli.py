@@ -310,6 +310,59 @@ def wait_map(
     console.print(f"wrote {path} and {output.with_suffix('.json')}")
 
 
+@app.command()
+def transfer(
+    strategy: Annotated[str, typer.Option(help="zero-shot, fine-tune, meta-rl, single-city, mpc-forecast or mpc-oracle")],
+    scenario: Annotated[str, typer.Option(help="the new city: san_francisco, nyc_brooklyn, shenzhen_downtown_west, nyc_brooklyn_event")],
+    policy: Annotated[str | None, typer.Option(help="starting policy .pt (default: the study's, see marl_amod.transfer)")] = None,
+    adapt_episodes: Annotated[int | None, typer.Option(min=0, help="K online episodes in the new city (fine-tune, meta-rl)")] = None,
+    episodes: Annotated[int, typer.Option(min=1)] = 10,
+    seed: Annotated[int, typer.Option(min=0)] = 0,
+    output: Annotated[Path | None, typer.Option(help="write the result JSON here")] = None,
+    data_dir: DataDir = None,
+) -> None:
+    """Transfer a policy to a new city with one strategy, then evaluate it on the report seeds."""
+    from marl_amod.transfer import run_strategy
+
+    _use_data_dir(data_dir)
+    if output is not None:
+        output = check_destination(output, what="--output")
+    result = run_strategy(strategy, scenario, episodes=episodes, seed=seed, policy=policy, adapt_episodes=adapt_episodes)
+    used = result["transfer"]
+    console.print(metrics_table([result], f"{strategy} on {result['scenario']}: {episodes} episodes, seed {seed}"))
+    console.print(f"episodes in {result['scenario']} before evaluation: {used['target_episodes']}; source: {used.get('source', '-')}")
+    if output is not None:
+        save_or_fallback(output, lambda path: write_json(path, result), what="the result")
+        console.print(f"wrote {output}")
+
+
+@app.command("transfer-table")
+def transfer_table(
+    study: Annotated[str, typer.Option(help="intercity (3 held-out cities) or event (Brooklyn special event)")],
+    out: Annotated[Path, typer.Option(help="folder for <study>.md and <study>.json")] = Path("docs/meta"),
+    episodes: Annotated[int, typer.Option(min=1)] = 10,
+    seed: Annotated[int, typer.Option(min=0)] = 0,
+    strategy: Annotated[
+        list[str] | None, typer.Option(help="rerun only these rows (repeat); the others come from <out>/<study>.json")
+    ] = None,
+    data_dir: DataDir = None,
+) -> None:
+    """Every transfer strategy on a study's cities: the tables of docs/meta (markdown + JSON)."""
+    from marl_amod.data import read_json
+    from marl_amod.transfer import STRATEGIES, run_study, study_markdown
+
+    _use_data_dir(data_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    previous = read_json(out / f"{study}.json") if strategy and (out / f"{study}.json").is_file() else None
+    payload = run_study(study, episodes=episodes, seed=seed, strategies=tuple(strategy or STRATEGIES), previous=previous,
+                        progress=lambda city, name, p: console.print(f"{city}: {name} {p:,.0f}"))  # fmt: skip
+    text = f"<!-- marl-amod transfer-table --study {study} --episodes {episodes} --seed {seed} -->\n" + study_markdown(payload)
+    write_json(out / f"{study}.json", payload)
+    (out / f"{study}.md").write_text(text)
+    console.print(text)
+    console.print(f"wrote {out / (study + '.md')} and {out / (study + '.json')}")
+
+
 def main() -> None:
     """Entry point: user errors print one clear line and exit 2, never a traceback."""
     try:

@@ -44,7 +44,7 @@ def _targets_from_moves(idle: np.ndarray, moves: np.ndarray) -> np.ndarray:
 
 def _expected_outflow(system: FleetSystem, first: int, count: int) -> np.ndarray:
     """(N,) mean expected requests per step out of each region over steps first..first+count-1."""
-    rate = system.city.demand_rate
+    rate = system.city.forecast_rate  # the usual demand: a heuristic does not know a scenario's events
     steps = np.arange(first, first + count)
     steps = steps[steps < rate.shape[0]]
     if steps.size == 0:

@@ -275,6 +275,9 @@ class MPCOracle(MPCPolicy):
 class MPCForecast(MPCPolicy):
     """MPC fed the scenario's expected demand, optionally with unbiased multiplicative noise.
 
+    It reads ``city.forecast_rate``: under a scenario's events (a demand shock) it plans with the
+    usual demand, not knowing the event; MPC-Oracle sees the draw, event included.
+
     ``noise`` is the standard deviation of a mean-one log-normal factor per OD pair and step,
     drawn from the policy rng (so runs are reproducible); 0 gives the expected rates.
     """
@@ -288,7 +291,7 @@ class MPCForecast(MPCPolicy):
         self.noise = noise
 
     def forecast(self, system: FleetSystem, steps: np.ndarray) -> np.ndarray:
-        rate = system.city.demand_rate
+        rate = system.city.forecast_rate
         idx = np.minimum(steps, rate.shape[0] - 1)
         d = rate[idx] * (steps < rate.shape[0])[:, None, None]
         if self.noise > 0:

@@ -5,7 +5,8 @@ For region i at step t, with look-ahead T (6 by default) and scale 0.01:
 * ``idle``: idle vehicles now (after dispatch), 1 column;
 * ``supply[k]``: idle now plus vehicles arriving at i in step t+k, k = 1..T (T columns);
 * ``value[k]``: expected requests out of i in step t+k times their price, summed over
-  destinations, k = 1..T (T columns).
+  destinations, k = 1..T (T columns); expected = ``city.forecast_rate``, which does not know a
+  scenario's events (policies see a demand shock only through the state it leaves).
 
 Steps past the tabulated horizon count as zero (:func:`~marl_amod.scenario.types.step_rows`).
 """

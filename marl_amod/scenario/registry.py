@@ -12,10 +12,11 @@ from pathlib import Path
 from typing import Any, Literal, get_args
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, model_validator
 
 from marl_amod.data import read_yaml, resolve
 from marl_amod.errors import ConfigError
+from marl_amod.scenario.events import DemandEvent, apply_events
 from marl_amod.scenario.json_city import load_json_city
 from marl_amod.scenario.synthetic import grid_city
 from marl_amod.scenario.types import City
@@ -29,6 +30,8 @@ class _Spec(BaseModel):
     name: str
     description: str = ""
     horizon: int = Field(20, ge=1, le=100_000, description="control steps (dispatch rounds) per episode")
+    events: list[DemandEvent] = Field(default_factory=list, description="demand shocks the forecast does not know (scenario/events.py)")
+    _source: str = PrivateAttr("")  # the YAML file, so errors found while building name it
 
     @model_validator(mode="before")
     @classmethod
@@ -181,19 +184,25 @@ def load_spec(name_or_path: str, **overrides: Any) -> ScenarioSpec:
     if model is None:
         raise ConfigError(f"{path}: 'source' must be 'json', 'synthetic' or 'sumo', got {source!r}")
     try:
-        return model(**raw)
+        spec = model(**raw)
     except ValidationError as exc:
         problems = "; ".join(
             (f"{'.'.join(map(str, e['loc']))}: " if e["loc"] else "") + e["msg"].removeprefix("Value error, ")
             for e in exc.errors()
         )
         raise ConfigError(f"invalid scenario {path}: {problems}") from exc
+    spec._source = str(path)
+    return spec
 
 
 def build_city(spec: ScenarioSpec) -> City:
-    """Turn a validated spec into a :class:`City`."""
+    """Turn a validated spec into a :class:`City`, its events applied to the realised demand."""
+    return apply_events(_base_city(spec), spec.events, spec._source or f"scenario {spec.name!r}")
+
+
+def _base_city(spec: ScenarioSpec) -> City:
     if isinstance(spec, SyntheticScenario):
-        params = spec.model_dump(exclude={"source", "description", "name"})
+        params = spec.model_dump(exclude={"source", "description", "name", "events"})
         return grid_city(name=spec.name, **params)
     if isinstance(spec, SumoScenario):
         return _build_sumo_city(spec)

@@ -36,6 +36,9 @@ class City:
     edge_index: np.ndarray  # (2, E) int, region adjacency for message passing (no self loops)
     positions: np.ndarray  # (N, 2) float, a drawing position per region
     start_hour: float = 0.0  # clock time of step 0, for the time-of-day feature
+    # (S, N, N) the usual expected requests, what planners and observations believe; differs from
+    # demand_rate (what is drawn) only under a scenario's events. None: demand_rate.
+    forecast_rate: np.ndarray | None = None
     meta: dict = field(default_factory=dict)  # provenance (data file, parameters), shown to users
     # which simulator runs this city (data; marl_amod.sim.base.make_simulator builds it). SUMO
     # scenarios set it, so every consumer of a City gets its simulator without asking.
@@ -51,6 +54,9 @@ class City:
             raise DataError(f"{what} demand_rate must be (S, N, N), got {shape}")
         s, n, _ = shape
         check_array(self.demand_rate, f"{what} demand_rate", minimum=0)
+        if self.forecast_rate is None:
+            object.__setattr__(self, "forecast_rate", self.demand_rate)
+        check_array(self.forecast_rate, f"{what} forecast_rate", shape=(s, n, n), minimum=0)
         check_array(self.price, f"{what} price", shape=(s, n, n), minimum=0)
         check_array(self.trip_time, f"{what} trip_time (steps)", shape=(s, n, n), minimum=1, integer=True)
         reb = check_array(self.reb_time, f"{what} reb_time (steps)", shape=(n, n), minimum=0, integer=True)
@@ -74,7 +80,7 @@ class City:
         if off.any():
             i, j = np.argwhere(off)[0]
             raise DataError(f"{what} rebalancing times between distinct regions must be >= 1 step (regions {i}->{j})")
-        for arr in (self.demand_rate, self.price, self.trip_time, self.reb_time, self.initial_vehicles,
+        for arr in (self.demand_rate, self.forecast_rate, self.price, self.trip_time, self.reb_time, self.initial_vehicles,
                     self.edge_index, self.positions):  # fmt: skip
             arr.setflags(write=False)
 
@@ -102,8 +108,9 @@ class City:
 
     @cached_property
     def expected_fares(self) -> np.ndarray:
-        """(S, N) expected fares of the requests out of each region in step t (rate x fare over destinations)."""
-        return _frozen((self.demand_rate * self.price).sum(axis=2))
+        """(S, N) expected fares of the requests out of each region in step t (forecast rate x fare over
+        destinations): what a policy may know in advance, so a scenario's events are not in it."""
+        return _frozen((self.forecast_rate * self.price).sum(axis=2))
 
     @cached_property
     def reb_cost(self) -> np.ndarray:

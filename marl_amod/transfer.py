@@ -1,0 +1,215 @@
+"""Transfer to a new city: six strategies, and the two tables of docs/meta (issue 16).
+
+Strategies (what each may use of the target city before it is evaluated):
+
+* ``zero-shot``: a single-city GNN policy trained elsewhere, applied unchanged (0 episodes);
+* ``fine-tune``: that policy given ``K_FINE_TUNE`` online A2C episodes in the target (a fresh critic,
+  gradient steps on the actor);
+* ``meta-rl``: the recurrent meta-policy (:mod:`marl_amod.algos.meta`), trained on ten other cities,
+  runs ``K`` adaptation episodes in the target with its memory carried, no gradient step;
+* ``single-city``: a policy trained in the target city itself (the RL reference);
+* ``mpc-forecast`` / ``mpc-oracle``: receding-horizon MPC on the expected demand / on the draw.
+
+Every strategy is then evaluated on the report streams ``(seed, k)``, k < episodes, exactly as
+``marl-amod evaluate --seed 0``; adaptation and fine-tuning episodes draw from their own streams
+(:func:`marl_amod.algos.meta.adapt_seed`), never those. Tables add the normalised score
+100 (P - P_ED) / (P_oracle - P_ED) beside the profit (equal distribution = 0, MPC-Oracle = 100).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+
+from marl_amod.errors import ConfigError
+from marl_amod.evaluation import evaluate
+from marl_amod.scenario import City, load_city
+
+Strategy = Literal["zero-shot", "fine-tune", "meta-rl", "single-city", "mpc-forecast", "mpc-oracle"]
+STRATEGIES: tuple[Strategy, ...] = ("zero-shot", "fine-tune", "meta-rl", "single-city", "mpc-forecast", "mpc-oracle")
+K_FINE_TUNE = 10  # online episodes fine-tuning gets in the target city
+META_POLICY = "policies/meta_rl_cities_rl_only.pt"  # chosen over the warm-started run by validation on training cities
+
+
+@dataclass(frozen=True)
+class Target:
+    """A held-out task: its scenario and the single-city policies the strategies start from."""
+
+    scenario: str
+    zero_shot: str  # a GNN policy trained in another city
+    single_city: str  # a GNN policy trained in this city (for the event: in Brooklyn without it)
+
+
+TARGETS = {
+    "san_francisco": Target("san_francisco", "policies/a2c_gnn_nyc_brooklyn.pt", "policies/a2c_gnn_san_francisco.pt"),
+    "nyc_brooklyn": Target("nyc_brooklyn", "policies/a2c_gnn_nyc_man_south.pt", "policies/a2c_gnn_nyc_brooklyn.pt"),
+    "shenzhen_downtown_west": Target(
+        "shenzhen_downtown_west", "policies/a2c_gnn_nyc_brooklyn.pt", "policies/a2c_gnn_shenzhen_downtown_west.pt"
+    ),
+    "nyc_brooklyn_event": Target("nyc_brooklyn_event", "policies/a2c_gnn_nyc_man_south.pt", "policies/a2c_gnn_nyc_brooklyn.pt"),
+}
+STUDIES = {"intercity": ("san_francisco", "nyc_brooklyn", "shenzhen_downtown_west"), "event": ("nyc_brooklyn_event",)}
+
+
+# --------------------------------------------------------------------------------------------
+# Fine-tuning: K online A2C episodes from a single-city policy
+# --------------------------------------------------------------------------------------------
+def fine_tune(policy_path: str, city: City, episodes: int = K_FINE_TUNE, seed: int = 0, lr: float = 1e-3, per_update: int = 2):
+    """The policy at ``policy_path`` after ``episodes`` online A2C episodes in ``city`` (updates of
+    ``per_update`` episodes; a fresh critic, returns standardised as in training)."""
+    import torch.nn.functional as F
+
+    from marl_amod.algos.a2c import act, discounted_returns, value
+    from marl_amod.algos.meta import adapt_seed
+    from marl_amod.algos.rollout import Rollout
+    from marl_amod.checkpoints import ActorPolicy, load_actor
+    from marl_amod.models import GNNValueCritic
+
+    torch.manual_seed(seed)
+    actor, card = load_actor(policy_path, city)
+    actor.train()
+    critic = GNNValueCritic(card["n_features"], card["hidden"], card["conv"])
+    opt_a, opt_c = torch.optim.Adam(actor.parameters(), lr=lr), torch.optim.Adam(critic.parameters(), lr=lr)
+    rollout = Rollout(city, "centralised", card["lookahead"])
+    edge_index = torch.as_tensor(np.array(city.edge_index), dtype=torch.long)
+    for first in range(0, episodes, per_update):
+        logps, values, returns = [], [], []
+        for k in range(first, min(first + per_update, episodes)):
+            obs, rewards = rollout.reset(adapt_seed(seed, k)), []
+            while not rollout.done:
+                w, logp, _ = act(actor, obs, edge_index, "centralised")
+                values.append(value(critic, obs, edge_index, False))
+                logps.append(logp)
+                obs, r = rollout.step(w)
+                rewards.append(r)
+            returns.append(discounted_returns(rewards, 0.97))
+        ret = torch.cat(returns)
+        ret = (ret - ret.mean()) / (ret.std() + 1e-8)
+        v = torch.stack(values)
+        loss_pi = -(torch.stack(logps) * (ret - v.detach())).mean()
+        opt_a.zero_grad(), loss_pi.backward(), opt_a.step()
+        opt_c.zero_grad(), F.smooth_l1_loss(v, ret).backward(), opt_c.step()
+    actor.eval()
+    return ActorPolicy(actor, city, card["lookahead"], name=f"fine-tune({Path(policy_path).stem})")
+
+
+# --------------------------------------------------------------------------------------------
+# One strategy on one target
+# --------------------------------------------------------------------------------------------
+def _card(path: str) -> dict[str, Any]:
+    from marl_amod.checkpoints import read_card
+
+    return read_card(path)
+
+
+def run_strategy(
+    strategy: str, scenario: str, *, episodes: int = 10, seed: int = 0, policy: str | None = None,
+    adapt_episodes: int | None = None, meta_policy: str = META_POLICY,
+) -> dict[str, Any]:
+    """Evaluate ``strategy`` on ``scenario``; the result record plus what the strategy used.
+
+    ``policy`` overrides the strategy's starting policy (zero-shot, fine-tune, single-city);
+    ``adapt_episodes`` overrides K (fine-tune, meta-rl).
+    """
+    if strategy not in STRATEGIES:
+        raise ConfigError(f"unknown strategy {strategy!r}; known: {', '.join(STRATEGIES)}")
+    city = load_city(scenario)
+    target = TARGETS.get(city.name)
+    needs = {"zero-shot": "zero_shot", "fine-tune": "zero_shot", "single-city": "single_city"}
+    if strategy in needs and policy is None:
+        if target is None:
+            raise ConfigError(f"strategy {strategy} on {city.name} needs --policy (known targets: {', '.join(TARGETS)})")
+        policy = getattr(target, needs[strategy])
+    used: dict[str, Any] = {"strategy": strategy, "target_episodes": 0}
+    if strategy in ("mpc-forecast", "mpc-oracle"):
+        pol: Any = strategy
+        used["source"] = "expected demand" if strategy == "mpc-forecast" else "the episode's draw"
+    elif strategy in ("zero-shot", "single-city"):
+        pol = policy
+        card = _card(policy)
+        used.update(source=policy, source_city=card["scenario"], source_episodes=card.get("episodes_trained"))
+        if strategy == "single-city" and card["scenario"] == city.name:
+            used["target_episodes"] = card.get("episodes_trained")
+    elif strategy == "fine-tune":
+        k = K_FINE_TUNE if adapt_episodes is None else adapt_episodes
+        card = _card(policy)
+        pol = fine_tune(policy, city, k, seed)
+        used.update(source=policy, source_city=card["scenario"], source_episodes=card.get("episodes_trained"), target_episodes=k)
+    else:
+        from marl_amod.algos.meta import adapt, load_meta
+
+        model, card = load_meta(meta_policy)
+        k = card["args"]["trial_episodes"] - 1 if adapt_episodes is None else adapt_episodes
+        pol = adapt(model, city, k, card["lookahead"], seed=seed)
+        used.update(source=meta_policy, source_city="10 training cities", source_episodes=card.get("episodes_trained"), target_episodes=k)
+    result = evaluate(pol, city, episodes, seed)
+    result["transfer"] = used
+    return result
+
+
+# --------------------------------------------------------------------------------------------
+# The tables
+# --------------------------------------------------------------------------------------------
+def normalised(profit: float, ed: float, oracle: float) -> float:
+    """100 (P - P_ED) / (P_oracle - P_ED): equal distribution 0, MPC-Oracle 100."""
+    return 100.0 * (profit - ed) / (oracle - ed) if oracle != ed else float("nan")
+
+
+def run_study(study: str, *, episodes: int = 10, seed: int = 0, meta_policy: str = META_POLICY, strategies: tuple[str, ...] = STRATEGIES,
+              previous: dict[str, Any] | None = None, progress: Any = None) -> dict[str, Any]:  # fmt: skip
+    """Every strategy (and equal distribution, the 0 of the score) on every target of ``study``.
+
+    With ``strategies`` a subset, the other rows come from ``previous`` (an earlier payload of the
+    same study, episodes and seed), so retraining one policy reruns one row, not the MPC rows.
+    """
+    if study not in STUDIES:
+        raise ConfigError(f"unknown study {study!r}; known: {', '.join(STUDIES)}")
+    unknown = sorted(set(strategies) - set(STRATEGIES))
+    if unknown:
+        raise ConfigError(f"unknown strategy {unknown[0]!r}; known: {', '.join(STRATEGIES)}")
+    if previous is not None and (previous.get("study"), previous.get("episodes"), previous.get("seed")) != (study, episodes, seed):
+        previous = None  # another run's rows are not comparable
+    out: dict[str, Any] = {"study": study, "episodes": episodes, "seed": seed, "targets": {}}
+    for scenario in STUDIES[study]:
+        old = (previous or {}).get("targets", {}).get(scenario, {})
+        rows = {"equal-distribution": old.get("equal-distribution") or evaluate("equal-distribution", scenario, episodes, seed)}
+        for strategy in STRATEGIES:
+            if strategy in strategies:
+                rows[strategy] = run_strategy(strategy, scenario, episodes=episodes, seed=seed, meta_policy=meta_policy)
+                if progress is not None:
+                    progress(scenario, strategy, rows[strategy]["metrics"]["profit"]["mean"])
+            elif strategy in old:
+                rows[strategy] = old[strategy]  # a row not asked for: kept from the previous run
+        if "mpc-oracle" in rows:
+            ed, oracle = (rows[k]["metrics"]["profit"]["mean"] for k in ("equal-distribution", "mpc-oracle"))
+            for rec in rows.values():
+                rec["normalised_score"] = normalised(rec["metrics"]["profit"]["mean"], ed, oracle)
+        out["targets"][scenario] = rows
+    return out
+
+
+def study_markdown(payload: dict[str, Any]) -> str:
+    """The study as markdown tables: profit (k$) mean ± std, normalised score, served, rebalancing
+    cost, and the episodes each strategy used in the target and before."""
+    lines = []
+    for scenario, rows in payload["targets"].items():
+        lines += [f"### {scenario}", "",
+                  "| strategy | profit (k$) | score (ED 0, oracle 100) | served | reb. cost (k$) | episodes in target | trained on (episodes) |",
+                  "|---|---|---|---|---|---|---|"]  # fmt: skip
+        for name, rec in rows.items():
+            m = rec["metrics"]
+            used = rec.get("transfer", {})
+            source = used.get("source_city", "-")
+            if used.get("source_episodes") is not None:
+                source = f"{source} ({used['source_episodes']:,})"
+            lines.append(
+                f"| {name} | {m['profit']['mean'] / 1e3:.1f} ± {m['profit']['std'] / 1e3:.1f} | {rec['normalised_score']:.1f} "
+                f"| {m['served_demand']['mean']:,.0f} | {m['rebalancing_cost']['mean'] / 1e3:.2f} "
+                f"| {used.get('target_episodes', 0) or 0:,} | {source} |"
+            )
+        lines.append("")
+    return "\n".join(lines)
