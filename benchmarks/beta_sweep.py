@@ -53,7 +53,7 @@ def train_beta(beta: float, runs: Path, episodes: int, time_limit_s: float, init
     scenario = runs / f"lux_macro_{tag}.yaml"
     scenario.write_text(f"extends: lux_macro\nname: lux_macro_{tag}\nbeta: {beta}\n")
     args = Args(
-        scenario=str(scenario), conv="gcn", episodes=episodes, time_limit_s=time_limit_s, eval_every=100,
+        scenario=str(scenario), conv="gcn", episodes=episodes, time_limit_s=time_limit_s, eval_every=20, eval_episodes=3,
         run_dir=str(runs / tag), policy_out=str(policy), threads=1, init_policy=init_policy,
     )  # fmt: skip
     t0 = time.perf_counter()
@@ -65,7 +65,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--betas", type=float, nargs="+", default=list(BETAS))
     parser.add_argument("--episodes", type=int, default=600, help="macro training episodes per beta")
-    parser.add_argument("--time-limit-s", type=float, default=180.0, help="training wall-time cap per beta")
+    parser.add_argument("--time-limit-s", type=float, default=120.0, help="training wall-time cap per beta")
     parser.add_argument("--cold", action="store_true", help="train from scratch instead of warm-starting")
     parser.add_argument("--eval-scenario", default="lux")
     parser.add_argument("--eval-episodes", type=int, default=5)

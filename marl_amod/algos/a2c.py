@@ -163,7 +163,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
 
             stats = {"train/episode_reward": float(np.mean(ep_rewards)), "loss/policy": loss_pi.item(), "loss/value": loss_v.item()}
             # ---- periodic validation, best-actor selection, resumable state ----
-            if ep // args.eval_every != (ep - args.episodes_per_update) // args.eval_every or ep >= args.episodes:
+            out_of_time = bool(args.time_limit_s) and timer() > args.time_limit_s  # validate the last actor too
+            if ep // args.eval_every != (ep - args.episodes_per_update) // args.eval_every or ep >= args.episodes or out_of_time:
                 stats["eval/profit"] = best.validate(actor, city, args)
                 save()
             if C.close_episode(log, rollout, ep, stats, args, timer(), progress):
