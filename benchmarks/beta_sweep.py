@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import time
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -42,13 +41,12 @@ COLUMNS = (
 WARM_START = "policies/a2c_gnn_lux_macro.pt"
 
 
-def train_beta(beta: float, runs: Path, episodes: int, time_limit_s: float, init_policy: str | None) -> tuple[Path, float]:
-    """Train (or reuse) the policy for ``beta``; returns its path and training wall seconds."""
+def train_beta(beta: float, runs: Path, episodes: int, time_limit_s: float, init_policy: str | None) -> tuple[Path, dict]:
+    """Train (or reuse) the policy for ``beta``; returns its path and its card."""
     tag = f"beta{beta:g}"
     policy = runs / f"a2c_gnn_lux_macro_{tag}.pt"
     if policy.exists():
-        card = json.loads(policy.with_suffix(".json").read_text())
-        return policy, float(card.get("training_wall_s", float("nan")))
+        return policy, json.loads(policy.with_suffix(".json").read_text())
     runs.mkdir(parents=True, exist_ok=True)
     scenario = runs / f"lux_macro_{tag}.yaml"
     scenario.write_text(f"extends: lux_macro\nname: lux_macro_{tag}\nbeta: {beta}\n")
@@ -56,9 +54,18 @@ def train_beta(beta: float, runs: Path, episodes: int, time_limit_s: float, init
         scenario=str(scenario), conv="gcn", episodes=episodes, time_limit_s=time_limit_s, eval_every=20, eval_episodes=3,
         run_dir=str(runs / tag), policy_out=str(policy), threads=1, init_policy=init_policy,
     )  # fmt: skip
-    t0 = time.perf_counter()
-    run_training("a2c", args)
-    return policy, time.perf_counter() - t0
+    return policy, run_training("a2c", args)["card"]
+
+
+def evaluate_beta(policy: Path, beta: float, scenario: str, episodes: int, seed: int) -> dict:
+    """The policy's evaluation on ``scenario`` with the same beta, kept next to the policy so
+    that a second call (or one per beta run side by side) only assembles the figure."""
+    path = policy.with_name(f"{policy.stem}_{scenario}_{episodes}ep_seed{seed}.json")
+    if path.exists():
+        return json.loads(path.read_text())
+    rec = evaluate(str(policy), load_city(scenario, beta=beta), episodes=episodes, seed=seed)
+    path.write_text(json.dumps(rec))
+    return rec
 
 
 def main() -> None:
@@ -73,19 +80,20 @@ def main() -> None:
     parser.add_argument("--runs", default="runs/beta_sweep")
     parser.add_argument("--out", default="docs/meso")
     parser.add_argument("--train-only", action="store_true", help="train every beta, evaluate nothing")
+    parser.add_argument("--no-figure", action="store_true", help="evaluate, but leave the figure and table alone")
     args = parser.parse_args()
     runs, out = Path(args.runs), Path(args.out)
     rows = []
     for beta in args.betas:
-        policy, wall = train_beta(beta, runs, args.episodes, args.time_limit_s, None if args.cold else WARM_START)
-        print(f"beta={beta:g}: {policy} ({wall:.0f} s training)", flush=True)
+        policy, card = train_beta(beta, runs, args.episodes, args.time_limit_s, None if args.cold else WARM_START)
+        trained = {"training_wall_s": card["training_wall_s"], "episodes_trained": card["episodes_trained"]}
+        print(f"beta={beta:g}: {policy} ({trained})", flush=True)
         if args.train_only:
             continue
-        city = load_city(args.eval_scenario, beta=beta)
-        rec = evaluate(str(policy), city, episodes=args.eval_episodes, seed=args.seed)
-        rows.append({"beta": beta, "policy": str(policy), "training_wall_s": wall, "metrics": rec["metrics"]})
+        rec = evaluate_beta(policy, beta, args.eval_scenario, args.eval_episodes, args.seed)
+        rows.append({"beta": beta, "policy": str(policy), **trained, "metrics": rec["metrics"]})
         print({k: round(rec["metrics"][k]["mean"], 3) for k in COLUMNS}, flush=True)
-    if args.train_only:
+    if args.train_only or args.no_figure:
         return
     out.mkdir(parents=True, exist_ok=True)
     payload = {
@@ -100,14 +108,14 @@ def main() -> None:
 
 def write_table(payload: dict, path: Path) -> None:
     """Markdown table: mean (std over episodes) of every column per beta."""
-    lines = ["| beta | " + " | ".join(COLUMNS) + " |", "|---:|" + "---:|" * len(COLUMNS)]
+    lines = ["| beta | macro episodes trained | " + " | ".join(COLUMNS) + " |", "|---:|---:|" + "---:|" * len(COLUMNS)]
     for r in payload["rows"]:
         cells = []
         for k in COLUMNS:
             m = r["metrics"][k]
             digits = 3 if "gini" in k else 2 if k in ("wait_time", "utilization") else 0
             cells.append(f"{m['mean']:,.{digits}f} ± {m.get('std', 0.0):,.{digits}f}")
-        lines.append(f"| {r['beta']:g} | " + " | ".join(cells) + " |")
+        lines.append(f"| {r['beta']:g} | {r.get('episodes_trained', '–')} | " + " | ".join(cells) + " |")
     path.write_text("\n".join(lines) + "\n")
 
 
