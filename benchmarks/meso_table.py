@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 FLOOR, CEILING = "equal-distribution", "mpc-oracle"
+ORDER = ("no-rebalancing", "plus-one", "equal-distribution")  # then trained policies, then the MPCs
 
 
 def records(path: Path) -> list[dict[str, Any]]:
@@ -76,12 +77,19 @@ def main() -> None:
     rows = [r for p in args.inputs for r in records(p)]
     if args.reuse:
         measured = {r["policy"] for r in rows}
-        rows += [dict(r, label=f"{r['policy']} (reused from {args.reuse})") for r in records(args.reuse) if r["policy"] not in measured]
+        rows += [
+            dict(r, label=f"{r['policy']} (reused from {args.reuse})") for r in records(args.reuse) if r["policy"] not in measured
+        ]
+    rank = lambda r: ORDER.index(r["policy"]) if r["policy"] in ORDER else 4 if r["policy"].startswith("mpc") else 3  # noqa: E731
+    rows.sort(key=rank)
     md = markdown(rows)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".md").write_text(md)
-    keep = [{k: v for k, v in r.items() if k != "per_episode"} | {"episode_profit": [e["profit"] for e in r.get("per_episode", [])]} for r in rows]
+    keep = [
+        {k: v for k, v in r.items() if k != "per_episode"} | {"episode_profit": [e["profit"] for e in r.get("per_episode", [])]}
+        for r in rows
+    ]
     out.with_suffix(".json").write_text(json.dumps({"scenario": "lux", "results": keep}, indent=1))
     print(md)
 
