@@ -24,6 +24,7 @@ from pydantic import Field
 
 from marl_amod.algos import common as C
 from marl_amod.algos.rollout import Obs, Rollout, train_seed
+from marl_amod.checkpoints import load_actor
 from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import GNNValueCritic, LocalActor, LocalValueCritic, build_actor, dirichlet, gamma, gamma_log_prob
 from marl_amod.scenario import load_city
@@ -46,6 +47,10 @@ class Args(C.RunArgs):
     """weight of the policy entropy bonus"""
     run_dir: str = "runs/a2c"
     """TensorBoard + CSV logs and the resumable training state"""
+    init_policy: str | None = None
+    """warm start: the actor starts from this policy file (fine-tuning, e.g. a macro-trained policy
+    in SUMO); the critic and optimisers start fresh, and the start is validated first, so the
+    kept actor is never worse on the validation seeds than the one fine-tuning began from"""
 
     def ignored_keys(self) -> dict[str, str]:
         ignored = super().ignored_keys()
@@ -100,6 +105,9 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     opt_c = torch.optim.Adam(critic.parameters(), lr=args.lr_critic)
 
     start_ep, prior_wall, best = 0, 0.0, C.BestActor.of(actor)
+    if args.init_policy and not resume:
+        actor.load_state_dict(load_actor(args.init_policy, city)[0].state_dict())
+        best.validate(actor, city, args)
     if resume:
         st = C.load_state(resume, "a2c")
         actor.load_state_dict(st["actor"]), critic.load_state_dict(st["critic"])
@@ -155,7 +163,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
 
             stats = {"train/episode_reward": float(np.mean(ep_rewards)), "loss/policy": loss_pi.item(), "loss/value": loss_v.item()}
             # ---- periodic validation, best-actor selection, resumable state ----
-            if ep // args.eval_every != (ep - args.episodes_per_update) // args.eval_every or ep >= args.episodes:
+            out_of_time = bool(args.time_limit_s) and timer() > args.time_limit_s  # validate the last actor too
+            if ep // args.eval_every != (ep - args.episodes_per_update) // args.eval_every or ep >= args.episodes or out_of_time:
                 stats["eval/profit"] = best.validate(actor, city, args)
                 save()
             if C.close_episode(log, rollout, ep, stats, args, timer(), progress):

@@ -35,6 +35,7 @@ class SumoOptions:
     dispatch_every_min: float | None = None  # match requests this often inside a step (None: once)
     route_files: tuple[str, ...] = ()  # other traffic SUMO loads next to the fleet (ids not "fleet*"/"taxi*")
     region_seed: int = 0  # seeds the edges that region travel times average over
+    sumo_router: bool = False  # route each fleet leg with SUMO's findRoute (slow; the fast table is checked against it)
     quiet: bool = True  # silence SUMO's warnings (pass extra_args=("--log", file) to keep them)
     extra_args: tuple[str, ...] = ()
 

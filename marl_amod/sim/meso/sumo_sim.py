@@ -16,7 +16,8 @@ from SUMO) and starts the drives. The state is typed (:mod:`~marl_amod.sim.meso.
 
 Mechanism (the simulator kind "meso"; kind "taxi" uses SUMO's taxi device instead, see
 :mod:`marl_amod.sim.meso.taxi_sim`): every driving leg is a plain SUMO vehicle added with a
-router-computed route of at least two edges (single-edge routes vanish in meso); its arrival is
+route that costs what SUMO's router says (from :mod:`~marl_amod.sim.meso.routing`, or SUMO's
+``findRoute`` with ``SumoOptions.sumo_router``) of at least two edges (single-edge routes vanish in meso); its arrival is
 read back from SUMO each simulation step. Idle vehicles wait off-road at their last edge (parked
 meso vehicles cannot be re-routed anyway), so the fleet is conserved by construction and checked
 against SUMO's own vehicle count. Travel times, and so vehicle availability and waits, come from
@@ -47,6 +48,7 @@ from marl_amod.sim.macro import EpisodeTotals
 from marl_amod.sim.meso import bookkeeping as bk
 from marl_amod.sim.meso import engine
 from marl_amod.sim.meso.options import dispatch_rounds, sumo_args
+from marl_amod.sim.meso.routing import EdgeRouter, router_for
 from marl_amod.sim.meso.types import Fleet, Requests, RequestState, VehicleState
 
 FLEET_PREFIX = "fleet"  # SUMO ids of the fleet's legs; other traffic has other ids
@@ -75,6 +77,7 @@ class MesoSim:
         self._round = 0  # dispatch rounds already run inside the current control step
         self._picks = sample_edges(options.of_edge, n, TRAVEL_SAMPLES, options.region_seed)
         self._api: Any = None
+        self._router: EdgeRouter | None = None  # routes on SUMO's routing costs, set by reset
         self._run: object | None = None  # token of the SUMO run this simulator started
         self._closer: weakref.finalize | None = None  # ends that run if the simulator is dropped
         self._rng = np.random.default_rng(options.sumo_seed)  # replaced by reset()'s generator
@@ -94,6 +97,7 @@ class MesoSim:
         self._run = object()
         self._api = engine.start(self.sumo_args(), self.options.backend, owner=self._run)
         self._closer = weakref.finalize(self, engine.stop, self._api, self.options.backend, self._run)
+        self._router = None if self.options.sumo_router else router_for(self._api, self.net, tuple(self.sumo_args()))
         self._rng = rng
         self.city = self.base_city
         n = self.city.n_regions
@@ -125,7 +129,7 @@ class MesoSim:
     def __getstate__(self) -> dict:
         """Picklable: the live SUMO run is not copied; the copy needs a reset."""
         state = self.__dict__.copy()
-        state.update(_api=None, _run=None, _closer=None)
+        state.update(_api=None, _run=None, _closer=None, _router=None)
         return state
 
     @property
@@ -326,19 +330,28 @@ class MesoSim:
         """Start a SUMO leg from the vehicle's edge to ``to_edge`` (distinct edges)."""
         api, fleet = self.sumo, self.fleet
         edges = self.net.edges
-        route = api.simulation.findRoute(edges[fleet.edge[v]], edges[to_edge])
-        if len(route.edges) < 2:
+        route, travel_time = self._route(fleet.edge[v], to_edge)
+        if len(route) < 2:
             raise RuntimeError(f"no route of >= 2 edges from {edges[fleet.edge[v]]} to {edges[to_edge]}")
         self._legs_started += 1
         leg = f"{FLEET_PREFIX}{v}.{self._legs_started}"
-        api.route.add(leg, list(route.edges))
+        api.route.add(leg, route)
         api.vehicle.add(leg, leg, depart="now", departSpeed="max")
         self._leg[leg] = v
         self._fresh.add(leg)  # SUMO lists it from the next simulation step on
         fleet.state[v] = state
         fleet.target[v] = to_edge
         if state != VehicleState.PICKUP:  # a pickup's eta is the whole trip's, set at dispatch
-            fleet.eta[v] = self.now + route.travelTime
+            fleet.eta[v] = self.now + travel_time
+
+    def _route(self, source: int, target: int) -> tuple[list[str], float]:
+        """(edge ids, seconds) of the route SUMO's router would give from edge ``source`` to
+        ``target``: from the routing table when there is one (see :mod:`~marl_amod.sim.meso.routing`)."""
+        if self._router is not None:
+            path, travel_time = self._router.route(source, target)
+            return [self.net.edges[e] for e in path], travel_time
+        route = self.sumo.simulation.findRoute(self.net.edges[source], self.net.edges[target])
+        return list(route.edges), float(route.travelTime)
 
     # ------------------------------------------------------------------ requests
     def _new_requests(self, t: int) -> None:

@@ -54,11 +54,9 @@ class TaxiMesoSim(MesoSim):
         api = self.sumo
         api.vehicletype.copy("DEFAULT_VEHTYPE", TAXI_TYPE)
         api.vehicletype.setParameter(TAXI_TYPE, "has.taxi.device", "true")
-        edges = self.net.edges
         for v, tid in enumerate(self._taxi):
             start = self.fleet.edge[v]
-            route = api.simulation.findRoute(edges[start], edges[self._other_edge(start, self.fleet.region[v])])
-            first = list(route.edges[:2])
+            first = self._route(start, self._other_edge(start, self.fleet.region[v]))[0][:2]
             api.route.add(tid, first)
             api.vehicle.add(tid, tid, typeID=TAXI_TYPE, depart="now", departSpeed="max")
 
@@ -116,7 +114,7 @@ class TaxiMesoSim(MesoSim):
         api.person.add(pid, edges[to_edge], float(self.net.length[to_edge]) / 2.0, depart=-3)
         api.person.appendDrivingStage(pid, edges[hop], "taxi")
         self.fleet.target[v] = hop
-        self.fleet.eta[v] = self.now + api.simulation.findRoute(edges[self.fleet.edge[v]], edges[to_edge]).travelTime
+        self.fleet.eta[v] = self.now + self._route(self.fleet.edge[v], to_edge)[1]
         self._pending.append((v, pid, to_edge, self.now))
 
     def _after_sumo_step(self, api: Any) -> None:
@@ -172,13 +170,11 @@ class TaxiMesoSim(MesoSim):
         """The passengers are in: their waits end; each ride's ETA comes from SUMO's router."""
         if not vs:
             return
-        fleet, req, edges = self.fleet, self.ride_requests, self.net.edges
+        fleet, req = self.fleet, self.ride_requests
         bk.pick_up(fleet, req, np.array(vs), self.now, self.totals)
         for v in vs:
             k = fleet.request[v]
-            fleet.eta[v] = (
-                self.now + self.sumo.simulation.findRoute(edges[req.origin_edge[k]], edges[req.dest_edge[k]]).travelTime
-            )
+            fleet.eta[v] = self.now + self._route(req.origin_edge[k], req.dest_edge[k])[1]
 
     def _taxi_dropoff(self, vs: list[int], api: Any) -> None:
         """Empty again: idle on the edge SUMO has them on (their drop-off edge)."""
