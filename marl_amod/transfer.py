@@ -63,7 +63,7 @@ def fine_tune(policy_path: str, city: City, episodes: int = K_FINE_TUNE, seed: i
     ``per_update`` episodes; a fresh critic, returns standardised as in training)."""
     import torch.nn.functional as F
 
-    from marl_amod.algos.a2c import act, discounted_returns, value
+    from marl_amod.algos.a2c import act, concentrations, discounted_returns, value
     from marl_amod.algos.meta import adapt_seed
     from marl_amod.algos.rollout import Rollout
     from marl_amod.checkpoints import ActorPolicy, load_actor
@@ -81,12 +81,12 @@ def fine_tune(policy_path: str, city: City, episodes: int = K_FINE_TUNE, seed: i
         for k in range(first, min(first + per_update, episodes)):
             obs, rewards = rollout.reset(adapt_seed(seed, k)), []
             while not rollout.done:
-                w, logp, _ = act(actor, obs, edge_index, "centralised")
-                values.append(value(critic, obs, edge_index, False))
+                w, logp, _ = act(concentrations(actor, obs, edge_index, "centralised"), "centralised")
+                values.append(value(critic, obs, edge_index, False, False))
                 logps.append(logp)
                 obs, r = rollout.step(w)
                 rewards.append(r)
-            returns.append(discounted_returns(rewards, 0.97))
+            returns.append(torch.as_tensor(discounted_returns(rewards, 0.97), dtype=torch.float32))
         ret = torch.cat(returns)
         ret = (ret - ret.mean()) / (ret.std() + 1e-8)
         v = torch.stack(values)

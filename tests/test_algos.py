@@ -114,7 +114,9 @@ def test_save_load_round_trip_gives_identical_actions(tmp_path, tiny_city, kind)
 def test_discounted_returns():
     from marl_amod.algos.a2c import discounted_returns
 
-    torch.testing.assert_close(discounted_returns([1.0, 2.0, 4.0], 0.5), torch.tensor([3.0, 4.0, 4.0]))
+    np.testing.assert_array_equal(discounted_returns([1.0, 2.0, 4.0], 0.5), [3.0, 4.0, 4.0])
+    # episodes in lockstep: (T, E), each column its own episode
+    np.testing.assert_array_equal(discounted_returns([[1.0, 0.0], [2.0, 0.0], [4.0, 8.0]], 0.5), [[3.0, 2.0], [4.0, 4.0], [4.0, 8.0]])
 
 
 def test_train_config_typo_is_a_clear_error(tmp_path):

@@ -221,3 +221,17 @@ def test_vector_env_copy_continues_identically() -> None:
                 np.testing.assert_array_equal(got[key], want[key])
         else:
             np.testing.assert_array_equal(got, want)
+
+
+def test_vector_env_reward_scale_and_max_cycles_follow_the_parallel_env() -> None:
+    plain = marl_amod.vector_env("synthetic", num_envs=2)
+    scaled = marl_amod.vector_env("synthetic", num_envs=2, reward_scale=0.5, max_cycles=3)
+    plain.reset(seed=4), scaled.reset(seed=4)
+    actions = np.full((2, plain.num_agents), 0.5)
+    for step in range(1, 4):
+        _, r_plain, _, trunc_plain, _ = plain.step(actions)
+        _, r_scaled, _, trunc_scaled, _ = scaled.step(actions)
+        np.testing.assert_allclose(r_scaled, 0.5 * r_plain, rtol=1e-12)
+        assert not trunc_plain.any() and trunc_scaled.all() == (step == 3)
+    with pytest.raises(RuntimeError, match="call reset"):
+        scaled.step(actions)

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from marl_amod.models import GNNActor, GNNValueCritic, LocalActor, TwinQ
-from marl_amod.models.dense import actor_forward, dense_conv, graph_operator, q_forward, value_forward
+from marl_amod.models.dense import DenseGraph, dense_conv, graph_operator
 from marl_amod.models.gnn import make_conv
 from marl_amod.scenario import grid_city
 
@@ -40,18 +40,18 @@ def test_dense_conv_equals_torch_geometric_layer(kind: str, graph: int) -> None:
 def test_dense_models_equal_the_graph_models_with_the_same_weights(kind: str) -> None:
     edge_index, n = _graphs()[1]
     torch.manual_seed(2)
-    op = graph_operator(kind, edge_index, n)
+    dense = DenseGraph(edge_index, n)
     x = torch.rand(7, n, 13) * 3
     action = torch.rand(7, n)
     actor = GNNActor(13, 32, kind) if kind == "gcn" else LocalActor(13, 32)
     critic, twin = GNNValueCritic(13, 32, kind), TwinQ(13, 64, kind)
-    torch.testing.assert_close(actor_forward(actor, x, op), actor(x, edge_index), atol=1e-5, rtol=1e-5)
-    torch.testing.assert_close(value_forward(critic, x, op), critic(x, edge_index), atol=1e-5, rtol=1e-5)
-    q1, q2 = twin(x, edge_index, action)
-    torch.testing.assert_close(q_forward(twin.q1, x, op, action), q1, atol=1e-5, rtol=1e-5)
-    torch.testing.assert_close(q_forward(twin.q2, x, op, action), q2, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(actor(x, dense), actor(x, edge_index), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(actor(x[0], dense), actor(x[0], edge_index), atol=1e-5, rtol=1e-5)  # unbatched
+    torch.testing.assert_close(critic(x, dense), critic(x, edge_index), atol=1e-5, rtol=1e-5)
+    for q_dense, q_sparse in zip(twin(x, dense, action), twin(x, edge_index, action), strict=True):
+        torch.testing.assert_close(q_dense, q_sparse, atol=1e-5, rtol=1e-5)
     # gradients flow to the same parameters
-    actor_forward(actor, x, op).sum().backward()
+    actor(x, dense).sum().backward()
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in actor.parameters())
 
 

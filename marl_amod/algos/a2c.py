@@ -10,6 +10,10 @@ log pi = sum_i log Gamma(g_i; alpha_i). Deterministic evaluation uses alpha / su
 Per control step the reward is dispatch profit minus rebalancing cost, times ``reward_scale``.
 Each update uses ``episodes_per_update`` whole episodes: discounted returns, advantage = return
 - V(s), policy loss -log pi * advantage, critic loss smooth-L1, clipped gradients.
+
+``num_envs`` > 1 collects those episodes ``num_envs`` at a time in lockstep on the batched
+simulator, every forward pass one (B, N, F) batch on the dense graph path; with 1 (the default)
+the run is the episode-at-a-time one the shipped policies were trained with.
 """
 
 from __future__ import annotations
@@ -20,13 +24,14 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from marl_amod.algos import common as C
-from marl_amod.algos.rollout import Obs, Rollout, train_seed
+from marl_amod.algos.rollout import Obs, train_seed
 from marl_amod.checkpoints import load_actor
 from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import GNNValueCritic, LocalActor, LocalValueCritic, build_actor, dirichlet, gamma, gamma_log_prob
+from marl_amod.models.gnn import Graph
 from marl_amod.scenario import load_city
 
 
@@ -52,6 +57,12 @@ class Args(C.RunArgs):
     in SUMO); the critic and optimisers start fresh, and the start is validated first, so the
     kept actor is never worse on the validation seeds than the one fine-tuning began from"""
 
+    @model_validator(mode="after")
+    def _whole_batches(self) -> Args:
+        if self.episodes_per_update % self.num_envs:
+            raise ValueError(f"episodes_per_update ({self.episodes_per_update}) must be a multiple of num_envs ({self.num_envs})")
+        return self
+
     def ignored_keys(self) -> dict[str, str]:
         ignored = super().ignored_keys()
         if self.mode == "decentralised" and not self.central_critic:
@@ -59,32 +70,46 @@ class Args(C.RunArgs):
         return ignored
 
 
-def act(actor: torch.nn.Module, obs: Obs, edge_index: torch.Tensor, mode: str) -> tuple[np.ndarray, torch.Tensor, torch.Tensor]:
-    """Sample an action; returns (weights (N,), log pi (), entropy ())."""
+def act(alpha: torch.Tensor, mode: str) -> tuple[np.ndarray, torch.Tensor, torch.Tensor]:
+    """Sample an action from concentrations alpha (..., N); returns (weights (..., N), log pi (...), entropy (...)).
+
+    Centralised: y ~ Dir(alpha). Decentralised: every agent draws its own g_i ~ Gamma(alpha_i)
+    (alpha_i from its own observation only). Leading axes are episodes in lockstep.
+    """
     if mode == "centralised":
-        alpha = actor(obs.x, edge_index)  # (N,)
         dist = dirichlet(alpha)
         y = dist.sample().clamp_min(1e-6)
-        y = y / y.sum()
+        y = y / y.sum(-1, keepdim=True)
         return y.numpy(), dist.log_prob(y), dist.entropy()
-    alpha = actor.forward_local(obs.own, obs.nbrs, obs.mask)  # (N,) one row per agent, its own obs only
     g = gamma(alpha).sample().clamp_min(1e-8)  # each agent draws its own weight
-    return g.numpy(), gamma_log_prob(g, alpha), gamma(alpha).entropy().sum()
+    return g.numpy(), gamma_log_prob(g, alpha), gamma(alpha).entropy().sum(-1)
 
 
-def value(critic: torch.nn.Module, obs: Obs, edge_index: torch.Tensor, local: bool) -> torch.Tensor:
-    """V(s) as a scalar tensor."""
+def concentrations(actor: torch.nn.Module, obs: Obs, graph: Graph, mode: str) -> torch.Tensor:
+    """alpha (..., N): the global graph (centralised) or each agent's local observation alone."""
+    if mode == "centralised":
+        return actor(obs.x, graph)
+    return actor.forward_local(obs.own, obs.nbrs, obs.mask)
+
+
+def value(critic: torch.nn.Module, obs: Obs, graph: Graph, local: bool, time: bool) -> torch.Tensor:
+    """V(s): a scalar for one episode, (B,) for episodes in lockstep."""
     if local:
-        return critic.forward_local(obs.own[None], obs.nbrs[None], obs.mask[None])[0]
-    return critic(obs.x, edge_index)
+        own, nbrs = C.with_time(obs.own, obs.ctx, time), C.with_time(obs.nbrs, obs.ctx.unsqueeze(-2) if time else None, time)
+        if own.dim() == 2:  # one episode
+            return critic.forward_local(own[None], nbrs[None], obs.mask[None])[0]
+        return critic.forward_local(own, nbrs, obs.mask)
+    return critic(C.with_time(obs.x, obs.ctx, time), graph)
 
 
-def discounted_returns(rewards: list[float], gamma_: float) -> torch.Tensor:
-    out, g = [], 0.0
-    for r in reversed(rewards):
-        g = r + gamma_ * g
-        out.append(g)
-    return torch.tensor(out[::-1], dtype=torch.float32)  # (T,)
+def discounted_returns(rewards: np.ndarray, gamma_: float) -> np.ndarray:
+    """Returns (T, ...) of rewards (T, ...) (leading axis: time; then episodes), in float64 as the money is booked."""
+    rewards = np.asarray(rewards, dtype=np.float64)
+    out, g = np.empty_like(rewards), np.zeros(rewards.shape[1:])
+    for t in range(len(rewards) - 1, -1, -1):
+        g = rewards[t] + gamma_ * g
+        out[t] = g
+    return out
 
 
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
@@ -92,15 +117,16 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     torch.set_num_threads(args.threads)
     C.seed_everything(args.seed)
     city = load_city(args.scenario)
-    rollout = Rollout(city, args.mode, args.lookahead)
-    edge_index = torch.tensor(np.array(city.edge_index), dtype=torch.long)
+    rollout = C.make_rollout(city, args)
+    graph = C.make_graph(city, args)
     n_features = feature_count(args.lookahead)
     local_critic = args.mode == "decentralised" and not args.central_critic
     if args.mode == "decentralised":
         actor = LocalActor(n_features, args.hidden)
     else:
         actor = build_actor(args.actor, city, n_features, args.hidden, args.conv)
-    critic = LocalValueCritic(n_features, args.hidden) if local_critic else GNNValueCritic(n_features, args.hidden, args.conv)
+    critic_in = C.critic_features(n_features, args)
+    critic = LocalValueCritic(critic_in, args.hidden) if local_critic else GNNValueCritic(critic_in, args.hidden, args.conv)
     opt_a = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
     opt_c = torch.optim.Adam(critic.parameters(), lr=args.lr_critic)
 
@@ -127,29 +153,32 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
 
     with C.interruptible(save):
         while ep < args.episodes:
-            # ---- collect a batch of whole episodes ----
+            # ---- collect a batch of whole episodes, num_envs at a time ----
             logps, values, returns, ents, ep_rewards = [], [], [], [], []
-            for _ in range(args.episodes_per_update):
-                obs = rollout.reset(train_seed(args.seed, ep))
-                rewards: list[float] = []
+            for _ in range(args.episodes_per_update // rollout.num_envs):
+                obs = rollout.reset(train_seed(args.seed, ep)) if rollout.num_envs == 1 else rollout.reset(args.seed, ep)
+                steps: list[tuple[torch.Tensor, ...]] = []
+                rewards = []
                 while not rollout.done:
-                    w, logp, ent = act(actor, obs, edge_index, args.mode)
-                    values.append(value(critic, obs, edge_index, local_critic))
-                    logps.append(logp)
-                    ents.append(ent)
+                    w, logp, ent = act(concentrations(actor, obs, graph, args.mode), args.mode)
+                    steps.append((logp, value(critic, obs, graph, local_critic, args.critic_time), ent))
                     obs, r = rollout.step(w)
-                    rewards.append(r * args.reward_scale)
-                returns.append(discounted_returns(rewards, args.gamma))
-                ep_rewards.append(sum(rewards) / args.reward_scale)
-                ep += 1
-            ret = torch.cat(returns)  # (B*T,)
+                    rewards.append(np.asarray(r, dtype=np.float64) * args.reward_scale)
+                # (T, E) -> episode-major rows, as one episode after the other
+                logp_t, v_t, ent_t = (torch.stack(k).reshape(len(steps), -1).T.reshape(-1) for k in zip(*steps, strict=True))
+                r_te = np.stack(rewards).reshape(len(rewards), -1)
+                logps.append(logp_t), values.append(v_t), ents.append(ent_t)
+                returns.append(torch.tensor(discounted_returns(r_te, args.gamma).T.reshape(-1), dtype=torch.float32))
+                ep_rewards.extend(r_te.sum(0) / args.reward_scale)
+                ep += rollout.num_envs
+            ret = torch.cat(returns)  # (E*T,)
             if args.normalize_returns:
                 ret = (ret - ret.mean()) / (ret.std() + 1e-8)
-            v = torch.stack(values)  # (B*T,)
+            v = torch.cat(values)  # (E*T,)
             adv = ret - v.detach()
 
             # ---- one actor and one critic step ----
-            loss_pi = -(torch.stack(logps) * adv).mean() - args.entropy_coef * torch.stack(ents).mean()
+            loss_pi = -(torch.cat(logps) * adv).mean() - args.entropy_coef * torch.cat(ents).mean()
             loss_v = F.smooth_l1_loss(v, ret)
             opt_a.zero_grad()
             loss_pi.backward()
@@ -164,7 +193,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
             stats = {"train/episode_reward": float(np.mean(ep_rewards)), "loss/policy": loss_pi.item(), "loss/value": loss_v.item()}
             # ---- periodic validation, best-actor selection, resumable state ----
             out_of_time = bool(args.time_limit_s) and timer() > args.time_limit_s  # validate the last actor too
-            if ep // args.eval_every != (ep - args.episodes_per_update) // args.eval_every or ep >= args.episodes or out_of_time:
+            if C.crossed(ep, args.episodes_per_update, args.eval_every) or ep >= args.episodes or out_of_time:
                 stats["eval/profit"] = best.validate(actor, city, args)
                 save()
             if C.close_episode(log, rollout, ep, stats, args, timer(), progress):

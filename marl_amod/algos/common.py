@@ -26,12 +26,14 @@ import numpy as np
 import torch
 from pydantic import Field
 
-from marl_amod.algos.rollout import Mode, Rollout
+from marl_amod.algos.rollout import BatchRollout, Mode, Rollout
 from marl_amod.checkpoints import ActorPolicy, check_torch_file, make_card, save_policy
 from marl_amod.config import CommonArgs
 from marl_amod.env.features import n_features
+from marl_amod.env.observations import N_CONTEXT
 from marl_amod.errors import DataError, MarlAmodError
 from marl_amod.files import atomic_write, torch_save, write_json
+from marl_amod.models.dense import DenseGraph
 from marl_amod.scenario import City
 
 Progress = Callable[[int, int, dict], None]
@@ -54,11 +56,43 @@ class RunArgs(CommonArgs):
     """gradient clipping (global L2 norm per network)"""
     threads: int = Field(1, ge=1)
     """torch CPU threads (the machine is shared)"""
+    num_envs: int = Field(1, ge=1)
+    """episodes run in lockstep on the batched simulator, models on the dense small-graph path
+    (1: one episode at a time through torch-geometric, how the shipped policies were trained)"""
+    critic_time: bool = False
+    """critics also read the time context the local actors see (time of day, step fraction):
+    episodes have a fixed horizon, so the value of a state depends on the steps to go"""
 
     def ignored_keys(self) -> dict[str, str]:
         if self.mode == "centralised":
             return {"central_critic": "only decentralised runs choose their critic"}
         return {"actor": "decentralised runs always use the local GNN actor"}
+
+
+def make_rollout(city: City, args: RunArgs) -> Rollout | BatchRollout:
+    """The rollout driver of a run: one episode at a time, or ``num_envs`` in lockstep."""
+    if args.num_envs > 1:
+        return BatchRollout(city, args.mode, args.lookahead, args.num_envs)
+    return Rollout(city, args.mode, args.lookahead)
+
+
+def make_graph(city: City, args: RunArgs) -> torch.Tensor | DenseGraph:
+    """How the models see the city graph: torch-geometric's edge_index (one episode at a time,
+    as before) or the dense operators of the batched path."""
+    edge_index = torch.tensor(city.edge_index, dtype=torch.long)  # a copy: the city's arrays are read-only
+    return DenseGraph(edge_index, city.n_regions) if args.num_envs > 1 else edge_index
+
+
+def critic_features(n_features: int, args: RunArgs) -> int:
+    """Node features a critic reads: F, plus the time context with ``critic_time``."""
+    return n_features + N_CONTEXT if args.critic_time else n_features
+
+
+def with_time(x: torch.Tensor, ctx: torch.Tensor | None, use: bool) -> torch.Tensor:
+    """x (..., N, F) with the time context (..., 3) appended to every node when ``use``: (..., N, F + 3)."""
+    if not use:
+        return x
+    return torch.cat([x, ctx.unsqueeze(-2).expand(*x.shape[:-1], ctx.shape[-1])], dim=-1)
 
 
 # --------------------------------------------------------------------------------------------
@@ -174,7 +208,12 @@ class BestActor:
         return val
 
 
-def close_episode(log: Logger, rollout: Rollout, ep: int, stats: dict[str, float], args: RunArgs, wall_s: float, progress: Progress | None) -> bool:
+def crossed(ep: int, step: int, every: int) -> bool:
+    """True when going from episode ep - step to ep passed a multiple of ``every``."""
+    return ep // every != (ep - step) // every
+
+
+def close_episode(log: Logger, rollout: Rollout | BatchRollout, ep: int, stats: dict[str, float], args: RunArgs, wall_s: float, progress: Progress | None) -> bool:
     """Log one episode's stats and report progress; returns True when the time limit says stop."""
     stats["time/wall_s"] = wall_s
     if rollout.env is not None:

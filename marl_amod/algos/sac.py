@@ -11,6 +11,11 @@ with y appended as a node feature (centralised training, decentralised execution
 
 Losses: Q -> r + gamma (1 - done) (min Q_targ(s', y') - a log pi(y'|s')), policy ->
 a log pi(y|s) - min Q(s, y); Polyak-averaged targets; clipped gradients.
+
+``num_envs`` > 1 steps that many episodes in lockstep on the batched simulator, adds their
+transitions to the buffer together and runs ``updates_per_step`` gradient steps per transition
+on the dense graph path (one matmul per layer for the whole (batch, N, F) sample);
+``critic_time`` gives the critics the time context; ``auto_entropy`` tunes the temperature.
 """
 
 from __future__ import annotations
@@ -25,9 +30,10 @@ import torch.nn.functional as F
 from pydantic import Field
 
 from marl_amod.algos import common as C
-from marl_amod.algos.rollout import Obs, Rollout, train_seed
+from marl_amod.algos.rollout import Obs, train_seed
 from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import LocalActor, TwinQ, build_actor, dirichlet, gamma, gamma_log_prob
+from marl_amod.models.gnn import Graph
 from marl_amod.scenario import load_city
 
 
@@ -40,8 +46,9 @@ class Args(C.RunArgs):
     """replay capacity (transitions)"""
     warmup_steps: int = Field(1000, ge=0)
     """transitions collected before the first update (an untrained critic misleads the actor)"""
-    updates_per_step: int = Field(1, ge=1)
-    """gradient steps per environment step"""
+    updates_per_step: float = Field(1.0, gt=0)
+    """gradient steps per transition (update-to-data ratio; fractions allowed: 0.25 is one step
+    per four transitions, counted across the episodes of a batched run)"""
     lr_actor: float = Field(1e-4, gt=0)
     """Adam learning rate of the actor (1e-3 collapsed the policy within 100 episodes here)"""
     lr_critic: float = Field(1e-3, gt=0)
@@ -51,7 +58,9 @@ class Args(C.RunArgs):
     alpha: float = Field(0.3, gt=0)
     """entropy temperature (fixed unless auto_entropy); its effect scales inversely with reward_scale"""
     auto_entropy: bool = False
-    """tune the temperature towards target entropy -N"""
+    """tune the temperature towards ``target_entropy``"""
+    target_entropy: float | None = None
+    """entropy the temperature is tuned towards, per region (None: -1 per region, i.e. -N)"""
     polyak: float = Field(0.995, ge=0, le=1)
     """target-network averaging factor"""
     eval_every: int = Field(50, ge=1)
@@ -65,6 +74,7 @@ class Args(C.RunArgs):
             ignored["conv"] = "decentralised SAC uses the local actor and SAGE critics"
         if not self.auto_entropy:
             ignored["lr_alpha"] = "the temperature is fixed unless auto_entropy: true"
+            ignored["target_entropy"] = "the temperature is fixed unless auto_entropy: true"
         return ignored
 
 
@@ -75,14 +85,19 @@ class Replay:
         self.capacity, self.size, self.ptr = capacity, 0, 0
         self.data: dict[str, torch.Tensor] = {}
 
-    def add(self, **item: torch.Tensor) -> None:
+    def add(self, rows: int | None = None, **item: torch.Tensor) -> None:
+        """One transition, or ``rows`` of them stacked on a leading axis (episodes in lockstep)."""
+        if rows is None:
+            item = {k: torch.as_tensor(v, dtype=torch.float32)[None] for k, v in item.items()}
+            rows = 1
+        idx = (self.ptr + torch.arange(rows)) % self.capacity
         for k, v in item.items():
-            v = torch.as_tensor(v, dtype=torch.float32)
+            v = torch.as_tensor(v, dtype=torch.float32).expand(rows, *torch.as_tensor(v).shape[1:])
             if k not in self.data:
-                self.data[k] = torch.zeros((self.capacity, *v.shape), dtype=torch.float32)
-            self.data[k][self.ptr] = v
-        self.ptr = (self.ptr + 1) % self.capacity
-        self.size = min(self.size + 1, self.capacity)
+                self.data[k] = torch.zeros((self.capacity, *v.shape[1:]), dtype=torch.float32)
+            self.data[k][idx] = v
+        self.ptr = (self.ptr + rows) % self.capacity
+        self.size = min(self.size + rows, self.capacity)
 
     def state_dict(self) -> dict[str, Any]:
         """The filled part only (a resumed run continues with the same transitions)."""
@@ -100,14 +115,16 @@ class Replay:
         return {k: v[idx] for k, v in self.data.items()}
 
 
-def _obs_items(obs: Obs, prefix: str, local: bool) -> dict[str, torch.Tensor]:
+def _obs_items(obs: Obs, prefix: str, local: bool, time: bool) -> dict[str, torch.Tensor]:
     items = {f"{prefix}x": obs.x}
+    if time:
+        items[f"{prefix}ctx"] = obs.ctx
     if local:
         items.update({f"{prefix}own": obs.own, f"{prefix}nbrs": obs.nbrs, f"{prefix}mask": obs.mask})
     return items
 
 
-def policy_sample(actor, b: dict[str, torch.Tensor], prefix: str, edge_index: torch.Tensor, local: bool) -> tuple[torch.Tensor, torch.Tensor]:
+def policy_sample(actor, b: dict[str, torch.Tensor], prefix: str, edge_index: Graph, local: bool) -> tuple[torch.Tensor, torch.Tensor]:
     """Reparameterised action y (B, N) on the simplex and log pi (B,)."""
     if local:
         alpha = actor.forward_local(b[f"{prefix}own"], b[f"{prefix}nbrs"], b[f"{prefix}mask"])  # (B, N)
@@ -126,20 +143,20 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     gen = torch.Generator().manual_seed(args.seed)
     city = load_city(args.scenario)
     local = args.mode == "decentralised"
-    rollout = Rollout(city, args.mode, args.lookahead)
-    edge_index = torch.tensor(np.array(city.edge_index), dtype=torch.long)
+    rollout = C.make_rollout(city, args)
+    edge_index = C.make_graph(city, args)
     n_features = feature_count(args.lookahead)
     actor = LocalActor(n_features, args.hidden) if local else build_actor(args.actor, city, n_features, args.hidden, args.conv)
-    critic = TwinQ(n_features, args.hidden, "sage" if local else args.conv)
+    critic = TwinQ(C.critic_features(n_features, args), args.hidden, "sage" if local else args.conv)
     critic_targ = copy.deepcopy(critic).requires_grad_(False)
     opt_a = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
     opt_c = torch.optim.Adam(critic.parameters(), lr=args.lr_critic)
     log_alpha = torch.tensor(float(np.log(args.alpha)), requires_grad=True)
     opt_alpha = torch.optim.Adam([log_alpha], lr=args.lr_alpha)
-    target_entropy = -float(city.n_regions)
+    target_entropy = (-1.0 if args.target_entropy is None else args.target_entropy) * city.n_regions
     buffer = Replay(args.buffer_size)
 
-    start_ep, prior_wall, n_steps, best = 0, 0.0, 0, C.BestActor.of(actor)
+    start_ep, prior_wall, n_steps, credit, best = 0, 0.0, 0, 0.0, C.BestActor.of(actor)
     if resume:
         st = C.load_state(resume, "sac")
         actor.load_state_dict(st["actor"]), critic.load_state_dict(st["critic"]), critic_targ.load_state_dict(st["critic_targ"])
@@ -148,7 +165,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         log_alpha.data.fill_(st["log_alpha"])
         buffer.load_state_dict(st["replay"])
         gen.set_state(st["gen"])
-        n_steps = st["n_steps"]
+        n_steps, credit = st["n_steps"], st.get("credit", 0.0)
     log = C.Logger(args.run_dir, resume_from=start_ep if resume else None)
     timer = C.Timer(prior_wall)
     ep = start_ep
@@ -158,7 +175,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         C.save_state(
             path, algorithm="sac", actor=actor.state_dict(), critic=critic.state_dict(), critic_targ=critic_targ.state_dict(),
             opt_a=opt_a.state_dict(), opt_c=opt_c.state_dict(), opt_alpha=opt_alpha.state_dict(), log_alpha=log_alpha.item(),
-            replay=buffer.state_dict(), gen=gen.get_state(), n_steps=n_steps, episode=ep, best_val=best.value,
+            replay=buffer.state_dict(), gen=gen.get_state(), n_steps=n_steps, credit=credit, episode=ep, best_val=best.value,
             best_actor=best.state, wall_s=timer(),
         )
         return path, ep
@@ -169,9 +186,10 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         # ---- twin Q regression towards the soft Bellman target ----
         with torch.no_grad():
             y2, logp2 = policy_sample(actor, b, "next_", edge_index, local)
-            q_targ = torch.min(*critic_targ(b["next_x"], edge_index, y2))  # (B,)
+            q_targ = torch.min(*critic_targ(C.with_time(b["next_x"], b.get("next_ctx"), args.critic_time), edge_index, y2))  # (B,)
             backup = b["reward"] + args.gamma * (1 - b["done"]) * (q_targ - a * logp2)
-        q1, q2 = critic(b["x"], edge_index, b["action"])
+        x = C.with_time(b["x"], b.get("ctx"), args.critic_time)  # (B, N, F [+ 3])
+        q1, q2 = critic(x, edge_index, b["action"])
         loss_q = F.mse_loss(q1, backup) + F.mse_loss(q2, backup)
         opt_c.zero_grad()
         loss_q.backward()
@@ -180,7 +198,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         # ---- policy: maximise min Q minus entropy cost (critics frozen) ----
         critic.requires_grad_(False)
         y, logp = policy_sample(actor, b, "", edge_index, local)
-        loss_pi = (a * logp - torch.min(*critic(b["x"], edge_index, y))).mean()
+        loss_pi = (a * logp - torch.min(*critic(x, edge_index, y))).mean()
         opt_a.zero_grad()
         loss_pi.backward()
         torch.nn.utils.clip_grad_norm_(actor.parameters(), args.max_grad_norm)
@@ -198,29 +216,33 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
 
     with C.interruptible(save):
         while ep < args.episodes:
-            obs = rollout.reset(train_seed(args.seed, ep))
+            # B = rollout.num_envs episodes in lockstep (1: the episode-at-a-time run)
+            obs = rollout.reset(train_seed(args.seed, ep)) if rollout.num_envs == 1 else rollout.reset(args.seed, ep)
             ep_reward, stats = 0.0, {}
             while not rollout.done:
                 with torch.no_grad():
                     if local:
-                        alpha_i = actor.forward_local(obs.own, obs.nbrs, obs.mask)  # (N,), each row from its own obs
+                        alpha_i = actor.forward_local(obs.own, obs.nbrs, obs.mask)  # (..., N), each row from its own obs
                         w = gamma(alpha_i).sample().clamp_min(1e-8)  # agents' Gamma weights
-                        y = w / w.sum()
+                        y = w / w.sum(-1, keepdim=True)
                     else:
                         y = dirichlet(actor(obs.x, edge_index)).sample().clamp_min(1e-6)
-                        y = w = y / y.sum()
+                        y = w = y / y.sum(-1, keepdim=True)
                 nxt, r = rollout.step(w.numpy())
-                ep_reward += r
-                buffer.add(**_obs_items(obs, "", local), action=y, reward=r * args.reward_scale, done=float(rollout.done),
-                           **_obs_items(nxt, "next_", local))
+                ep_reward = ep_reward + r
+                rows = None if rollout.num_envs == 1 else rollout.num_envs
+                buffer.add(rows, **_obs_items(obs, "", local, args.critic_time), action=y, reward=torch.as_tensor(r * args.reward_scale),
+                           done=torch.tensor(float(rollout.done)), **_obs_items(nxt, "next_", local, args.critic_time))
                 obs = nxt
-                n_steps += 1
+                n_steps += rollout.num_envs
                 if buffer.size >= max(args.warmup_steps, args.batch_size):
-                    for _ in range(args.updates_per_step):
+                    credit += args.updates_per_step * rollout.num_envs
+                    while credit >= 1:
                         stats = update()
-            ep += 1
-            stats["train/episode_reward"] = ep_reward
-            if ep % args.eval_every == 0 or ep >= args.episodes:
+                        credit -= 1
+            ep += rollout.num_envs
+            stats["train/episode_reward"] = float(np.mean(ep_reward))
+            if C.crossed(ep, rollout.num_envs, args.eval_every) or ep >= args.episodes:
                 stats["eval/profit"] = best.validate(actor, city, args)
                 save()
             if C.close_episode(log, rollout, ep, stats, args, timer(), progress):

@@ -1,7 +1,9 @@
 """The batched env: B episodes of one city, every region an agent, arrays in and out (VMAS style).
 
 ``marl_amod.vector_env(scenario, num_envs=B, ...)`` takes the ParallelEnv's options
-(:mod:`marl_amod.env.parallel`) and gives the same episodes, stacked:
+(:mod:`marl_amod.env.parallel`: reward and action modes, look-ahead, max_wait, objective,
+``reward_scale``, ``strict_actions``, ``max_cycles``, scenario overrides) and gives the same
+episodes, stacked:
 
 ==================  ===================================================================================
 reset(seed)         observations (B, N, D) float32, infos; ``seed=s`` seeds episode b with s + b (a

@@ -12,17 +12,19 @@ on bookkeeping than on arithmetic. One layer is linear in the node features, so 
 
 The functions take the torch-geometric modules themselves, so a model trained on either path
 runs on the other with the same parameters (outputs agree to float rounding, tested to 1e-5).
-Build ``P`` once per city with :func:`graph_operator` and reuse it every forward pass.
+Give a model a :class:`DenseGraph` instead of ``edge_index`` and it takes this path; the
+operators are built once per city and reused every forward pass.
 """
 
 from __future__ import annotations
 
+from typing import Literal
+
 import torch
-import torch.nn.functional as F
 from torch import nn
 from torch_geometric.nn import GCNConv, SAGEConv
 
-from marl_amod.models.gnn import ConvKind, GNNActor, GNNQCritic, GNNValueCritic, concentration
+ConvKind = Literal["gcn", "sage"]
 
 
 def graph_operator(kind: ConvKind, edge_index: torch.Tensor, n: int, dtype: torch.dtype = torch.float32) -> torch.Tensor:
@@ -52,21 +54,22 @@ def dense_conv(conv: nn.Module, x: torch.Tensor, op: torch.Tensor) -> torch.Tens
     raise TypeError(f"no dense form for {type(conv).__name__}")
 
 
-def trunk(model: nn.Module, x: torch.Tensor, op: torch.Tensor) -> torch.Tensor:
-    """The residual message-passing trunk of a GNN model: relu(conv(x)) + x, (B, N, C) -> (B, N, C)."""
-    return F.relu(dense_conv(model.trunk.conv, x, op)) + x
+class DenseGraph:
+    """One city graph for the dense path: pass it where a GNN model takes ``edge_index``.
 
+    Holds the (N, N) operator of each conv kind, built on first use and reused every forward
+    pass, so a batch (B, N, C) costs one ``P @ x`` per layer. The models of
+    :mod:`marl_amod.models.gnn` accept either form and give the same outputs to float rounding.
+    """
 
-def actor_forward(actor: GNNActor, x: torch.Tensor, op: torch.Tensor) -> torch.Tensor:
-    """:class:`GNNActor` (or LocalActor) on node features (B, N, F) -> concentrations (B, N)."""
-    return concentration(actor.head(trunk(actor, x, op)).squeeze(-1))
+    def __init__(self, edge_index: torch.Tensor, n: int) -> None:
+        self.edge_index = torch.as_tensor(edge_index, dtype=torch.long)
+        self.n = int(n)
+        self._ops: dict[str, torch.Tensor] = {}
 
-
-def value_forward(critic: GNNValueCritic, x: torch.Tensor, op: torch.Tensor) -> torch.Tensor:
-    """:class:`GNNValueCritic` (or LocalValueCritic) on (B, N, F) -> V (B,)."""
-    return critic.out(F.relu(critic.node(trunk(critic, x, op)).sum(-2))).squeeze(-1)
-
-
-def q_forward(critic: GNNQCritic, x: torch.Tensor, op: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
-    """:class:`GNNQCritic` on (B, N, F) and actions (B, N) -> Q (B,)."""
-    return value_forward(critic.value, torch.cat([x, action.unsqueeze(-1)], dim=-1), op)
+    def conv(self, conv: nn.Module, x: torch.Tensor) -> torch.Tensor:
+        """``conv`` (GCNConv or mean SAGEConv) on x (..., N, C) through this graph's operator."""
+        kind = "gcn" if isinstance(conv, GCNConv) else "sage"
+        if kind not in self._ops:
+            self._ops[kind] = graph_operator(kind, self.edge_index, self.n)
+        return dense_conv(conv, x, self._ops[kind])

@@ -5,20 +5,22 @@ act on every region, so a trained model runs on any city's graph (size-agnostic)
 the regions relabels the outputs (permutation equivariance).
 
 Shapes: B graphs in a batch, N regions, F node features, E directed edges, H hidden units.
+Every model takes the graph as ``edge_index`` (torch-geometric's scatter kernels) or as a
+:class:`~marl_amod.models.dense.DenseGraph` (one dense matmul per layer: much cheaper on the
+10-400-region city graphs here, same outputs to float rounding).
 """
 
 from __future__ import annotations
-
-from typing import Literal
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 from torch_geometric.nn import GCNConv, SAGEConv
 
+from marl_amod.models.dense import ConvKind, DenseGraph
 from marl_amod.models.distributions import CONCENTRATION_EPS
 
-ConvKind = Literal["gcn", "sage"]
+Graph = torch.Tensor | DenseGraph  # (2, E) edge_index for torch-geometric, or the dense small-graph form
 
 
 def batch_edge_index(edge_index: torch.Tensor, batch: int, n: int) -> torch.Tensor:
@@ -43,7 +45,9 @@ class _GraphTrunk(nn.Module):
         super().__init__()
         self.conv = make_conv(conv, channels)
 
-    def forward(self, x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, edge_index: Graph) -> torch.Tensor:
+        if isinstance(edge_index, DenseGraph):  # one matmul per layer over the whole batch
+            return F.relu(edge_index.conv(self.conv, x)) + x
         b, n, c = x.shape
         flat = x.reshape(b * n, c)  # (B*N, C)
         h = F.relu(self.conv(flat, batch_edge_index(edge_index, b, n)))  # (B*N, C)
@@ -71,7 +75,7 @@ class GNNActor(nn.Module):
         self.trunk = _GraphTrunk(n_features, conv)
         self.head = mlp_head(n_features, hidden)
 
-    def forward(self, x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, edge_index: Graph) -> torch.Tensor:
         x, squeeze = _batched(x)
         alpha = concentration(self.head(self.trunk(x, edge_index)).squeeze(-1))  # (B, N)
         return alpha[0] if squeeze else alpha
@@ -86,9 +90,17 @@ class GNNValueCritic(nn.Module):
         self.node = mlp_head(n_features, hidden, hidden)
         self.out = nn.Linear(hidden, 1)
 
-    def forward(self, x: torch.Tensor, edge_index: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, edge_index: Graph) -> torch.Tensor:
         x, squeeze = _batched(x)
-        v = self.out(F.relu(self.node(self.trunk(x, edge_index)).sum(1))).squeeze(-1)  # (B,)
+        h = self.trunk(x, edge_index)
+        if isinstance(edge_index, DenseGraph):
+            # the node MLP's last layer is linear, so it commutes with the sum over regions:
+            # W sum_i h_i + N b, one (B, H) x (H, H) product instead of (B*N, H) x (H, H)
+            *hidden, last = self.node
+            pooled = last(nn.Sequential(*hidden)(h).sum(1)) + (h.shape[1] - 1) * last.bias
+        else:
+            pooled = self.node(h).sum(1)
+        v = self.out(F.relu(pooled)).squeeze(-1)  # (B,)
         return v[0] if squeeze else v
 
 
@@ -99,7 +111,7 @@ class GNNQCritic(nn.Module):
         super().__init__()
         self.value = GNNValueCritic(n_features + 1, hidden, conv)
 
-    def forward(self, x: torch.Tensor, edge_index: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, edge_index: Graph, action: torch.Tensor) -> torch.Tensor:
         return self.value(torch.cat([x, action.unsqueeze(-1)], dim=-1), edge_index)
 
 
@@ -111,5 +123,5 @@ class TwinQ(nn.Module):
         self.q1 = GNNQCritic(n_features, hidden, conv)
         self.q2 = GNNQCritic(n_features, hidden, conv)
 
-    def forward(self, x: torch.Tensor, edge_index: torch.Tensor, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(self, x: torch.Tensor, edge_index: Graph, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.q1(x, edge_index, action), self.q2(x, edge_index, action)
