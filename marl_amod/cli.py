@@ -144,19 +144,29 @@ def evaluate(
 @app.command()
 def collect(
     scenario: Annotated[str, typer.Option(help="scenario name or YAML path")] = "synthetic",
-    policy: Annotated[str, typer.Option(help="behaviour policy: inf, dtv, prop, mpc-oracle, ... or a checkpoint")] = "inf",
+    policy: Annotated[str, typer.Option(help="behaviour policy: inf, dtv, prop, mpc-forecast, ... or a checkpoint")] = "inf",
     episodes: Annotated[int, typer.Option(min=1)] = 10,
-    seed: Annotated[int, typer.Option(min=0)] = 0,
-    output: Annotated[Path, typer.Option(help="dataset file to write (.npz, format in marl_amod.datasets)")] = Path("data.npz"),
+    seed: Annotated[int, typer.Option(min=0, help="collection seed (demand streams disjoint from evaluation's)")] = 0,
+    output: Annotated[Path, typer.Option(help="dataset file to write (.npz, format in marl_amod.datasets); card beside it")] = Path("data.npz"),
     max_wait: Annotated[int, typer.Option(min=0, help="steps a request waits before leaving")] = 0,
+    eval_episodes: Annotated[int, typer.Option(min=0, help="card: evaluation episodes of the behaviour and reference scores (0: no card)")] = 10,
+    eval_seed: Annotated[int, typer.Option(min=0, help="card: evaluation seed (as marl-amod evaluate --seed)")] = 0,
     data_dir: DataDir = None,
 ) -> None:
-    """Roll a behaviour policy and write an offline dataset (observation, action, reward, next observation, done)."""
+    """Roll a behaviour policy through the env and write an offline dataset (format 2) and its card."""
+    _use_data_dir(data_dir)
+    _collect_one(scenario, policy, episodes, seed, output, max_wait, eval_episodes, eval_seed, {})
+
+
+def _collect_one(
+    scenario: str, policy: str, episodes: int, seed: int, output: Path, max_wait: int, eval_episodes: int, eval_seed: int,
+    cache: dict,
+) -> None:
     from marl_amod.datasets import collect as collect_dataset
+    from marl_amod.datasets import write_card
     from marl_amod.policies import make_policy
     from marl_amod.scenario import load_city
 
-    _use_data_dir(data_dir)
     output = check_destination(output, what="--output")  # before the run, not after it
     city = load_city(scenario)
     pol = make_policy(policy, city)
@@ -167,6 +177,29 @@ def collect(
         )
     path = save_or_fallback(output, data.save, what="the dataset")
     console.print(f"wrote {len(data)} transitions ({city.n_regions} agents) to {path}")
+    if eval_episodes:
+        card = write_card(path, data, city, pol, eval_episodes=eval_episodes, eval_seed=eval_seed, cache=cache)
+        b = card["behaviour_score"]
+        console.print(f"card {path.with_suffix('.json')}: behaviour {b['mean']:,.0f} (normalised {b['normalised']:.1f})")
+
+
+@app.command()
+def datasets(
+    scenario: Annotated[str, typer.Option(help="scenario name or YAML path")] = "nyc_brooklyn",
+    policies: Annotated[str, typer.Option(help="comma-separated behaviour policies")] = "inf,dtv,prop,mpc-forecast",
+    episodes: Annotated[int, typer.Option(min=1, help="episodes per dataset")] = 200,
+    seed: Annotated[int, typer.Option(min=0, help="collection seed (disjoint from evaluation's)")] = 0,
+    out_dir: Annotated[Path, typer.Option(help="folder of <scenario>_<policy>.npz and cards")] = Path("runs/datasets"),
+    eval_episodes: Annotated[int, typer.Option(min=0)] = 10,
+    eval_seed: Annotated[int, typer.Option(min=0)] = 0,
+    data_dir: DataDir = None,
+) -> None:
+    """The benchmark's offline datasets: one per behaviour policy, each with its card."""
+    _use_data_dir(data_dir)
+    cache: dict = {}
+    for name in [p.strip() for p in policies.split(",") if p.strip()]:
+        out = out_dir / f"{Path(scenario).stem}_{name.replace('-', '_')}.npz"
+        _collect_one(scenario, name, episodes, seed, out, 0, eval_episodes, eval_seed, cache)
 
 
 @app.command()

@@ -252,8 +252,10 @@ def interruptible(save: Callable[[], tuple[Path, int]]) -> Iterator[None]:
 # --------------------------------------------------------------------------------------------
 def finish_run(
     args: RunArgs, algorithm: str, actor: torch.nn.Module, city: City, wall_s: float, episodes_done: int, config_path: str | None = None,
+    extra: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Final evaluation on the report seeds, then the policy file and its card (written once)."""
+    """Final evaluation on the report seeds, then the policy file and its card (written once);
+    ``extra`` adds algorithm-specific card fields (an offline run's dataset)."""
     result = evaluate_actor(actor, city, args.final_eval_episodes, args.final_eval_seed, args.lookahead)
     profit = result["metrics"]["profit"]
     card = make_card(
@@ -264,7 +266,7 @@ def finish_run(
         episodes_trained=episodes_done, eval_episodes=args.final_eval_episodes, eval_seed=args.final_eval_seed,
         profit_mean=profit["mean"], profit_std=profit["std"], served_demand_mean=result["metrics"]["served_demand"]["mean"],
         training_wall_s=round(wall_s, 1), torch_threads=torch.get_num_threads(),
-        config=config_path, args=args.model_dump(mode="json"),
+        config=config_path, args=args.model_dump(mode="json"), **(extra or {}),
     ).to_dict()
     summary: dict[str, Any] = {"card": card, "result": result}
     if args.policy_out:
