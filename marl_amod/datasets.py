@@ -192,18 +192,32 @@ def env_action(policy: Policy, system: FleetSystem) -> tuple[np.ndarray, np.ndar
 class EnvActionPolicy(Policy):
     """A behaviour policy as the env takes it: its :func:`env_action` through the env's action rule.
 
-    The dataset's score is this policy's, so offline learners are compared with what they saw.
+    ``noise`` > 0 logs exploratory data: the joint action is drawn from a Dirichlet with mean the
+    policy's action share and total concentration 1 / noise (plus 0.01 per region, so every region
+    is sometimes asked for). The dataset's score is this policy's, so offline learners are
+    compared with what they saw.
     """
 
-    def __init__(self, policy: Policy) -> None:
-        self.policy, self.name = policy, getattr(policy, "name", "policy")
+    def __init__(self, policy: Policy, noise: float = 0.0) -> None:
+        if not noise >= 0:
+            raise ConfigError(f"action noise must be >= 0, got {noise}")
+        self.policy, self.noise = policy, float(noise)
+        self.name = getattr(policy, "name", "policy") + (f"+noise{noise:g}" if noise else "")
 
     def reset(self, system: FleetSystem, rng: np.random.Generator) -> None:
         super().reset(system, rng)
         self.policy.reset(system, rng)
 
+    def action(self, system: FleetSystem) -> tuple[np.ndarray, np.ndarray | None]:
+        """(action, the targets the policy asked for or None); with noise, the perturbed share."""
+        action, wanted = env_action(self.policy, system)
+        if not self.noise:
+            return action, wanted
+        share = action_share(action).astype(np.float64)
+        return self.rng.dirichlet(share / self.noise + 0.01).astype(np.float32), None
+
     def target(self, system: FleetSystem) -> np.ndarray:
-        return system.targets_from_weights(env_action(self.policy, system)[0].astype(np.float64))
+        return system.targets_from_weights(self.action(system)[0].astype(np.float64))
 
 
 def collection_seed(seed: int, episode: int) -> int:
@@ -214,10 +228,11 @@ def collection_seed(seed: int, episode: int) -> int:
 
 
 def collect(
-    city: City, policy: Policy, *, episodes: int, seed: int = 0, lookahead: int = 6, max_wait: int = 0,
+    city: City, policy: Policy, *, episodes: int, seed: int = 0, lookahead: int = 6, max_wait: int = 0, noise: float = 0.0,
     progress: Callable[[int], None] | None = None,
 ) -> OfflineDataset:
-    """Roll ``policy`` through the PettingZoo env for ``episodes`` episodes on the collection seeds."""
+    """Roll ``policy`` through the PettingZoo env for ``episodes`` episodes on the collection seeds
+    (``noise``: exploratory actions around the policy's, see :class:`EnvActionPolicy`)."""
     from marl_amod import parallel_env
     from marl_amod.env.features import n_features
 
@@ -225,17 +240,18 @@ def collect(
         raise ConfigError(f"episodes must be >= 1, got {episodes}")
     seed = as_seed(seed)
     env = parallel_env(city, reward_mode="local", action_mode="weight", lookahead=lookahead, max_wait=max_wait)
+    behaviour = EnvActionPolicy(policy, noise)
     agents = list(env.possible_agents)
     cols: dict[str, list] = {k: [] for k in ARRAY_KEYS}
     mismatch = steps = 0
     returns = []
     for ep in range(episodes):
         obs, _ = env.reset(seed=collection_seed(seed, ep))
-        policy.reset(env.system, np.random.default_rng([seed, ep, 2]))
+        behaviour.reset(env.system, np.random.default_rng([seed, ep, 2]))
         state, ep_return = env.state(), env.last_outcome.reward
         while env.agents:
             t = env.system.t
-            action, wanted = env_action(policy, env.system)
+            action, wanted = behaviour.action(env.system)
             if wanted is not None and env.system.sim.idle.sum() > 0:
                 mismatch += int(not np.array_equal(env.system.targets_from_weights(action.astype(np.float64)), wanted))
             steps += 1
@@ -261,7 +277,7 @@ def collect(
     arrays = {k: np.asarray(v, dtype=DTYPES.get(k, np.float32)) for k, v in cols.items()}
     graph = env.graph()
     meta = {
-        "format_version": FORMAT_VERSION, "scenario": city.name, "policy": getattr(policy, "name", "policy"),
+        "format_version": FORMAT_VERSION, "scenario": city.name, "policy": behaviour.name, "noise": noise,
         "seed": seed, "episodes": episodes, "transitions": int(len(arrays["team_rewards"])), "lookahead": lookahead,
         "max_wait": max_wait, "n_agents": len(agents), "n_features": n_features(lookahead),
         "observation_dim": int(arrays["observations"].shape[-1]), "state_dim": int(arrays["states"].shape[-1]),
@@ -311,7 +327,7 @@ def write_card(
 
     path = Path(path)
     refs = reference_scores(city, eval_episodes, eval_seed, cache)
-    behaviour = evaluate(EnvActionPolicy(policy), city, eval_episodes, eval_seed)["metrics"]["profit"]
+    behaviour = evaluate(EnvActionPolicy(policy, data.meta.get("noise", 0.0)), city, eval_episodes, eval_seed)["metrics"]["profit"]
     card = {
         "dataset": path.name, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), **data.meta,
         "env_version": env_version(), "git_commit": git_commit(),
@@ -331,3 +347,8 @@ def read_card(path: str | Path) -> dict[str, Any]:
     if not p.is_file():
         raise DataError(f"no dataset card at {p} (collect writes it beside the .npz)")
     return json.loads(p.read_text())
+
+
+def agent_transitions(dataset: OfflineDataset) -> dict[str, dict[str, np.ndarray]]:
+    """The per-agent view (:meth:`OfflineDataset.agent_view`), under the name format 1 used."""
+    return dataset.agent_view()

@@ -60,7 +60,7 @@ def test_dataset_holds_the_envs_observations_actions_and_rewards(tiny_city, data
     assert np.array_equal(dataset.step_ids[:steps], np.arange(steps)) and set(dataset.episode_ids) == {0, 1}
 
 
-@pytest.mark.parametrize("name", ["inf", "dtv", "mpc-forecast"])
+@pytest.mark.parametrize("name", ["inf", "dtv"])
 def test_target_policies_are_logged_as_actions_that_reproduce_their_targets(tiny_city, name):
     """The env floors w / sum(w) * M; the logged weights give the behaviour policy's targets back."""
     data = collect(tiny_city, make_policy(name, tiny_city), episodes=1, seed=0)
@@ -140,3 +140,14 @@ def test_cli_collect_writes_a_dataset_and_its_card(tmp_path):
     data = OfflineDataset.load(out)
     assert data.meta["policy"] == "dtv" and data.truncations.sum() == 1
     assert read_card(out)["behaviour_score"]["mean"] > 0
+
+
+def test_noisy_collection_logs_exploratory_actions_around_the_policy(tiny_city):
+    plain = collect(tiny_city, make_policy("prop", tiny_city), episodes=1, seed=0)
+    noisy = collect(tiny_city, make_policy("prop", tiny_city), episodes=1, seed=0, noise=0.05)
+    again = collect(tiny_city, make_policy("prop", tiny_city), episodes=1, seed=0, noise=0.05)
+    assert noisy.meta["policy"] == "prop+noise0.05" and noisy.meta["noise"] == 0.05
+    assert np.array_equal(noisy.actions, again.actions)  # seeded
+    assert not np.allclose(noisy.actions[0], plain.actions[0])
+    assert np.array_equal(noisy.observations[0], plain.observations[0])  # same demand, same first state
+    assert np.abs(noisy.actions[0] - plain.actions[0]).sum() < 1.0  # around the policy's share, not anywhere

@@ -17,6 +17,7 @@ from marl_amod.cli import app
 from marl_amod.datasets import collect, write_card
 from marl_amod.errors import ConfigError, DataError
 from marl_amod.evaluation import evaluate
+from marl_amod.models import build_actor
 from marl_amod.policies import make_policy
 from marl_amod.scenario import load_city
 
@@ -48,7 +49,7 @@ def test_offline_algorithm_trains_from_a_dataset_and_ships_a_policy(tmp_path, ti
         extra.update(bc_steps=2, n_actions=2)
     summary = ALGOS[algo].train(args_for(algo, _args(tmp_path, tiny, mode=mode, **extra)))
     card = json.loads((tmp_path / "p.json").read_text())
-    assert card["algorithm"] == algo and card["mode"] == mode and card["updates"] == 6
+    assert card["algorithm"] == algo and card["mode"] == mode and card["updates"] == 6 and card["kept"] == "last"
     assert card["dataset"]["policy"] == "prop" and "reference_scores" in card["dataset"]
     assert np.isfinite(O.card_normalised(card))
     log = (tmp_path / "run" / "log.csv").read_text()
@@ -109,3 +110,24 @@ def test_shipped_offline_configs_validate():
     for path in sorted(Path("configs").glob("[bic][cq]*/nyc_brooklyn_*.yaml")):
         algo, args = load_train_config(path)
         assert algo in ("bc", "iql", "cql") and args.dataset.startswith("runs/datasets/nyc_brooklyn_"), path
+
+
+def test_online_runs_warm_start_from_an_offline_policy(tmp_path, tiny):
+    """Offline -> online fine-tuning: init_actor loads the offline actor; a different architecture is refused."""
+    from marl_amod.algos import a2c
+    from marl_amod.algos import common as C
+    from marl_amod.checkpoints import load_actor
+
+    ALGOS["bc"].train(args_for("bc", _args(tmp_path, tiny)))
+    city = load_city(tiny[0])
+    offline, _ = load_actor(tmp_path / "p.pt", city)
+    args = a2c.Args(scenario=tiny[0], hidden=8, init_actor=str(tmp_path / "p.pt"))
+    actor = build_actor("gnn", city, 13, 8, "gcn")
+    C.warm_start(actor, args, city)
+    for key, value in offline.state_dict().items():
+        assert torch.equal(actor.state_dict()[key], value)
+    with pytest.raises(DataError, match="differs"):
+        C.warm_start(build_actor("gnn", city, 13, 16, "gcn"), args, city)
+    summary = a2c.train(a2c.Args(scenario=tiny[0], hidden=8, episodes=2, episodes_per_update=2, eval_every=2, eval_episodes=1,
+                                 final_eval_episodes=1, run_dir=str(tmp_path / "a2c"), init_actor=str(tmp_path / "p.pt")))
+    assert summary["card"]["args"]["init_actor"] == str(tmp_path / "p.pt")

@@ -96,6 +96,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     else:
         actor = build_actor(args.actor, city, n_features, args.hidden, args.conv)
     critic = LocalValueCritic(n_features, args.hidden) if local_critic else GNNValueCritic(n_features, args.hidden, args.conv)
+    C.warm_start(actor, args, city)  # offline -> online: start from a trained policy
     opt_a = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
     opt_c = torch.optim.Adam(critic.parameters(), lr=args.lr_critic)
 

@@ -54,6 +54,8 @@ class RunArgs(CommonArgs):
     """gradient clipping (global L2 norm per network)"""
     threads: int = Field(1, ge=1)
     """torch CPU threads (the machine is shared)"""
+    init_actor: str = ""
+    """a policy .pt whose weights start the actor (offline -> online fine-tuning); same actor, hidden, conv"""
 
     def ignored_keys(self) -> dict[str, str]:
         if self.mode == "centralised":
@@ -183,6 +185,22 @@ def close_episode(log: Logger, rollout: Rollout, ep: int, stats: dict[str, float
     if progress is not None:
         progress(ep, args.episodes, stats)
     return bool(args.time_limit_s) and wall_s > args.time_limit_s
+
+
+def warm_start(actor: torch.nn.Module, args: RunArgs, city: City) -> None:
+    """Load ``args.init_actor``'s weights into ``actor`` (a fresh run only; resume restores its own)."""
+    if not args.init_actor:
+        return
+    from marl_amod.checkpoints import load_actor
+
+    source, card = load_actor(args.init_actor, city)
+    theirs, ours = source.state_dict(), actor.state_dict()
+    if set(theirs) != set(ours) or any(theirs[k].shape != ours[k].shape for k in ours):
+        raise DataError(
+            f"init_actor {args.init_actor} is a {card['actor']}/{card['conv']} actor with hidden {card['hidden']}; "
+            "this run's actor differs (set actor, conv and hidden to match)"
+        )
+    actor.load_state_dict(theirs)
 
 
 # --------------------------------------------------------------------------------------------

@@ -4,8 +4,9 @@ policy's log-likelihood of a logged action in both modes, and the update loop.
 The algorithm files (:mod:`.bc`, :mod:`.iql`, :mod:`.cql`) hold their networks and losses and
 read top to bottom; :func:`fit` runs any of them: ``updates`` gradient steps on minibatches of the
 dataset, a validation every ``eval_every`` updates (deterministic actor on the validation seeds,
-never the report seeds; the best one is kept, as online runs do), the resumable state, Ctrl-C,
-and the policy card (with the dataset's card: behaviour score and normalised scores).
+never the report seeds; logged, and the kept actor when ``keep: best``; by default the last actor
+is shipped, so nothing but the dataset shapes it), the resumable state, Ctrl-C, and the policy
+card (with the dataset's card: behaviour score and normalised scores).
 
 Modes. Centralised: alpha = actor(x) on the global graph, pi(y|s) = Dir(y; alpha). Decentralised:
 every agent computes alpha_i from its own local observation (the dataset's ``observations``, cut
@@ -18,7 +19,7 @@ weights' scale is not observed, the normalised action is). Critics always read t
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Literal, Protocol
 
 import torch
 from pydantic import Field
@@ -46,6 +47,9 @@ class OfflineArgs(C.RunArgs):
     """updates between validation evaluations (validation seeds; the best actor is kept)"""
     reward_scale: float = Field(0.001, gt=0)
     """multiplies the logged money rewards (a step earns a few thousand in Brooklyn)"""
+    keep: Literal["last", "best"] = "last"
+    """the actor shipped: the last one (no env interaction at all: offline RL proper) or the best
+    on the validation seeds (uses ``eval_episodes`` env episodes per validation, as online runs do)"""
 
     def ignored_keys(self) -> dict[str, str]:
         return {**super().ignored_keys(), "episodes": "offline runs take no env episodes; set updates"}
@@ -111,6 +115,8 @@ def fit(
 ) -> dict[str, Any]:
     """Run ``update`` for ``args.updates`` steps with validation, resume and the card; ``parts``
     are the networks and optimisers whose state a resumed run restores (by name)."""
+    if not resume:
+        C.warm_start(actor, args, city)
     step, prior_wall, best = 0, 0.0, C.BestActor.of(actor)
     if resume:
         st = C.load_state(resume, algorithm)
@@ -141,9 +147,10 @@ def fit(
                 if args.time_limit_s and timer() > args.time_limit_s:
                     break
     log.close()
-    actor.load_state_dict(best.state)
-    summary = C.finish_run(args, algorithm, actor, city, timer(), 0, config_path, extra=_dataset_fields(data, step))
-    return summary
+    if args.keep == "best":
+        actor.load_state_dict(best.state)
+    extra = {**_dataset_fields(data, step), "kept": args.keep, "best_validation": best.value}
+    return C.finish_run(args, algorithm, actor, city, timer(), 0, config_path, extra=extra)
 
 
 def _dataset_fields(data: Data, step: int) -> dict[str, Any]:
