@@ -144,29 +144,65 @@ def evaluate(
 @app.command()
 def collect(
     scenario: Annotated[str, typer.Option(help="scenario name or YAML path")] = "synthetic",
-    policy: Annotated[str, typer.Option(help="behaviour policy: inf, dtv, prop, mpc-oracle, ... or a checkpoint")] = "inf",
+    policy: Annotated[str, typer.Option(help="behaviour policy: inf, dtv, prop, mpc-forecast, ... or a checkpoint")] = "inf",
     episodes: Annotated[int, typer.Option(min=1)] = 10,
-    seed: Annotated[int, typer.Option(min=0)] = 0,
-    output: Annotated[Path, typer.Option(help="dataset file to write (.npz, format in marl_amod.datasets)")] = Path("data.npz"),
+    seed: Annotated[int, typer.Option(min=0, help="collection seed (demand streams disjoint from evaluation's)")] = 0,
+    output: Annotated[Path, typer.Option(help="dataset file to write (.npz, format in marl_amod.datasets); card beside it")] = Path("data.npz"),
     max_wait: Annotated[int, typer.Option(min=0, help="steps a request waits before leaving")] = 0,
+    eval_episodes: Annotated[int, typer.Option(min=0, help="card: evaluation episodes of the behaviour and reference scores (0: no card)")] = 10,
+    eval_seed: Annotated[int, typer.Option(min=0, help="card: evaluation seed (as marl-amod evaluate --seed)")] = 0,
+    noise: Annotated[float, typer.Option(min=0, help="exploratory actions: Dirichlet around the policy's, concentration 1/noise")] = 0.0,
     data_dir: DataDir = None,
 ) -> None:
-    """Roll a behaviour policy and write an offline dataset (observation, action, reward, next observation, done)."""
+    """Roll a behaviour policy through the env and write an offline dataset (format 2) and its card."""
+    _use_data_dir(data_dir)
+    _collect_one(scenario, policy, episodes, seed, output, max_wait, eval_episodes, eval_seed, {}, noise)
+
+
+def _collect_one(
+    scenario: str, policy: str, episodes: int, seed: int, output: Path, max_wait: int, eval_episodes: int, eval_seed: int,
+    cache: dict, noise: float = 0.0,
+) -> None:
     from marl_amod.datasets import collect as collect_dataset
+    from marl_amod.datasets import write_card
     from marl_amod.policies import make_policy
     from marl_amod.scenario import load_city
 
-    _use_data_dir(data_dir)
     output = check_destination(output, what="--output")  # before the run, not after it
     city = load_city(scenario)
     pol = make_policy(policy, city)
     with progress_bar() as bar:
         task = bar.add_task(f"{policy} on {city.name}", total=episodes)
         data = collect_dataset(
-            city, pol, episodes=episodes, seed=seed, max_wait=max_wait, progress=lambda _k: bar.advance(task)
+            city, pol, episodes=episodes, seed=seed, max_wait=max_wait, noise=noise, progress=lambda _k: bar.advance(task)
         )
     path = save_or_fallback(output, data.save, what="the dataset")
     console.print(f"wrote {len(data)} transitions ({city.n_regions} agents) to {path}")
+    if eval_episodes:
+        card = write_card(path, data, city, pol, eval_episodes=eval_episodes, eval_seed=eval_seed, cache=cache)
+        b = card["behaviour_score"]
+        console.print(f"card {path.with_suffix('.json')}: behaviour {b['mean']:,.0f} (normalised {b['normalised']:.1f})")
+
+
+@app.command()
+def datasets(
+    scenario: Annotated[str, typer.Option(help="scenario name or YAML path")] = "nyc_brooklyn",
+    policies: Annotated[str, typer.Option(help="comma-separated behaviour policies")] = "inf,dtv,prop,mpc-forecast",
+    episodes: Annotated[int, typer.Option(min=1, help="episodes per dataset")] = 200,
+    seed: Annotated[int, typer.Option(min=0, help="collection seed (disjoint from evaluation's)")] = 0,
+    out_dir: Annotated[Path, typer.Option(help="folder of <scenario>_<policy>.npz and cards")] = Path("runs/datasets"),
+    eval_episodes: Annotated[int, typer.Option(min=0)] = 10,
+    eval_seed: Annotated[int, typer.Option(min=0)] = 0,
+    noise: Annotated[float, typer.Option(min=0, help="exploratory actions (see collect); names get _noise<x>")] = 0.0,
+    data_dir: DataDir = None,
+) -> None:
+    """The benchmark's offline datasets: one per behaviour policy, each with its card."""
+    _use_data_dir(data_dir)
+    cache: dict = {}
+    for name in [p.strip() for p in policies.split(",") if p.strip()]:
+        suffix = f"_noise{noise:g}" if noise else ""
+        out = out_dir / f"{Path(scenario).stem}_{name.replace('-', '_')}{suffix}.npz"
+        _collect_one(scenario, name, episodes, seed, out, 0, eval_episodes, eval_seed, cache, noise)
 
 
 @app.command()
@@ -200,7 +236,7 @@ def train(
     last_eval: dict[str, float] = {}
     try:
         with progress_bar() as bar:
-            task = bar.add_task(f"{algo} {args.mode} on {args.scenario}", total=args.episodes)
+            task = bar.add_task(f"{algo} {args.mode} on {args.scenario}", total=getattr(args, "updates", args.episodes))
 
             def progress(ep: int, total: int, stats: dict) -> None:
                 if "eval/profit" in stats:
@@ -219,9 +255,10 @@ def train(
         )
         raise typer.Exit(130) from None
     card = summary["card"]
+    trained = f"{card['updates']} updates on {card['dataset']['transitions']} logged transitions" if "updates" in card else f"{card['episodes_trained']} episodes"
     console.print(
         f"{card['scenario']}: profit {card['profit_mean']:,.1f} ± {card['profit_std']:,.1f} over {card['eval_episodes']} episodes "
-        f"(seed {card['eval_seed']}), trained {card['episodes_trained']} episodes in {card['training_wall_s'] / 60:.1f} min"
+        f"(seed {card['eval_seed']}), trained {trained} in {card['training_wall_s'] / 60:.1f} min"
     )
     if "policy" in summary:
         console.print(f"wrote {summary['policy']} (+ .json, .md); logs in {args.run_dir}")

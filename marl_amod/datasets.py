@@ -1,167 +1,354 @@
-"""Offline datasets: roll a behaviour policy and store its transitions in one ``.npz`` file.
+"""Offline datasets: what the env's agents saw and did under a behaviour policy, in one ``.npz``.
 
-Format (version 1). T transitions over all episodes, N regions (agents), F node features:
+Format version 2. T transitions over all episodes, N agents (regions), D = F + 3 + K(F + 1) the
+length of one agent's local observation (:mod:`marl_amod.env.observations`), S = N*F + 3 the
+global state, F node features:
 
-====================  ===============  ====================================================
-key                   shape, dtype     meaning
-====================  ===============  ====================================================
-observation           (T, N, F) f32    :func:`marl_amod.env.features.node_features` after
-                                       dispatch at step t (what the policy saw)
-action                (T, N) f32       desired distribution: share of the idle fleet in each
-                                       region once the coordinator has rebalanced (sums to 1;
-                                       the current distribution when no vehicle is idle)
-reward                (T,) f32         system reward of the step (next dispatch profit minus
-                                       rebalancing cost)
-region_reward         (T, N) f32       the same reward split by region (profit of trips and
-                                       moves leaving each region); sums to ``reward``
-next_observation      (T, N, F) f32    features after the next dispatch
-done                  (T,) bool        True on the last step of an episode
-episode, step         (T,) i64         episode index and control step t
-edge_index            (2, E) i64       region adjacency (for graph policies)
-feature_names         (F,) str
-meta                  () str           JSON: format version, scenario, policy, seed, episodes
-====================  ===============  ====================================================
+=====================  ===============  ===================================================
+key                    shape, dtype     meaning
+=====================  ===============  ===================================================
+observations           (T, N, D) f32    each agent's local observation, as the env gave it
+actions                (T, N) f32       each agent's action as the env took it: a weight in
+                                        [0, 1] (``action_mode="weight"``); see below
+rewards                (T, N) f32       each region's booked reward of the step
+                                        (``reward_mode="local"``: its dispatch profit minus
+                                        the cost of the vehicles it sent away)
+team_rewards           (T,) f32         the system reward (sum of ``rewards``; money)
+states                 (T, S) f32       ``env.state()``: every region's F features, then time
+next_observations      (T, N, D) f32    observations after the step
+next_states            (T, S) f32       ``env.state()`` after the step
+terminations           (T,) bool        always False (the env never terminates an agent)
+truncations            (T,) bool        True on the episode's last step (the horizon)
+episode_ids, step_ids  (T,) i64         episode index and control step t
+edge_index             (2, E) i64       region adjacency, source -> target
+edge_attr              (E, 2) f32       rebalancing steps and cost of each edge
+meta                   () str           JSON: format version, scenario, policy, seeds, ...
+=====================  ===============  ===================================================
 
-:func:`agent_transitions` reads the same file as PettingZoo-style per-agent transitions keyed by
-agent name ``region_{i}``.
+Actions. The env reads the joint action as weights w and targets floor(w_i / sum(w) * M) idle
+vehicles in region i (M idle in all). A policy that outputs weights (PROP, ED, a trained actor)
+is recorded as its normalised weights. A policy that outputs targets u (INF, DTV, MPC) is recorded
+as u_i / 2^k with 2^k the smallest power of two >= M: proportional to the target share u_i / M,
+and exact in float32, so the env turns it back into the same targets (:func:`collect` counts
+steps where it would not, ``target_mismatch`` in ``meta``: 0 for the bundled policies); "no
+wish" targets (-1) become the region's idle vehicles (stay); with no idle vehicle the action is
+uniform. The behaviour score on the card is that of this env-action policy.
+
+Views: :meth:`OfflineDataset.global_view` gives the centralised learner's graph batch (node
+features (T, N, F), the action as a distribution on the simplex, the team reward);
+:meth:`OfflineDataset.agent_view` gives PettingZoo-style per-agent transitions keyed by agent.
+Episodes bootstrap nowhere past the horizon: ``terminations | truncations`` ends the return.
+
+Seeds: episode k of a dataset seeded s draws demand from
+:func:`marl_amod.algos.rollout.train_seed` (s, k), never one of the evaluation streams (s', k'),
+so a policy trained on a dataset is scored on demand it has not seen. The card (same name,
+``.json``) holds the behaviour policy's score and the reference scores ED and MPC-Oracle on the
+evaluation seeds, for normalised scores (:func:`normalised_score`: 0 = ED, 100 = MPC-Oracle).
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from marl_amod.baselines.base import Policy
-from marl_amod.env.features import feature_names, node_features
+from marl_amod.baselines.base import Policy, WeightPolicy
 from marl_amod.errors import ConfigError, DataError
-from marl_amod.evaluation import episode_seeds
-from marl_amod.files import atomic_write, check_destination
+from marl_amod.files import atomic_write, check_destination, write_json
 from marl_amod.scenario.types import City
 from marl_amod.system import FleetSystem
 from marl_amod.validation import as_count, as_seed
 
-FORMAT_VERSION = 1
-ARRAY_KEYS = ("observation", "action", "reward", "region_reward", "next_observation", "done", "episode", "step")
+FORMAT_VERSION = 2
+ARRAY_KEYS = (
+    "observations", "actions", "rewards", "team_rewards", "states", "next_observations", "next_states",
+    "terminations", "truncations", "episode_ids", "step_ids",
+)  # fmt: skip
+DTYPES = {"terminations": np.bool_, "truncations": np.bool_, "episode_ids": np.int64, "step_ids": np.int64}
+REFERENCES = ("equal-distribution", "mpc-oracle")  # normalised score 0 and 100
 
 
 @dataclass
 class OfflineDataset:
     """Transitions in memory; ``save``/``load`` use the documented ``.npz`` layout."""
 
-    observation: np.ndarray
-    action: np.ndarray
-    reward: np.ndarray
-    region_reward: np.ndarray
-    next_observation: np.ndarray
-    done: np.ndarray
-    episode: np.ndarray
-    step: np.ndarray
+    observations: np.ndarray
+    actions: np.ndarray
+    rewards: np.ndarray
+    team_rewards: np.ndarray
+    states: np.ndarray
+    next_observations: np.ndarray
+    next_states: np.ndarray
+    terminations: np.ndarray
+    truncations: np.ndarray
+    episode_ids: np.ndarray
+    step_ids: np.ndarray
     edge_index: np.ndarray
-    feature_names: list[str]
-    meta: dict
+    edge_attr: np.ndarray
+    meta: dict[str, Any]
 
     def __len__(self) -> int:
-        return int(self.reward.shape[0])
+        return int(self.team_rewards.shape[0])
+
+    @property
+    def n_agents(self) -> int:
+        return int(self.actions.shape[1])
+
+    @property
+    def n_features(self) -> int:
+        return int(self.meta["n_features"])
 
     def save(self, path: str | Path) -> Path:
         """Write atomically (a reader never sees half a dataset); a file handle keeps numpy from
         appending '.npz'."""
         path = check_destination(path, what="dataset")
         return atomic_write(path, lambda fh: np.savez_compressed(
-            fh, **{k: getattr(self, k) for k in ARRAY_KEYS}, edge_index=self.edge_index,
-            feature_names=np.array(self.feature_names), meta=np.array(json.dumps(self.meta)),
+            fh, **{k: getattr(self, k) for k in ARRAY_KEYS}, edge_index=self.edge_index, edge_attr=self.edge_attr,
+            meta=np.array(json.dumps(self.meta)),
         ))  # fmt: skip
 
     @classmethod
     def load(cls, path: str | Path) -> OfflineDataset:
         path = Path(path)
         if not path.is_file():
-            raise DataError(f"no dataset at {path}")
+            raise DataError(f"no dataset at {path} (make one with `marl-amod collect` or `marl-amod datasets`)")
         with np.load(path, allow_pickle=False) as f:
-            missing = [k for k in (*ARRAY_KEYS, "edge_index", "feature_names", "meta") if k not in f]
-            if missing:
-                raise DataError(f"{path} is not a marl_amod dataset: missing {', '.join(missing)}")
+            if "meta" not in f:
+                raise DataError(f"{path} is not a marl_amod dataset: no meta")
             meta = json.loads(str(f["meta"]))
             if meta.get("format_version") != FORMAT_VERSION:
-                raise DataError(f"{path} has dataset format {meta.get('format_version')}, expected {FORMAT_VERSION}")
-            return cls(
-                **{k: f[k] for k in ARRAY_KEYS}, edge_index=f["edge_index"],
-                feature_names=[str(s) for s in f["feature_names"]], meta=meta,
-            )
+                raise DataError(
+                    f"{path} has dataset format {meta.get('format_version')}, this version reads {FORMAT_VERSION}; "
+                    "collect it again with `marl-amod collect`"
+                )
+            missing = [k for k in (*ARRAY_KEYS, "edge_index", "edge_attr") if k not in f]
+            if missing:
+                raise DataError(f"{path} is not a marl_amod dataset: missing {', '.join(missing)}")
+            return cls(**{k: f[k] for k in ARRAY_KEYS}, edge_index=f["edge_index"], edge_attr=f["edge_attr"], meta=meta)
+
+    # ------------------------------------------------------------------ views
+    def global_view(self) -> dict[str, np.ndarray]:
+        """The centralised learner's view: x, next_x (T, N, F) node features, action (T, N) on the
+        simplex (the env's normalised weights), reward (T,) team reward, done (T,), edge_index."""
+        t, n, f = len(self), self.n_agents, self.n_features
+        return {
+            "x": self.states[:, : n * f].reshape(t, n, f),
+            "next_x": self.next_states[:, : n * f].reshape(t, n, f),
+            "action": action_share(self.actions),
+            "reward": self.team_rewards,
+            "done": self.terminations | self.truncations,
+            "edge_index": self.edge_index,
+        }
+
+    def agent_view(self) -> dict[str, dict[str, np.ndarray]]:
+        """PettingZoo-style per-agent transitions: {"region_i": {observation (T, D), action (T, 1),
+        reward (T,) its region's, team_reward, next_observation, termination, truncation}}."""
+        return {
+            f"region_{i}": {
+                "observation": self.observations[:, i],
+                "action": self.actions[:, i : i + 1],
+                "reward": self.rewards[:, i],
+                "team_reward": self.team_rewards,
+                "next_observation": self.next_observations[:, i],
+                "termination": self.terminations,
+                "truncation": self.truncations,
+            }
+            for i in range(self.n_agents)
+        }
 
 
-def realised_distribution(system: FleetSystem, target: np.ndarray) -> np.ndarray:
-    """(N,) share of idle vehicles per region after the coordinator meets ``target``.
+def action_share(actions: np.ndarray) -> np.ndarray:
+    """(..., N) env weights -> the distribution the env normalises them to (all zeros: uniform)."""
+    actions = np.asarray(actions, dtype=np.float32)
+    s = actions.sum(-1, keepdims=True)
+    n = actions.shape[-1]
+    return np.where(s > 0, actions / np.where(s > 0, s, 1.0), np.float32(1.0 / n)).astype(np.float32)
 
-    The coordinator is deterministic, so this is exactly what ``system.step(target)`` will do.
+
+def env_action(policy: Policy, system: FleetSystem) -> tuple[np.ndarray, np.ndarray | None]:
+    """(N,) float32 action in [0, 1] that makes the env do what ``policy`` asks (module docstring),
+    and the targets the policy asked for (None for a weight policy, whose action is exact)."""
+    idle = system.sim.idle.astype(np.float64)
+    m = idle.sum()
+    n = idle.shape[0]
+    if isinstance(policy, WeightPolicy):
+        w = np.asarray(policy.weights(system), dtype=np.float64)
+        if m <= 0:
+            return np.full(n, 1.0 / n, dtype=np.float32), None
+        return ((w / w.sum()) if w.sum() > 0 else idle / m).astype(np.float32), None  # all zeros: stay
+    target = np.asarray(policy.target(system), dtype=np.float64)
+    target = np.where(target < 0, idle, target)  # no wish: keep what is there
+    if m <= 0:
+        return np.full(n, 1.0 / n, dtype=np.float32), target
+    # over the power of two >= M: float32 holds u / 2^k exactly, so the env's floor gives u back
+    return (target / 2.0 ** np.ceil(np.log2(m))).astype(np.float32), target
+
+
+class EnvActionPolicy(Policy):
+    """A behaviour policy as the env takes it: its :func:`env_action` through the env's action rule.
+
+    ``noise`` > 0 logs exploratory data: the joint action is drawn from a Dirichlet with mean the
+    policy's action share and total concentration 1 / noise (plus 0.01 per region, so every region
+    is sometimes asked for). The dataset's score is this policy's, so offline learners are
+    compared with what they saw.
     """
-    idle = system.sim.idle
-    flows = system.coordinator.rebalance(idle, np.asarray(target))
-    after = idle - flows.sum(axis=1) + flows.sum(axis=0)
-    total = after.sum()
-    return (after / total if total > 0 else np.full(idle.shape, 1.0 / idle.shape[0])).astype(np.float32)
+
+    def __init__(self, policy: Policy, noise: float = 0.0) -> None:
+        if not noise >= 0:
+            raise ConfigError(f"action noise must be >= 0, got {noise}")
+        self.policy, self.noise = policy, float(noise)
+        self.name = getattr(policy, "name", "policy") + (f"+noise{noise:g}" if noise else "")
+
+    def reset(self, system: FleetSystem, rng: np.random.Generator) -> None:
+        super().reset(system, rng)
+        self.policy.reset(system, rng)
+
+    def action(self, system: FleetSystem) -> tuple[np.ndarray, np.ndarray | None]:
+        """(action, the targets the policy asked for or None); with noise, the perturbed share."""
+        action, wanted = env_action(self.policy, system)
+        if not self.noise:
+            return action, wanted
+        share = action_share(action).astype(np.float64)
+        return self.rng.dirichlet(share / self.noise + 0.01).astype(np.float32), None
+
+    def target(self, system: FleetSystem) -> np.ndarray:
+        return system.targets_from_weights(self.action(system)[0].astype(np.float64))
+
+
+def collection_seed(seed: int, episode: int) -> int:
+    """The env seed of episode ``episode`` of a dataset seeded ``seed`` (disjoint from evaluation's)."""
+    from marl_amod.algos.rollout import train_seed
+
+    return int(train_seed(seed, episode).generate_state(1)[0])
 
 
 def collect(
-    city: City, policy: Policy, *, episodes: int, seed: int = 0, lookahead: int = 6,
-    progress: Callable[[int], None] | None = None, **system_kwargs,
+    city: City, policy: Policy, *, episodes: int, seed: int = 0, lookahead: int = 6, max_wait: int = 0, noise: float = 0.0,
+    progress: Callable[[int], None] | None = None,
 ) -> OfflineDataset:
-    """Roll ``policy`` for ``episodes`` episodes (seeded as in :func:`marl_amod.evaluation.evaluate`)."""
+    """Roll ``policy`` through the PettingZoo env for ``episodes`` episodes on the collection seeds
+    (``noise``: exploratory actions around the policy's, see :class:`EnvActionPolicy`)."""
+    from marl_amod import parallel_env
+    from marl_amod.env.features import n_features
+
     if as_count(episodes, "episodes") < 1:
         raise ConfigError(f"episodes must be >= 1, got {episodes}")
     seed = as_seed(seed)
-    system = FleetSystem(city, **system_kwargs)
+    env = parallel_env(city, reward_mode="local", action_mode="weight", lookahead=lookahead, max_wait=max_wait)
+    behaviour = EnvActionPolicy(policy, noise)
+    agents = list(env.possible_agents)
     cols: dict[str, list] = {k: [] for k in ARRAY_KEYS}
+    mismatch = steps = 0
+    returns = []
     for ep in range(episodes):
-        demand_seed, policy_rng = episode_seeds(seed, ep)
-        system.reset(demand_seed)
-        policy.reset(system, policy_rng)
-        obs = node_features(system, lookahead)
-        while not system.done:
-            t = system.t
-            target = policy.target(system)
-            action = realised_distribution(system, target)
-            outcome = system.step(target)
-            next_obs = node_features(system, lookahead)
-            cols["observation"].append(obs)
-            cols["action"].append(action)
-            cols["reward"].append(outcome.reward)
-            cols["region_reward"].append(outcome.region_reward)
-            cols["next_observation"].append(next_obs)
-            cols["done"].append(system.done)
-            cols["episode"].append(ep)
-            cols["step"].append(t)
-            obs = next_obs
+        obs, _ = env.reset(seed=collection_seed(seed, ep))
+        behaviour.reset(env.system, np.random.default_rng([seed, ep, 2]))
+        state, ep_return = env.state(), env.last_outcome.reward
+        while env.agents:
+            t = env.system.t
+            action, wanted = behaviour.action(env.system)
+            if wanted is not None and env.system.sim.idle.sum() > 0:
+                mismatch += int(not np.array_equal(env.system.targets_from_weights(action.astype(np.float64)), wanted))
+            steps += 1
+            nxt, rew, terms, truncs, _ = env.step({a: action[i : i + 1] for i, a in enumerate(agents)})
+            team = env.last_outcome.reward
+            ep_return += team
+            cols["observations"].append(np.stack([obs[a] for a in agents]))
+            cols["actions"].append(action)
+            cols["rewards"].append([rew[a] for a in agents])
+            cols["team_rewards"].append(team)
+            cols["states"].append(state)
+            state = env.state()
+            cols["next_observations"].append(np.stack([nxt[a] for a in agents]))
+            cols["next_states"].append(state)
+            cols["terminations"].append(terms[agents[0]])
+            cols["truncations"].append(truncs[agents[0]])
+            cols["episode_ids"].append(ep)
+            cols["step_ids"].append(t)
+            obs = nxt
+        returns.append(ep_return)
         if progress is not None:
             progress(ep)
-    dtypes = {"observation": np.float32, "action": np.float32, "reward": np.float32, "region_reward": np.float32,
-              "next_observation": np.float32, "done": bool, "episode": np.int64, "step": np.int64}
-    arrays = {k: np.asarray(v, dtype=dtypes[k]) for k, v in cols.items()}
-    meta = {"format_version": FORMAT_VERSION, "scenario": city.name, "policy": getattr(policy, "name", "policy"),
-            "seed": seed, "episodes": episodes, "lookahead": lookahead}
-    return OfflineDataset(**arrays, edge_index=np.asarray(city.edge_index, dtype=np.int64),
-                          feature_names=feature_names(lookahead), meta=meta)
+    arrays = {k: np.asarray(v, dtype=DTYPES.get(k, np.float32)) for k, v in cols.items()}
+    graph = env.graph()
+    meta = {
+        "format_version": FORMAT_VERSION, "scenario": city.name, "policy": behaviour.name, "noise": noise,
+        "seed": seed, "episodes": episodes, "transitions": int(len(arrays["team_rewards"])), "lookahead": lookahead,
+        "max_wait": max_wait, "n_agents": len(agents), "n_features": n_features(lookahead),
+        "observation_dim": int(arrays["observations"].shape[-1]), "state_dim": int(arrays["states"].shape[-1]),
+        "agents": agents, "demand_seeds": "episode k: marl_amod.datasets.collection_seed(seed, k)",
+        "episode_profit_mean": float(np.mean(returns)), "episode_profit_std": float(np.std(returns)),
+        "target_mismatch": mismatch / max(steps, 1),
+    }  # fmt: skip
+    return OfflineDataset(**arrays, edge_index=graph["edge_index"], edge_attr=graph["edge_attr"], meta=meta)
+
+
+# --------------------------------------------------------------------------------------------
+# The dataset card: behaviour and reference scores on the evaluation seeds
+# --------------------------------------------------------------------------------------------
+def card_path(path: str | Path) -> Path:
+    return Path(path).with_suffix(".json")
+
+
+def reference_scores(city: City, episodes: int, seed: int, cache: dict | None = None) -> dict[str, dict[str, float]]:
+    """ED and MPC-Oracle profit (mean, std) on the evaluation seeds; ``cache`` shares them across datasets."""
+    from marl_amod.evaluation import evaluate
+
+    key = (city.name, episodes, seed)
+    if cache is not None and key in cache:
+        return cache[key]
+    out = {}
+    for name in REFERENCES:
+        p = evaluate(name, city, episodes, seed)["metrics"]["profit"]
+        out[name] = {"mean": float(p["mean"]), "std": float(p["std"])}
+    if cache is not None:
+        cache[key] = out
+    return out
+
+
+def normalised_score(profit: float, references: dict[str, dict[str, float]]) -> float:
+    """D4RL-style: 0 = equal distribution, 100 = MPC-Oracle (same evaluation seeds)."""
+    low, high = references["equal-distribution"]["mean"], references["mpc-oracle"]["mean"]
+    return 100.0 * (profit - low) / (high - low)
+
+
+def write_card(
+    path: str | Path, data: OfflineDataset, city: City, policy: Policy, *, eval_episodes: int = 10, eval_seed: int = 0,
+    cache: dict | None = None,
+) -> dict[str, Any]:
+    """Score the behaviour policy (as the env takes it) and the references; write ``<dataset>.json``."""
+    from marl_amod.checkpoints import env_version, git_commit
+    from marl_amod.evaluation import evaluate
+
+    path = Path(path)
+    refs = reference_scores(city, eval_episodes, eval_seed, cache)
+    behaviour = evaluate(EnvActionPolicy(policy, data.meta.get("noise", 0.0)), city, eval_episodes, eval_seed)["metrics"]["profit"]
+    card = {
+        "dataset": path.name, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), **data.meta,
+        "env_version": env_version(), "git_commit": git_commit(),
+        "evaluation": {"episodes": eval_episodes, "seed": eval_seed, "note": "marl-amod evaluate --seed {seed} streams"},
+        "behaviour_score": {"mean": float(behaviour["mean"]), "std": float(behaviour["std"]),
+                            "normalised": normalised_score(float(behaviour["mean"]), refs)},
+        "reference_scores": refs,
+    }  # fmt: skip
+    write_json(card_path(path), card)
+    return card
+
+
+def read_card(path: str | Path) -> dict[str, Any]:
+    """The card beside dataset ``path`` (or the card file itself)."""
+    p = Path(path)
+    p = p if p.suffix == ".json" else card_path(p)
+    if not p.is_file():
+        raise DataError(f"no dataset card at {p} (collect writes it beside the .npz)")
+    return json.loads(p.read_text())
 
 
 def agent_transitions(dataset: OfflineDataset) -> dict[str, dict[str, np.ndarray]]:
-    """Per-agent view: {"region_i": {observation (T, F), action (T, 1), reward (T,), next_observation, done}}.
-
-    Each agent's reward is its region's share (``region_reward``); ``global_reward`` keeps the
-    system reward for cooperative learners.
-    """
-    n = dataset.action.shape[1]
-    return {
-        f"region_{i}": {
-            "observation": dataset.observation[:, i],
-            "action": dataset.action[:, i : i + 1],
-            "reward": dataset.region_reward[:, i],
-            "global_reward": dataset.reward,
-            "next_observation": dataset.next_observation[:, i],
-            "done": dataset.done,
-        }
-        for i in range(n)
-    }
+    """The per-agent view (:meth:`OfflineDataset.agent_view`), under the name format 1 used."""
+    return dataset.agent_view()

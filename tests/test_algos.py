@@ -61,7 +61,7 @@ def test_sac_tiny_run_updates_and_writes_checkpoint(tmp_path, tiny_yaml, mode):
     assert (tmp_path / "policies" / "p.pt").is_file()
 
 
-def test_a2c_init_policy_fine_tunes_from_the_given_actor(tmp_path, tiny_yaml):
+def test_a2c_init_actor_fine_tunes_from_the_given_actor(tmp_path, tiny_yaml):
     """A warm start begins at the given actor; with a vanishing learning rate it stays there
     (the start is validated, so it is what the run keeps), while a cold start does not."""
     from marl_amod.algos import a2c
@@ -73,7 +73,7 @@ def test_a2c_init_policy_fine_tunes_from_the_given_actor(tmp_path, tiny_yaml):
     city = load_city(tiny_yaml)
     init = load_policy(start, city).actor.state_dict()
     tuned_args = _common(tmp_path, tiny_yaml, episodes=4, episodes_per_update=2, seed=2, lr_actor=1e-12, run_dir=str(tmp_path / "ft"))
-    a2c.train(a2c.Args(**tuned_args, init_policy=str(start)))
+    a2c.train(a2c.Args(**tuned_args, init_actor=str(start)))
     tuned = load_policy(tmp_path / "policies" / "p.pt", city).actor.state_dict()
     assert all(torch.allclose(init[k], tuned[k], atol=1e-6) for k in init)
     a2c.train(a2c.Args(**{**tuned_args, "run_dir": str(tmp_path / "cold")}))

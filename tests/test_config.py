@@ -95,7 +95,7 @@ def test_extends_cycle_and_missing_base_are_clear(tmp_path):
 
 
 def test_unknown_algorithm_and_top_level_key(tmp_path):
-    with pytest.raises(ConfigError, match=r"algo: unknown algorithm 'ppo2'; known: a2c, meta, sac"):
+    with pytest.raises(ConfigError, match=r"algo: unknown algorithm 'ppo2'; known: a2c, bc, cql, iql, meta, sac"):
         load_train_config(_write(tmp_path, "x.yaml", {"algo": "ppo2"}))
     with pytest.raises(ConfigError, match=r"x\.yaml: argz: unknown key"):
         load_train_config(_write(tmp_path, "x.yaml", {"algo": "a2c", "argz": {}}))
@@ -117,9 +117,9 @@ def test_rllib_args_are_the_same_model_with_the_same_bounds(tmp_path):
 
 def test_configs_are_grouped_by_algorithm_and_variants_extend_a_base():
     groups = {p.parent.name for p in CONFIGS.rglob("*.yaml")}
-    assert groups == {"a2c", "sac", "ppo_rllib", "compare", "meta"}
+    assert groups == {"a2c", "sac", "ppo_rllib", "compare", "meta", "bc", "iql", "cql"}
     assert not list(CONFIGS.glob("*.yaml"))
-    for variant in ("a2c/nyc_brooklyn_sage.yaml", "a2c/nyc_brooklyn_dec.yaml", "sac/nyc_brooklyn_long.yaml"):
+    for variant in ("a2c/nyc_brooklyn_sage.yaml", "a2c/nyc_brooklyn_dec.yaml", "sac/nyc_brooklyn_long.yaml", "iql/nyc_brooklyn_dtv.yaml"):
         assert "extends" in yaml.safe_load((CONFIGS / variant).read_text())
 
 

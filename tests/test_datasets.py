@@ -1,14 +1,27 @@
-"""Offline datasets: the documented .npz round-trips and reads as per-agent transitions."""
+"""Offline datasets (format 2): what the env's agents saw and did, round-tripped, in both views."""
 
 from __future__ import annotations
+
+import json
 
 import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from marl_amod import parallel_env
 from marl_amod.cli import app
-from marl_amod.datasets import ARRAY_KEYS, OfflineDataset, agent_transitions, collect
+from marl_amod.datasets import (
+    ARRAY_KEYS,
+    EnvActionPolicy,
+    OfflineDataset,
+    collect,
+    collection_seed,
+    normalised_score,
+    read_card,
+    write_card,
+)
 from marl_amod.errors import DataError
+from marl_amod.evaluation import episode_seeds, evaluate
 from marl_amod.policies import make_policy
 
 
@@ -20,56 +33,121 @@ def dataset(tiny_city) -> OfflineDataset:
 def test_dataset_round_trips_through_npz(dataset, tmp_path):
     path = dataset.save(tmp_path / "sub" / "d.npz")
     back = OfflineDataset.load(path)
-    for key in (*ARRAY_KEYS, "edge_index"):
+    for key in (*ARRAY_KEYS, "edge_index", "edge_attr"):
         assert np.array_equal(getattr(back, key), getattr(dataset, key)), key
         assert getattr(back, key).dtype == getattr(dataset, key).dtype
-    assert back.feature_names == dataset.feature_names and back.meta == dataset.meta
+    assert back.meta == dataset.meta and back.meta["format_version"] == 2
 
 
-def test_dataset_contents_are_consistent(tiny_city, dataset):
-    steps = tiny_city.horizon - 1
-    n = tiny_city.n_regions
-    assert len(dataset) == 2 * steps
-    assert dataset.observation.shape == (2 * steps, n, len(dataset.feature_names))
-    assert dataset.done.sum() == 2 and dataset.done[steps - 1] and dataset.done[-1]
-    assert np.allclose(dataset.action.sum(axis=1), 1, atol=1e-5) and np.all(dataset.action >= 0)
-    assert np.allclose(dataset.region_reward.sum(axis=1), dataset.reward, rtol=1e-4, atol=1e-2)
-    within = ~dataset.done[:-1]
-    assert np.array_equal(dataset.next_observation[:-1][within], dataset.observation[1:][within])
+def test_dataset_holds_the_envs_observations_actions_and_rewards(tiny_city, dataset):
+    steps, n = tiny_city.horizon - 1, tiny_city.n_regions
+    env = parallel_env(tiny_city, reward_mode="local")
+    obs, _ = env.reset(seed=collection_seed(3, 0))
+    assert len(dataset) == 2 * steps and dataset.actions.shape == (2 * steps, n)
+    assert np.array_equal(dataset.observations[0], np.stack([obs[a] for a in env.possible_agents]))
+    assert np.array_equal(dataset.states[0], env.state())
+    # replaying the logged actions through the env gives the logged next observations and rewards
+    for t in range(steps):
+        nxt, rew, _, truncs, _ = env.step({a: dataset.actions[t, i : i + 1] for i, a in enumerate(env.possible_agents)})
+        assert np.array_equal(dataset.next_observations[t], np.stack([nxt[a] for a in env.possible_agents]))
+        assert np.allclose(dataset.rewards[t], [rew[a] for a in env.possible_agents])
+        assert dataset.truncations[t] == truncs["region_0"]
+    assert np.all((dataset.actions >= 0) & (dataset.actions <= 1))
+    assert np.allclose(dataset.rewards.sum(axis=1), dataset.team_rewards, rtol=1e-4, atol=1e-2)
+    assert not dataset.terminations.any() and dataset.truncations.sum() == 2 and dataset.truncations[steps - 1]
+    within = ~dataset.truncations[:-1]
+    assert np.array_equal(dataset.next_observations[:-1][within], dataset.observations[1:][within])
+    assert np.array_equal(dataset.step_ids[:steps], np.arange(steps)) and set(dataset.episode_ids) == {0, 1}
 
 
-def test_dataset_rewards_match_evaluation(tiny_city, dataset):
-    """Episode profit = the dispatch in reset (no transition) + the transition rewards, exactly."""
-    from marl_amod.evaluation import episode_seeds, evaluate
+@pytest.mark.parametrize("name", ["inf", "dtv"])
+def test_target_policies_are_logged_as_actions_that_reproduce_their_targets(tiny_city, name):
+    """The env floors w / sum(w) * M; the logged weights give the behaviour policy's targets back."""
+    data = collect(tiny_city, make_policy(name, tiny_city), episodes=1, seed=0)
+    assert data.meta["target_mismatch"] == 0.0
+    ours = evaluate(EnvActionPolicy(make_policy(name, tiny_city)), tiny_city, episodes=2, seed=0)
+    theirs = evaluate(name, tiny_city, episodes=2, seed=0)
+    assert ours["metrics"]["profit"]["mean"] == pytest.approx(theirs["metrics"]["profit"]["mean"])
+
+
+def test_collection_seeds_are_not_evaluation_seeds(tiny_city, dataset):
+    """Episode 0 of the dataset is not episode 0 of `evaluate --seed 3` (nor of seed 0)."""
     from marl_amod.system import FleetSystem
 
-    profits = evaluate("prop", tiny_city, episodes=2, seed=3)["per_episode"]
-    for ep, m in enumerate(profits):
-        first_dispatch = FleetSystem(tiny_city).reset(episode_seeds(3, ep)[0]).reward
-        assert first_dispatch > 0
-        assert dataset.reward[dataset.episode == ep].sum() + first_dispatch == pytest.approx(m["profit"], rel=1e-5)
+    demand = FleetSystem(tiny_city)
+    demand.reset(collection_seed(3, 0))
+    logged = demand.sim.demand.copy()
+    for s in (0, 3):
+        demand.reset(episode_seeds(s, 0)[0])
+        assert not np.array_equal(logged, demand.sim.demand)
 
 
-def test_agent_view_has_one_transition_stream_per_region(tiny_city, dataset):
-    agents = agent_transitions(dataset)
-    assert list(agents) == [f"region_{i}" for i in range(tiny_city.n_regions)]
+def test_dataset_rewards_add_up_to_the_episode_profit(tiny_city, dataset):
+    """Episode profit = the reset's dispatch (no transition) + the logged team rewards = the env's own total."""
+    profits = []
+    for ep in range(2):
+        env = parallel_env(tiny_city)
+        env.reset(seed=collection_seed(3, ep))
+        first_dispatch = env.last_outcome.reward
+        for t in np.flatnonzero(dataset.episode_ids == ep):
+            _, _, _, _, infos = env.step({a: dataset.actions[t, i : i + 1] for i, a in enumerate(env.possible_agents)})
+        profits.append(infos["region_0"]["system_profit"])
+        assert first_dispatch + dataset.team_rewards[dataset.episode_ids == ep].sum() == pytest.approx(profits[-1], rel=1e-5)
+    assert dataset.meta["episode_profit_mean"] == pytest.approx(np.mean(profits), rel=1e-5)
+
+
+def test_views_give_the_graph_and_the_agents(tiny_city, dataset):
+    g = dataset.global_view()
+    n, f = tiny_city.n_regions, dataset.n_features
+    assert g["x"].shape == (len(dataset), n, f)
+    assert np.array_equal(g["x"], dataset.observations[:, :, :f])  # own block of each agent = its graph row
+    assert np.allclose(g["action"].sum(axis=1), 1, atol=1e-5) and np.array_equal(g["done"], dataset.truncations)
+    agents = dataset.agent_view()
+    assert list(agents) == [f"region_{i}" for i in range(n)]
     a = agents["region_2"]
-    assert a["observation"].shape == (len(dataset), dataset.observation.shape[2])
-    assert a["action"].shape == (len(dataset), 1)
-    assert np.array_equal(a["reward"], dataset.region_reward[:, 2])
+    assert a["observation"].shape == (len(dataset), dataset.observations.shape[2]) and a["action"].shape == (len(dataset), 1)
+    assert np.array_equal(a["reward"], dataset.rewards[:, 2]) and np.array_equal(a["truncation"], dataset.truncations)
 
 
-def test_loading_a_foreign_file_is_a_data_error(tmp_path):
+def test_card_scores_the_behaviour_policy_and_the_references(tiny_city, dataset, tmp_path):
+    path = dataset.save(tmp_path / "d.npz")
+    card = write_card(path, dataset, tiny_city, make_policy("prop", tiny_city), eval_episodes=2, eval_seed=0)
+    assert read_card(path) == json.loads(json.dumps(card))
+    refs = card["reference_scores"]
+    assert normalised_score(refs["equal-distribution"]["mean"], refs) == 0.0
+    assert normalised_score(refs["mpc-oracle"]["mean"], refs) == pytest.approx(100.0)
+    prop = evaluate("prop", tiny_city, episodes=2, seed=0)["metrics"]["profit"]["mean"]
+    assert card["behaviour_score"]["mean"] == pytest.approx(prop)
+    assert card["episodes"] == 2 and card["transitions"] == len(dataset) and card["policy"] == "prop"
+
+
+def test_loading_a_foreign_or_old_file_is_a_data_error(tmp_path, dataset):
     with pytest.raises(DataError):
         OfflineDataset.load(tmp_path / "missing.npz")
     np.savez(tmp_path / "other.npz", x=np.zeros(3))
     with pytest.raises(DataError):
         OfflineDataset.load(tmp_path / "other.npz")
+    np.savez(tmp_path / "v1.npz", meta=np.array(json.dumps({"format_version": 1})))
+    with pytest.raises(DataError, match="format 1"):
+        OfflineDataset.load(tmp_path / "v1.npz")
 
 
-def test_cli_collect_writes_a_dataset(tmp_path):
+def test_cli_collect_writes_a_dataset_and_its_card(tmp_path):
     out = tmp_path / "data.npz"
-    result = CliRunner().invoke(app, ["collect", "--policy", "dtv", "--episodes", "1", "--seed", "1", "--output", str(out)])
+    args = ["collect", "--policy", "dtv", "--episodes", "1", "--seed", "1", "--output", str(out), "--eval-episodes", "1"]
+    result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     data = OfflineDataset.load(out)
-    assert data.meta["policy"] == "dtv" and data.done.sum() == 1
+    assert data.meta["policy"] == "dtv" and data.truncations.sum() == 1
+    assert read_card(out)["behaviour_score"]["mean"] > 0
+
+
+def test_noisy_collection_logs_exploratory_actions_around_the_policy(tiny_city):
+    plain = collect(tiny_city, make_policy("prop", tiny_city), episodes=1, seed=0)
+    noisy = collect(tiny_city, make_policy("prop", tiny_city), episodes=1, seed=0, noise=0.05)
+    again = collect(tiny_city, make_policy("prop", tiny_city), episodes=1, seed=0, noise=0.05)
+    assert noisy.meta["policy"] == "prop+noise0.05" and noisy.meta["noise"] == 0.05
+    assert np.array_equal(noisy.actions, again.actions)  # seeded
+    assert not np.allclose(noisy.actions[0], plain.actions[0])
+    assert np.array_equal(noisy.observations[0], plain.observations[0])  # same demand, same first state
+    assert np.abs(noisy.actions[0] - plain.actions[0]).sum() < 1.0  # around the policy's share, not anywhere

@@ -28,7 +28,6 @@ from pydantic import Field, model_validator
 
 from marl_amod.algos import common as C
 from marl_amod.algos.rollout import Obs, train_seed
-from marl_amod.checkpoints import load_actor
 from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import GNNValueCritic, LocalActor, LocalValueCritic, build_actor, dirichlet, gamma, gamma_log_prob
 from marl_amod.models.gnn import Graph
@@ -52,10 +51,6 @@ class Args(C.RunArgs):
     """weight of the policy entropy bonus"""
     run_dir: str = "runs/a2c"
     """TensorBoard + CSV logs and the resumable training state"""
-    init_policy: str | None = None
-    """warm start: the actor starts from this policy file (fine-tuning, e.g. a macro-trained policy
-    in SUMO); the critic and optimisers start fresh, and the start is validated first, so the
-    kept actor is never worse on the validation seeds than the one fine-tuning began from"""
 
     @model_validator(mode="after")
     def _whole_batches(self) -> Args:
@@ -127,13 +122,13 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         actor = build_actor(args.actor, city, n_features, args.hidden, args.conv)
     critic_in = C.critic_features(n_features, args)
     critic = LocalValueCritic(critic_in, args.hidden) if local_critic else GNNValueCritic(critic_in, args.hidden, args.conv)
+    C.warm_start(actor, args, city)  # offline -> online: start from a trained policy
     opt_a = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
     opt_c = torch.optim.Adam(critic.parameters(), lr=args.lr_critic)
 
     start_ep, prior_wall, best = 0, 0.0, C.BestActor.of(actor)
-    if args.init_policy and not resume:
-        actor.load_state_dict(load_actor(args.init_policy, city)[0].state_dict())
-        best.validate(actor, city, args)
+    if args.init_actor and not resume:  # fine-tuning: the start is validated first, so the kept
+        best.validate(actor, city, args)  # actor is never worse on the validation seeds than it
     if resume:
         st = C.load_state(resume, "a2c")
         actor.load_state_dict(st["actor"]), critic.load_state_dict(st["critic"])

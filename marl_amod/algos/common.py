@@ -62,6 +62,9 @@ class RunArgs(CommonArgs):
     critic_time: bool = False
     """critics also read the time context the local actors see (time of day, step fraction):
     episodes have a fixed horizon, so the value of a state depends on the steps to go"""
+    init_actor: str = ""
+    """a policy .pt whose weights start the actor (offline -> online, macro -> SUMO fine-tuning);
+    same actor, hidden, conv; the critic and optimisers start fresh (A2C validates the start first)"""
 
     def ignored_keys(self) -> dict[str, str]:
         if self.mode == "centralised":
@@ -224,6 +227,22 @@ def close_episode(log: Logger, rollout: Rollout | BatchRollout, ep: int, stats: 
     return bool(args.time_limit_s) and wall_s > args.time_limit_s
 
 
+def warm_start(actor: torch.nn.Module, args: RunArgs, city: City) -> None:
+    """Load ``args.init_actor``'s weights into ``actor`` (a fresh run only; resume restores its own)."""
+    if not args.init_actor:
+        return
+    from marl_amod.checkpoints import load_actor
+
+    source, card = load_actor(args.init_actor, city)
+    theirs, ours = source.state_dict(), actor.state_dict()
+    if set(theirs) != set(ours) or any(theirs[k].shape != ours[k].shape for k in ours):
+        raise DataError(
+            f"init_actor {args.init_actor} is a {card['actor']}/{card['conv']} actor with hidden {card['hidden']}; "
+            "this run's actor differs (set actor, conv and hidden to match)"
+        )
+    actor.load_state_dict(theirs)
+
+
 # --------------------------------------------------------------------------------------------
 # Training state (resume) and interrupts
 # --------------------------------------------------------------------------------------------
@@ -291,8 +310,10 @@ def interruptible(save: Callable[[], tuple[Path, int]]) -> Iterator[None]:
 # --------------------------------------------------------------------------------------------
 def finish_run(
     args: RunArgs, algorithm: str, actor: torch.nn.Module, city: City, wall_s: float, episodes_done: int, config_path: str | None = None,
+    extra: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Final evaluation on the report seeds, then the policy file and its card (written once)."""
+    """Final evaluation on the report seeds, then the policy file and its card (written once);
+    ``extra`` adds algorithm-specific card fields (an offline run's dataset)."""
     result = evaluate_actor(actor, city, args.final_eval_episodes, args.final_eval_seed, args.lookahead)
     profit = result["metrics"]["profit"]
     card = make_card(
@@ -303,7 +324,7 @@ def finish_run(
         episodes_trained=episodes_done, eval_episodes=args.final_eval_episodes, eval_seed=args.final_eval_seed,
         profit_mean=profit["mean"], profit_std=profit["std"], served_demand_mean=result["metrics"]["served_demand"]["mean"],
         training_wall_s=round(wall_s, 1), torch_threads=torch.get_num_threads(),
-        config=config_path, args=args.model_dump(mode="json"),
+        config=config_path, args=args.model_dump(mode="json"), **(extra or {}),
     ).to_dict()
     summary: dict[str, Any] = {"card": card, "result": result}
     if args.policy_out:

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from marl_amod.algos import a2c, meta, sac
+from marl_amod.algos import a2c, bc, cql, iql, meta, sac
 from marl_amod.algos.common import Progress, RunArgs
 from marl_amod.config import load_config, make_args
 from marl_amod.errors import ConfigError
@@ -38,6 +38,9 @@ class Algorithm:
 ALGOS: dict[str, Algorithm] = {
     "a2c": Algorithm(a2c.Args, a2c.train, "advantage actor-critic, Dirichlet policy (on-policy)"),
     "sac": Algorithm(sac.Args, sac.train, "soft actor-critic, Dirichlet policy, twin GNN critics (off-policy)"),
+    "bc": Algorithm(bc.Args, bc.train, "behaviour cloning from an offline dataset, Dirichlet likelihood"),
+    "iql": Algorithm(iql.Args, iql.train, "implicit Q-learning from an offline dataset (expectile V, advantage-weighted actor)"),
+    "cql": Algorithm(cql.Args, cql.train, "conservative Q-learning from an offline dataset (SAC with a CQL penalty)"),
     "meta": Algorithm(meta.Args, meta.train, "meta-RL through recurrence (RL2): a recurrent GNN over trials on ten cities"),
 }
 

@@ -147,6 +147,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     edge_index = C.make_graph(city, args)
     n_features = feature_count(args.lookahead)
     actor = LocalActor(n_features, args.hidden) if local else build_actor(args.actor, city, n_features, args.hidden, args.conv)
+    C.warm_start(actor, args, city)  # offline -> online: start from a trained policy
     critic = TwinQ(C.critic_features(n_features, args), args.hidden, "sage" if local else args.conv)
     critic_targ = copy.deepcopy(critic).requires_grad_(False)
     opt_a = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)

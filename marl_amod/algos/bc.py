@@ -1,0 +1,60 @@
+"""Behaviour cloning: maximise the likelihood of the logged joint action under the Dirichlet policy.
+
+Read top to bottom: Args, then ``train``. The loss is -log Dir(y; alpha(s)) over minibatches of
+the dataset (:mod:`marl_amod.algos.offline` has the data, both modes and the loop). A cloned
+policy is evaluated deterministically (the Dirichlet mean alpha / sum(alpha)), so a confident
+fit (large alpha) reproduces the behaviour policy's mean action.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from pydantic import Field
+
+from marl_amod.algos import common as C
+from marl_amod.algos import offline as O
+from marl_amod.env.features import n_features as feature_count
+from marl_amod.models import LocalActor, build_actor
+from marl_amod.scenario import load_city
+
+
+class Args(O.OfflineArgs):
+    hidden: int = Field(32, ge=1)
+    """hidden units of the actor MLP (the paper's A2C actor size)"""
+    run_dir: str = "runs/bc"
+    """TensorBoard + CSV logs and the resumable training state"""
+
+    def ignored_keys(self) -> dict[str, str]:
+        return {**super().ignored_keys(), "central_critic": "BC has no critic", "gamma": "BC has no return"}
+
+
+def make_actor(args: O.OfflineArgs, city) -> torch.nn.Module:
+    """The GNN actor: the paper's on the global graph, or the local (SAGE) one for decentralised runs."""
+    f = feature_count(args.lookahead)
+    return LocalActor(f, args.hidden) if args.mode == "decentralised" else build_actor(args.actor, city, f, args.hidden, args.conv)
+
+
+def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
+    """Clone the dataset's behaviour policy; keep the best validation actor; write its card."""
+    torch.set_num_threads(args.threads)
+    C.seed_everything(args.seed)
+    gen = torch.Generator().manual_seed(args.seed)
+    city = load_city(args.scenario)
+    data = O.Data(args, city)
+    local = args.mode == "decentralised"
+    edge_index = torch.tensor(city.edge_index, dtype=torch.long)
+    actor = make_actor(args, city)
+    opt = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
+
+    def update(b: O.Batch, step: int) -> dict[str, float]:
+        loss = -O.log_prob(actor, b, edge_index, local).mean()  # negative log-likelihood of the logged action
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(actor.parameters(), args.max_grad_norm)
+        opt.step()
+        return {"loss/bc": loss.item()}
+
+    return O.fit(args, "bc", city, data, actor, update, {"actor": actor, "opt": opt}, gen,
+                 resume=resume, progress=progress, config_path=config_path)  # fmt: skip

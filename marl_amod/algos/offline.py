@@ -1,0 +1,168 @@
+"""What the offline algorithms (BC, IQL, CQL) share: the dataset as tensors, minibatches, the
+policy's log-likelihood of a logged action in both modes, and the update loop.
+
+The algorithm files (:mod:`.bc`, :mod:`.iql`, :mod:`.cql`) hold their networks and losses and
+read top to bottom; :func:`fit` runs any of them: ``updates`` gradient steps on minibatches of the
+dataset, a validation every ``eval_every`` updates (deterministic actor on the validation seeds,
+never the report seeds; logged, and the kept actor when ``keep: best``; by default the last actor
+is shipped, so nothing but the dataset shapes it), the resumable state, Ctrl-C, and the policy
+card (with the dataset's card: behaviour score and normalised scores).
+
+Modes. Centralised: alpha = actor(x) on the global graph, pi(y|s) = Dir(y; alpha). Decentralised:
+every agent computes alpha_i from its own local observation (the dataset's ``observations``, cut
+by :func:`~marl_amod.env.observations.split_local`) and draws g_i ~ Gamma(alpha_i, 1); the env
+normalises, so the logged joint action y = g / sum(g) has density Dir(y; alpha) (the Gamma
+weights' scale is not observed, the normalised action is). Critics always read the global graph
+(centralised training, decentralised execution).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal, Protocol
+
+import torch
+from pydantic import Field
+
+from marl_amod.algos import common as C
+from marl_amod.datasets import OfflineDataset, normalised_score, read_card
+from marl_amod.env.observations import split_local
+from marl_amod.errors import ConfigError, DataError
+from marl_amod.models import dirichlet
+from marl_amod.scenario import City
+
+
+class OfflineArgs(C.RunArgs):
+    """What every offline run has; ``episodes`` is replaced by ``updates`` (no env episodes)."""
+
+    dataset: str
+    """the offline dataset (.npz, format 2; its card beside it) — `marl-amod datasets` makes them"""
+    updates: int = Field(5000, ge=1)
+    """gradient steps"""
+    batch_size: int = Field(256, ge=1)
+    """transitions per gradient step"""
+    lr_actor: float = Field(1e-3, gt=0)
+    """Adam learning rate of the actor"""
+    eval_every: int = Field(500, ge=1)
+    """updates between validation evaluations (validation seeds; the best actor is kept)"""
+    reward_scale: float = Field(0.001, gt=0)
+    """multiplies the logged money rewards (a step earns a few thousand in Brooklyn)"""
+    keep: Literal["last", "best"] = "last"
+    """the actor shipped: the last one (no env interaction at all: offline RL proper) or the best
+    on the validation seeds (uses ``eval_episodes`` env episodes per validation, as online runs do)"""
+
+    def ignored_keys(self) -> dict[str, str]:
+        return {**super().ignored_keys(), "episodes": "offline runs take no env episodes; set updates"}
+
+
+class Batch(dict):
+    """A minibatch: x, next_x (B, N, F); action (B, N); reward, done (B,); decentralised runs also
+    own, nbrs, mask and their next_ versions (B, N, F), (B, N, K, F), (B, N, K)."""
+
+
+class Data:
+    """The dataset as float tensors (the global view, plus the local one for decentralised runs)."""
+
+    def __init__(self, args: OfflineArgs, city: City) -> None:
+        path = Path(args.dataset)
+        data = OfflineDataset.load(path)
+        self.card = read_card(path) if path.with_suffix(".json").is_file() else {}
+        meta = data.meta
+        if meta["scenario"] != city.name or meta["n_agents"] != city.n_regions:
+            raise DataError(f"{path} was collected on {meta['scenario']} ({meta['n_agents']} regions), this run is on {city.name}")
+        if meta["lookahead"] != args.lookahead:
+            raise ConfigError(f"{path} has lookahead {meta['lookahead']}; set lookahead: {meta['lookahead']} in the config")
+        view = data.global_view()
+        t = lambda a: torch.tensor(a, dtype=torch.float32)  # noqa: E731 - a copy: npz arrays are read-only
+        self.tensors: dict[str, torch.Tensor] = {
+            "x": t(view["x"]), "next_x": t(view["next_x"]), "action": t(view["action"]),
+            "reward": t(view["reward"]) * args.reward_scale, "done": t(view["done"]),
+        }  # fmt: skip
+        if args.mode == "decentralised":
+            f = data.n_features
+            for prefix, obs in (("", data.observations), ("next_", data.next_observations)):
+                own, _ctx, nbrs, mask = split_local(t(obs), f)
+                self.tensors.update({f"{prefix}own": own, f"{prefix}nbrs": nbrs, f"{prefix}mask": mask})
+        self.size = len(data)
+        self.meta = meta
+
+    def sample(self, batch: int, gen: torch.Generator) -> Batch:
+        idx = torch.randint(0, self.size, (batch,), generator=gen)
+        return Batch({k: v[idx] for k, v in self.tensors.items()})
+
+
+def concentrations(actor: torch.nn.Module, b: Batch, edge_index: torch.Tensor, local: bool, prefix: str = "") -> torch.Tensor:
+    """alpha (B, N): from the global graph (centralised) or from each agent's own observation."""
+    if local:
+        return actor.forward_local(b[f"{prefix}own"], b[f"{prefix}nbrs"], b[f"{prefix}mask"])
+    return actor(b[f"{prefix}x"], edge_index)
+
+
+def log_prob(actor: torch.nn.Module, b: Batch, edge_index: torch.Tensor, local: bool) -> torch.Tensor:
+    """log pi(logged action | s) (B,): the Dirichlet density of the normalised joint action."""
+    y = b["action"].clamp_min(1e-6)
+    return dirichlet(concentrations(actor, b, edge_index, local)).log_prob(y / y.sum(-1, keepdim=True))
+
+
+class Update(Protocol):
+    def __call__(self, b: Batch, step: int) -> dict[str, float]:
+        """One gradient step on minibatch ``b``; returns the losses to log."""
+
+
+def fit(
+    args: OfflineArgs, algorithm: str, city: City, data: Data, actor: torch.nn.Module, update: Update,
+    parts: dict[str, Any], gen: torch.Generator, *, resume: str | None, progress: C.Progress | None, config_path: str | None,
+) -> dict[str, Any]:
+    """Run ``update`` for ``args.updates`` steps with validation, resume and the card; ``parts``
+    are the networks and optimisers whose state a resumed run restores (by name)."""
+    if not resume:
+        C.warm_start(actor, args, city)
+    step, prior_wall, best = 0, 0.0, C.BestActor.of(actor)
+    if resume:
+        st = C.load_state(resume, algorithm)
+        for name, part in parts.items():
+            part.load_state_dict(st[name])
+        step, prior_wall, best = st["episode"], st["wall_s"], C.BestActor(st["best_val"], st["best_actor"])
+        gen.set_state(st["gen"])
+    log = C.Logger(args.run_dir, resume_from=step if resume else None)
+    timer = C.Timer(prior_wall)
+
+    def save() -> tuple[Path, int]:
+        path = C.state_path(args)
+        C.save_state(path, algorithm=algorithm, **{k: p.state_dict() for k, p in parts.items()}, gen=gen.get_state(),
+                     episode=step, best_val=best.value, best_actor=best.state, wall_s=timer())  # fmt: skip
+        return path, step
+
+    with C.interruptible(save):
+        while step < args.updates:
+            stats = update(data.sample(args.batch_size, gen), step)
+            step += 1
+            if step % args.eval_every == 0 or step >= args.updates:
+                stats["eval/profit"] = best.validate(actor, city, args)
+                stats["time/wall_s"] = timer()
+                log.log(step, **stats)
+                save()
+                if progress is not None:
+                    progress(step, args.updates, stats)
+                if args.time_limit_s and timer() > args.time_limit_s:
+                    break
+    log.close()
+    if args.keep == "best":
+        actor.load_state_dict(best.state)
+    extra = {**_dataset_fields(data, step), "kept": args.keep, "best_validation": best.value}
+    return C.finish_run(args, algorithm, actor, city, timer(), 0, config_path, extra=extra)
+
+
+def _dataset_fields(data: Data, step: int) -> dict[str, Any]:
+    """What the policy card says about the data it learned from (and the normalised-score references)."""
+    fields: dict[str, Any] = {"updates": step, "dataset": {k: data.meta[k] for k in ("policy", "seed", "episodes", "transitions")}}
+    refs = data.card.get("reference_scores")
+    if refs:
+        fields["dataset"].update(behaviour_score=data.card["behaviour_score"], reference_scores=refs)
+    return fields
+
+
+def card_normalised(card: dict[str, Any]) -> float | None:
+    """A policy card's normalised score (0 = ED, 100 = MPC-Oracle) from its dataset's references."""
+    refs = card.get("dataset", {}).get("reference_scores")
+    return None if not refs or card.get("profit_mean") is None else normalised_score(card["profit_mean"], refs)

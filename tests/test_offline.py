@@ -1,0 +1,133 @@
+"""BC, IQL and CQL end to end on a 3x3 grid: from a collected dataset to a policy that evaluates like any other."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from typer.testing import CliRunner
+
+from marl_amod.algos import offline as O
+from marl_amod.algos.registry import ALGOS, args_for
+from marl_amod.cli import app
+from marl_amod.datasets import collect, write_card
+from marl_amod.errors import ConfigError, DataError
+from marl_amod.evaluation import evaluate
+from marl_amod.models import build_actor
+from marl_amod.policies import make_policy
+from marl_amod.scenario import load_city
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory) -> tuple[str, str]:
+    """(scenario yaml, dataset path): the 3x3 grid and 4 episodes of PROP with its card."""
+    root = tmp_path_factory.mktemp("offline")
+    scenario = root / "tiny.yaml"
+    scenario.write_text(yaml.safe_dump({"name": "tiny", "source": "synthetic", "rows": 3, "cols": 3, "horizon": 6, "vehicles_per_region": 5}))
+    city = load_city(str(scenario))
+    data = collect(city, make_policy("prop", city), episodes=4, seed=0)
+    path = data.save(root / "tiny_prop.npz")
+    write_card(path, data, city, make_policy("prop", city), eval_episodes=1, eval_seed=0)
+    return str(scenario), str(path)
+
+
+def _args(tmp_path: Path, tiny, **kw) -> dict:
+    scenario, dataset = tiny
+    return {"scenario": scenario, "dataset": dataset, "updates": 6, "batch_size": 8, "eval_every": 3, "eval_episodes": 1,
+            "final_eval_episodes": 2, "hidden": 8, "run_dir": str(tmp_path / "run"), "policy_out": str(tmp_path / "p.pt"), **kw}
+
+
+@pytest.mark.parametrize("algo", ["bc", "iql", "cql"])
+@pytest.mark.parametrize("mode", ["centralised", "decentralised"])
+def test_offline_algorithm_trains_from_a_dataset_and_ships_a_policy(tmp_path, tiny, algo, mode):
+    extra = {"critic_hidden": 8} if algo != "bc" else {}
+    if algo == "cql":
+        extra.update(bc_steps=2, n_actions=2)
+    summary = ALGOS[algo].train(args_for(algo, _args(tmp_path, tiny, mode=mode, **extra)))
+    card = json.loads((tmp_path / "p.json").read_text())
+    assert card["algorithm"] == algo and card["mode"] == mode and card["updates"] == 6 and card["kept"] == "last"
+    assert card["dataset"]["policy"] == "prop" and "reference_scores" in card["dataset"]
+    assert np.isfinite(O.card_normalised(card))
+    log = (tmp_path / "run" / "log.csv").read_text()
+    assert "eval/profit" in log and "loss/" in log
+    res = evaluate(str(tmp_path / "p.pt"), load_city(tiny[0]), episodes=2, seed=0)
+    assert res["metrics"]["profit"]["mean"] == pytest.approx(summary["card"]["profit_mean"])
+
+
+def test_bc_learns_the_logged_actions(tmp_path, tiny):
+    """After training, the cloned actor's mean action is closer to the logged one than at the start."""
+    from marl_amod.algos import bc
+
+    args = args_for("bc", _args(tmp_path, tiny, updates=150, eval_every=150, lr_actor=5e-3))
+    city = load_city(tiny[0])
+    data = O.Data(args, city)
+    ei = torch.as_tensor(city.edge_index)
+    b = O.Batch(data.tensors)
+    torch.manual_seed(0)
+    gap = lambda actor: (torch.nn.functional.normalize(actor(b["x"], ei), p=1, dim=-1) - b["action"]).abs().sum(-1).mean().item()  # noqa: E731
+    before = gap(bc.make_actor(args, city))
+    bc.train(args)
+    from marl_amod.checkpoints import load_actor
+
+    actor, _ = load_actor(tmp_path / "p.pt", city)
+    assert gap(actor) < 0.5 * before
+
+
+def test_iql_resume_continues_from_the_saved_update(tmp_path, tiny):
+    ALGOS["iql"].train(args_for("iql", _args(tmp_path, tiny, critic_hidden=8)))
+    summary = ALGOS["iql"].train(args_for("iql", _args(tmp_path, tiny, critic_hidden=8, updates=9)), resume=str(tmp_path / "run" / "state.pt"))
+    assert summary["card"]["updates"] == 9
+    steps = [int(line.split(",")[0]) for line in (tmp_path / "run" / "log.csv").read_text().splitlines()[1:]]
+    assert steps == sorted(steps) and min(steps) == 3 and max(steps) == 9
+
+
+def test_dataset_of_another_city_or_lookahead_is_refused(tmp_path, tiny):
+    other = tmp_path / "other.yaml"
+    other.write_text(yaml.safe_dump({"name": "other", "source": "synthetic", "rows": 2, "cols": 2, "horizon": 6}))
+    with pytest.raises(DataError, match="collected on tiny"):
+        ALGOS["bc"].train(args_for("bc", {**_args(tmp_path, tiny), "scenario": str(other)}))
+    with pytest.raises(ConfigError, match="lookahead"):
+        ALGOS["bc"].train(args_for("bc", _args(tmp_path, tiny, lookahead=3)))
+    with pytest.raises(ConfigError, match="episodes"):
+        args_for("bc", _args(tmp_path, tiny, episodes=5))
+
+
+def test_cli_trains_an_offline_config(tmp_path, tiny):
+    config = tmp_path / "bc.yaml"
+    config.write_text(yaml.safe_dump({"algo": "bc", "args": _args(tmp_path, tiny)}))
+    result = CliRunner().invoke(app, ["train", "--config", str(config)])
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "p.pt").is_file()
+
+
+def test_shipped_offline_configs_validate():
+    from marl_amod.algos.registry import load_train_config
+
+    for path in sorted(Path("configs").glob("[bic][cq]*/nyc_brooklyn_*.yaml")):
+        algo, args = load_train_config(path)
+        assert algo in ("bc", "iql", "cql") and args.dataset.startswith("runs/datasets/nyc_brooklyn_"), path
+
+
+def test_online_runs_warm_start_from_an_offline_policy(tmp_path, tiny):
+    """Offline -> online fine-tuning: init_actor loads the offline actor; a different architecture is refused."""
+    from marl_amod.algos import a2c
+    from marl_amod.algos import common as C
+    from marl_amod.checkpoints import load_actor
+
+    ALGOS["bc"].train(args_for("bc", _args(tmp_path, tiny)))
+    city = load_city(tiny[0])
+    offline, _ = load_actor(tmp_path / "p.pt", city)
+    args = a2c.Args(scenario=tiny[0], hidden=8, init_actor=str(tmp_path / "p.pt"))
+    actor = build_actor("gnn", city, 13, 8, "gcn")
+    C.warm_start(actor, args, city)
+    for key, value in offline.state_dict().items():
+        assert torch.equal(actor.state_dict()[key], value)
+    with pytest.raises(DataError, match="differs"):
+        C.warm_start(build_actor("gnn", city, 13, 16, "gcn"), args, city)
+    summary = a2c.train(a2c.Args(scenario=tiny[0], hidden=8, episodes=2, episodes_per_update=2, eval_every=2, eval_episodes=1,
+                                 final_eval_episodes=1, run_dir=str(tmp_path / "a2c"), init_actor=str(tmp_path / "p.pt")))
+    assert summary["card"]["args"]["init_actor"] == str(tmp_path / "p.pt")
