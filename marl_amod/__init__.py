@@ -1,10 +1,11 @@
 """marl_amod: robo-taxi fleet coordination as a multi-agent RL benchmark.
 
 ``parallel_env(...)`` makes the PettingZoo ParallelEnv (every region an agent), ``env(...)`` its
-AEC version; see :mod:`marl_amod.env.parallel` for the documentation. ``evaluate(policy, ...)``
-scores any policy (a name, a checkpoint, a callable on observations) on the benchmark's seeds;
-``load_policy(path)`` returns a trained policy as such a callable. Importing the package loads
-numpy-level code only (no torch); the env's modules load on first use.
+AEC version; see :mod:`marl_amod.env.parallel` for the documentation. ``vector_env(...)`` runs B
+episodes of one city in lockstep with (B, N, ...) arrays (:mod:`marl_amod.env.vector`).
+``evaluate(policy, ...)`` scores any policy (a name, a checkpoint, a callable on observations) on
+the benchmark's seeds; ``load_policy(path)`` returns a trained policy as such a callable.
+Importing the package loads numpy-level code only (no torch); the env's modules load on first use.
 """
 
 from __future__ import annotations
@@ -15,13 +16,14 @@ from typing import TYPE_CHECKING, Any
 from marl_amod import env
 
 __version__ = "0.1.0"
-__all__ = ["amod_v0", "env", "evaluate", "load_policy", "parallel_env"]
+__all__ = ["amod_v0", "env", "evaluate", "load_policy", "parallel_env", "vector_env"]
 
 if TYPE_CHECKING:
     from pathlib import Path
 
     from marl_amod.checkpoints import ActorPolicy
     from marl_amod.env.parallel import AmodParallelEnv
+    from marl_amod.env.vector import AmodVectorEnv
     from marl_amod.policies import PolicyLike
     from marl_amod.scenario.types import City
 
@@ -36,6 +38,17 @@ def parallel_env(scenario: str | City = "synthetic", **kwargs: Any) -> AmodParal
     from marl_amod.env.parallel import parallel_env as make
 
     return make(scenario, **kwargs)
+
+
+def vector_env(scenario: str | City = "synthetic", num_envs: int = 16, **kwargs: Any) -> AmodVectorEnv:
+    """B episodes of one city in lockstep, arrays (B, N, ...) in and out (:mod:`marl_amod.env.vector`).
+
+    Takes the ParallelEnv's keywords (reward_mode, action_mode, lookahead, max_wait, objective and
+    scenario overrides); ``reset(seed=s)`` gives episode b the ParallelEnv's episode of seed s + b.
+    """
+    from marl_amod.env.vector import AmodVectorEnv
+
+    return AmodVectorEnv(scenario, num_envs, **kwargs)
 
 
 def evaluate(

@@ -58,20 +58,34 @@ def region_service_rate(totals: EpisodeTotals) -> np.ndarray:
     return np.where(totals.demand > 0, totals.served / np.maximum(totals.demand, 1e-12), 0.0)
 
 
+def _masked_gini(values: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Gini of ``values[..., keep]`` per leading index (each episode keeps its own regions)."""
+    n = values.shape[-1]
+    flat = [gini(v[k]) for v, k in zip(values.reshape(-1, n), keep.reshape(-1, n), strict=True)]
+    return np.asarray(flat, dtype=float).reshape(values.shape[:-1])
+
+
 def episode_metrics(totals: EpisodeTotals, fleet: int, horizon: int) -> dict[str, float]:
     """Scalar metrics of one finished episode."""
-    served = float(totals.served.sum())
+    return {key: float(value) for key, value in metric_arrays(totals, fleet, horizon).items()}
+
+
+def metric_arrays(totals: EpisodeTotals, fleet: int, horizon: int) -> dict[str, np.ndarray]:
+    """The metrics of :func:`episode_metrics` as arrays over the leading axes of (..., N) totals
+    (a batch of episodes, :mod:`marl_amod.sim.batch`); summed over regions."""
+    served = totals.served.sum(axis=-1)
+    wait = totals.wait_minutes.sum(axis=-1)
     return {
-        "profit": float(totals.profit.sum()),
-        "revenue": float(totals.revenue.sum()),
+        "profit": totals.profit.sum(axis=-1),
+        "revenue": totals.revenue.sum(axis=-1),
         "served_demand": served,
-        "demand": float(totals.demand.sum()),
-        "rebalancing_cost": float(totals.rebalancing_cost.sum()),
-        "wait_time": float(totals.wait_minutes.sum() / served) if served else 0.0,
-        "utilization": float(totals.busy_vehicle_steps.sum() / max(fleet * horizon, 1)),
+        "demand": totals.demand.sum(axis=-1),
+        "rebalancing_cost": totals.rebalancing_cost.sum(axis=-1),
+        "wait_time": np.where(served > 0, wait / np.maximum(served, 1e-300), 0.0),
+        "utilization": totals.busy_vehicle_steps.sum(axis=-1) / max(fleet * horizon, 1),
         # regions where the quantity is undefined (nobody served / nobody asked) are left out
-        "wait_time_gini": float(gini(region_wait_time(totals)[totals.served > 0])),
-        "service_rate_gini": float(gini(region_service_rate(totals)[totals.demand > 0])),
+        "wait_time_gini": _masked_gini(region_wait_time(totals), totals.served > 0),
+        "service_rate_gini": _masked_gini(region_service_rate(totals), totals.demand > 0),
     }
 
 

@@ -17,9 +17,13 @@ import numpy as np
 from marl_amod.errors import ConfigError, DataError, MarlAmodError
 
 
-def where(index: tuple[int, ...]) -> str:
-    """A region-indexed position in words: (N,) 'region i', (N, N) 'regions i->j', (S, N, N) 'step t, regions i->j'."""
+def where(index: tuple[int, ...], lead: int = 0) -> str:
+    """A region-indexed position in words: (N,) 'region i', (N, N) 'regions i->j', (S, N, N) 'step t, regions i->j';
+    the first ``lead`` axes are a batch of episodes ('episode b, region i')."""
     idx = tuple(int(k) for k in index)
+    if lead:
+        b = idx[0] if lead == 1 else idx[:lead]
+        return f"episode {b}, {where(idx[lead:])}"
     if len(idx) == 1:
         return f"region {idx[0]}"
     if len(idx) == 2:
@@ -37,11 +41,13 @@ def check_array(
     minimum: float | None = None,
     integer: bool = False,
     error: type[MarlAmodError] = DataError,
+    lead: int = 0,
 ) -> np.ndarray:
     """``value`` as a float or int64 array, or ``error`` naming ``what`` and the first bad entry.
 
     Rejects strings, booleans, complex numbers and objects; a shape other than ``shape``; NaN and
-    infinity; values below ``minimum``; and, with ``integer``, non-integral values.
+    infinity; values below ``minimum``; and, with ``integer``, non-integral values. ``lead``
+    leading axes are a batch of episodes, named as such in the error.
     """
     arr = np.asarray(value)
     if arr.dtype.kind not in "iuf":
@@ -52,19 +58,19 @@ def check_array(
         bad = ~np.isfinite(arr)
         if bad.any():
             k = np.unravel_index(int(np.argmax(bad)), arr.shape) if arr.ndim else ()
-            raise error(f"{what} is not finite ({arr[k]}) at {where(k)}" if arr.ndim else f"{what} is not finite ({arr})")
+            raise error(f"{what} is not finite ({arr[k]}) at {where(k, lead)}" if arr.ndim else f"{what} is not finite ({arr})")
     if minimum is not None:
         low = arr < minimum
         if low.any():
             k = np.unravel_index(int(np.argmax(low)), arr.shape) if arr.ndim else ()
-            at = f" at {where(k)}" if arr.ndim else ""
+            at = f" at {where(k, lead)}" if arr.ndim else ""
             raise error(f"{what} must be >= {minimum:g}, got {arr[k]}{at}")
     if integer:
         if arr.dtype.kind == "f":
             frac = arr != np.round(arr)
             if frac.any():
                 k = np.unravel_index(int(np.argmax(frac)), arr.shape) if arr.ndim else ()
-                at = f" at {where(k)}" if arr.ndim else ""
+                at = f" at {where(k, lead)}" if arr.ndim else ""
                 raise error(f"{what} must be whole numbers, got {arr[k]}{at}")
         return arr.astype(np.int64)
     return arr

@@ -13,14 +13,13 @@ import numpy as np
 
 from marl_amod.coordinator.dispatch import check_dispatch_inputs, greedy_dispatch, margin_order
 from marl_amod.coordinator.rebalance import (
+    Rebalancer,
     check_rebalance_inputs,
     desired_targets,
-    min_cost_rebalance,
     satisfies_triangle_inequality,
 )
 from marl_amod.errors import ActionError, ConfigError, DataError
 from marl_amod.scenario.types import City
-from marl_amod.validation import check_array
 
 Objective = Literal["profit", "revenue"]
 Backend = Literal["fast", "cvxpy"]
@@ -37,8 +36,9 @@ class Coordinator:
         self.city = city
         self.objective = objective
         self.solver = solver
-        self._orders: dict[int, np.ndarray] = {}
+        self._orders: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # step -> (margin, its order)
         self._metric: bool | None = None
+        self._rebalancer: Rebalancer | None = None
 
     def margin(self, t: int) -> np.ndarray:
         """(N, N) value of serving one request i->j in step t under the dispatch objective."""
@@ -52,30 +52,39 @@ class Coordinator:
         return self._metric
 
     def dispatch(self, idle: np.ndarray, requests: np.ndarray, t: int) -> np.ndarray:
-        """Passenger flows x (N, N) for step t."""
+        """Passenger flows x (N, N) for step t; idle (B, N) and requests (B, N, N) give (B, N, N)."""
         if isinstance(t, bool) or not isinstance(t, (int, np.integer)) or not 0 <= t < self.city.n_steps:
             raise DataError(f"dispatch step t must be an integer in [0, {self.city.n_steps}), got {t!r}")
-        margin = self.margin(t)
         if self.solver == "cvxpy":
             from marl_amod.coordinator.reference import lp_dispatch
 
-            return lp_dispatch(*check_dispatch_inputs(idle, requests, margin))
-        if t not in self._orders:
-            self._orders[t] = margin_order(margin)
-        return greedy_dispatch(idle, requests, margin, self._orders[t])
+            return lp_dispatch(*check_dispatch_inputs(idle, requests, self.margin(t)))
+        if t not in self._orders:  # margins are tables of the city: sort them once per step
+            margin = self.margin(t)
+            self._orders[t] = (margin, margin_order(margin))
+        margin, order = self._orders[t]
+        return greedy_dispatch(idle, requests, margin, order)  # checks the whole batch once
 
     def rebalance(self, idle: np.ndarray, target: np.ndarray) -> np.ndarray:
-        """Rebalancing flows y (N, N) of least cost meeting ``target`` (a -1 entry: no target)."""
+        """Rebalancing flows y (N, N) of least cost meeting ``target`` (a -1 entry: no target);
+        idle and target (B, N) give (B, N, N), each episode solved alone."""
         if self.solver == "cvxpy":
             from marl_amod.coordinator.reference import lp_rebalance
 
             return lp_rebalance(*check_rebalance_inputs(idle, target, self.city.n_regions), self.city.reb_cost)
-        if np.shape(idle) != (self.city.n_regions,):
-            raise DataError(f"idle vehicles must have shape ({self.city.n_regions},), got {np.shape(idle)}")
-        return min_cost_rebalance(idle, target, self.city.reb_time, metric=self.metric)
+        idle, target = check_rebalance_inputs(idle, target, self.city.n_regions)  # the whole batch, once
+        if self._rebalancer is None:
+            self._rebalancer = Rebalancer(self.city.reb_time, metric=self.metric)
+        if idle.ndim == 2:  # a batch of episodes (B, N): each solved alone
+            return self._rebalancer.many(idle, target)
+        return self._rebalancer(idle, target)
 
     def targets(self, weights: np.ndarray, idle: np.ndarray) -> np.ndarray:
         """Global target u = floor(w / sum(w) * M) from per-region non-negative weights; a NaN,
-        infinite or negative weight, or one per region missing, is an ActionError naming the region."""
-        w = check_array(weights, "rebalancing weights", shape=(self.city.n_regions,), minimum=0, error=ActionError)
-        return desired_targets(w.astype(float), int(np.sum(idle)))
+        infinite or negative weight, or one per region missing, is an ActionError naming the region.
+        Weights (B, N) and idle (B, N) give (B, N) targets."""
+        if np.ndim(weights) < 1 or np.shape(weights)[-1] != self.city.n_regions:
+            raise ActionError(
+                f"rebalancing weights must have shape ({self.city.n_regions},) (leading batch axes allowed), got {np.shape(weights)}"
+            )
+        return desired_targets(weights, np.asarray(idle).sum(axis=-1))

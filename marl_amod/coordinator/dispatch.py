@@ -24,29 +24,35 @@ def margin_order(margin: np.ndarray) -> np.ndarray:
 def greedy_dispatch(
     idle: np.ndarray, demand: np.ndarray, margin: np.ndarray, order: np.ndarray | None = None
 ) -> np.ndarray:
-    """Optimal integral passenger flows x (N, N) for idle (N,), demand (N, N) and margin (N, N).
+    """Optimal integral passenger flows x (..., N, N) for idle (..., N), demand (..., N, N) and margin (N, N).
 
     ``order`` is :func:`margin_order` of ``margin``; pass it when margins repeat across calls.
+    Leading axes are independent instances (a batch of episodes at the same step).
     """
     idle, demand, margin = check_dispatch_inputs(idle, demand, margin)
     if order is None:
         order = margin_order(margin)
-    servable = np.where(margin > 0, demand, 0)
-    d_sorted = np.take_along_axis(servable, order, axis=1)
-    before = np.cumsum(d_sorted, axis=1) - d_sorted
-    x_sorted = np.clip(idle[:, None] - before, 0, d_sorted)
-    x = np.empty_like(x_sorted)
-    np.put_along_axis(x, order, x_sorted, axis=1)
-    return x
+    n = margin.shape[-1]
+    flat = order + np.arange(0, n * n, n)[:, None]  # (N, N) positions of the sorted entries in a flat row-major (N, N)
+    lead = demand.shape[:-2]
+    servable = np.where(margin > 0, demand, 0).reshape(*lead, n * n)
+    d_sorted = servable[..., flat]  # (..., N, N), each origin's requests by decreasing margin
+    before = np.cumsum(d_sorted, axis=-1) - d_sorted
+    x_sorted = np.minimum(np.maximum(idle[..., None] - before, 0), d_sorted)
+    x = np.empty_like(servable)
+    x[..., flat] = x_sorted
+    return x.reshape(demand.shape)
 
 
 def check_dispatch_inputs(idle: np.ndarray, demand: np.ndarray, margin: np.ndarray) -> tuple[np.ndarray, ...]:
-    """idle (N,) and demand (N, N) as whole non-negative int64 counts, margin (N, N) finite;
-    otherwise a :class:`~marl_amod.errors.DataError` naming the argument and the region."""
-    idle = check_array(idle, "idle vehicles", minimum=0, integer=True)
-    if idle.ndim != 1:
+    """idle (..., N) and demand (..., N, N) as whole non-negative int64 counts, margin (N, N) finite;
+    otherwise a :class:`~marl_amod.errors.DataError` naming the argument and the region. Leading
+    axes are a batch of episodes, checked in one pass."""
+    lead = max(np.ndim(idle) - 1, 0)
+    idle = check_array(idle, "idle vehicles", minimum=0, integer=True, lead=lead)
+    if idle.ndim < 1:
         raise DataError(f"idle vehicles must be one count per region (N,), got shape {idle.shape}")
-    n = idle.shape[0]
-    demand = check_array(demand, "requests", shape=(n, n), minimum=0, integer=True)
+    n = idle.shape[-1]
+    demand = check_array(demand, "requests", shape=(*idle.shape, n), minimum=0, integer=True, lead=lead)
     margin = check_array(margin, "dispatch margin", shape=(n, n))
     return idle, demand, margin

@@ -34,32 +34,38 @@ def satisfies_triangle_inequality(cost: np.ndarray, chunk: int | None = None) ->
     return True
 
 
-def desired_targets(weights: np.ndarray, total_idle: int) -> np.ndarray:
+def desired_targets(weights: np.ndarray, total_idle: int | np.ndarray) -> np.ndarray:
     """The paper's target u_i = floor(w_i / sum(w) * M); all-zero weights mean 'stay' (-1s).
 
+    Leading axes of ``weights`` (..., N) are independent instances with ``total_idle`` (...,).
     Weights are a policy's output: a NaN, infinite or negative one raises
     :class:`~marl_amod.errors.ActionError` naming the region (cast to an integer it would
     silently mean 'stay' and give the no-rebalancing result).
     """
-    weights = check_array(weights, "rebalancing weights", minimum=0, error=ActionError)
-    if weights.ndim != 1:
+    weights = check_array(weights, "rebalancing weights", minimum=0, error=ActionError, lead=max(np.ndim(weights) - 1, 0))
+    if weights.ndim < 1:
         raise ActionError(f"rebalancing weights must be one number per region (N,), got shape {weights.shape}")
-    s = weights.sum()
-    if s <= 0:
-        return np.full(weights.shape, -1, dtype=np.int64)
-    share = weights / s
-    if not np.all(np.isfinite(share)):  # weights near the float maximum overflow their sum
-        share = (weights / weights.max()) / (weights / weights.max()).sum()
-    return np.floor(share * total_idle + 1e-9).astype(np.int64)
+    s = weights.sum(axis=-1, keepdims=True)
+    big = ~np.isfinite(s)
+    if big.any():  # weights near the float maximum overflow their sum: rescale those rows
+        weights = np.where(big, weights / np.where(big, weights.max(axis=-1, keepdims=True), 1.0), weights)
+        s = weights.sum(axis=-1, keepdims=True)
+    positive = s > 0
+    total = np.asarray(total_idle)[..., None]
+    u = np.floor(weights / np.where(positive, s, 1.0) * total + 1e-9).astype(np.int64)
+    return np.where(positive, u, -1)
 
 
 def check_rebalance_inputs(idle: np.ndarray, target: np.ndarray, n: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(idle, target) as int64 (N,) arrays, or an error naming the argument and the region:
-    idle counts must be whole and >= 0; a target whole and >= -1 (-1: no wish)."""
-    idle = check_array(idle, "idle vehicles", minimum=0, integer=True, shape=None if n is None else (n,))
-    if idle.ndim != 1:
-        raise DataError(f"idle vehicles must be one count per region (N,), got shape {idle.shape}")
-    target = check_array(target, "rebalancing target", shape=idle.shape, minimum=-1, integer=True, error=ActionError)
+    """(idle, target) as int64 (..., N) arrays, or an error naming the argument and the region:
+    idle counts must be whole and >= 0; a target whole and >= -1 (-1: no wish). Leading axes are
+    a batch of independent instances, checked in one pass."""
+    lead = max(np.ndim(idle) - 1, 0)
+    idle = check_array(idle, "idle vehicles", minimum=0, integer=True, lead=lead)
+    if idle.ndim < 1 or (n is not None and idle.shape[-1] != n):
+        want = "(N,)" if n is None else f"({n},)"
+        raise DataError(f"idle vehicles must have shape {want} (one count per region, leading batch axes allowed), got {idle.shape}")
+    target = check_array(target, "rebalancing target", shape=idle.shape, minimum=-1, integer=True, error=ActionError, lead=lead)
     return idle, target
 
 
@@ -86,39 +92,110 @@ def min_cost_rebalance(idle: np.ndarray, target: np.ndarray, cost: np.ndarray, m
     :func:`satisfies_triangle_inequality`). Targets above what the fleet can reach are
     infeasible and raise; targets summing to at most sum(idle) never are.
     """
+    idle, target = check_rebalance_inputs(idle, target)
+    if idle.ndim != 1 or np.shape(cost) != (idle.shape[0],) * 2:
+        raise DataError(f"min_cost_rebalance takes idle (N,) and cost (N, N), got {idle.shape} and {np.shape(cost)}")
+    return Rebalancer(cost, metric)(idle, target)
+
+
+class Rebalancer:
+    """:func:`min_cost_rebalance` for one cost matrix, called every step.
+
+    Without the triangle inequality the network is the same every call (all N x N arcs), so it is
+    built once and only capacities and supplies change between solves: the same network handed
+    to the same solver, hence the same flows, without rebuilding it (tested against a fresh build).
+    The OR-Tools object is not picklable; a copy rebuilds it on first use.
+    """
+
+    def __init__(self, cost: np.ndarray, metric: bool = False) -> None:
+        cost = check_array(cost, "rebalancing cost", minimum=0)
+        if cost.ndim != 2 or cost.shape[0] != cost.shape[1]:
+            raise DataError(f"rebalancing cost must be a square (N, N) matrix, got shape {cost.shape}")
+        self.cost = integer_costs(cost)
+        self.metric = metric
+        self._full: tuple | None = None  # (solver, arc ids, node ids) of the full network
+
+    def __call__(self, idle: np.ndarray, target: np.ndarray) -> np.ndarray:
+        idle = np.asarray(idle, dtype=np.int64)
+        need = np.maximum(np.asarray(target, dtype=np.int64), 0)
+        n = idle.shape[0]
+        if need.sum() > idle.sum():
+            raise SolverError(f"rebalancing targets sum to {need.sum()} but only {idle.sum()} vehicles are idle")
+        if self.metric:
+            flows = np.zeros((n, n), dtype=np.int64)
+            senders = np.flatnonzero(idle > need)
+            receivers = np.flatnonzero(need > idle)
+            if receivers.size == 0:
+                return flows
+            supply = idle[senders] - need[senders]
+            demand = need[receivers] - idle[receivers]
+            smcf, arcs, nodes = _network(self.cost[np.ix_(senders, receivers)])
+        else:
+            supply, demand = idle, need
+            if self._full is None:
+                self._full = _network(self.cost)
+            smcf, arcs, nodes = self._full
+        s, r = supply.size, demand.size
+        smcf.set_arc_capacities(arcs, np.concatenate([np.repeat(supply, r), supply]))
+        smcf.set_nodes_supplies(nodes, np.concatenate([supply, -demand, [demand.sum() - supply.sum()]]))
+        status = smcf.solve()
+        if status != smcf.OPTIMAL:
+            raise SolverError(f"min-cost rebalancing flow failed with OR-Tools status {status}")
+        f = smcf.flows(arcs)[: s * r].reshape(s, r)
+        if self.metric:
+            flows[np.ix_(senders, receivers)] = f
+        else:
+            flows = f.astype(np.int64)
+        flows.flat[:: n + 1] = 0  # a region 'sending' to itself keeps its vehicles
+        return flows
+
+    def many(self, idle: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """Flows (B, N, N) for B independent instances idle (B, N), target (B, N): each solved alone
+        (the same flows as B calls), with the array bookkeeping of the full network done once."""
+        idle = np.asarray(idle, dtype=np.int64)
+        need = np.maximum(np.asarray(target, dtype=np.int64), 0)
+        b, n = idle.shape
+        flows = np.zeros((b, n, n), dtype=np.int64)
+        short = np.flatnonzero((need > idle).any(axis=-1))  # elsewhere no move is the unique optimum
+        if self.metric:
+            for k in short:
+                flows[k] = self(idle[k], need[k])
+            return flows
+        over = need[short].sum(axis=-1) > idle[short].sum(axis=-1)
+        if over.any():
+            k = short[np.argmax(over)]
+            raise SolverError(f"rebalancing targets sum to {need[k].sum()} but only {idle[k].sum()} vehicles are idle")
+        if self._full is None:
+            self._full = _network(self.cost)
+        smcf, arcs, nodes = self._full
+        supply, demand = idle[short], need[short]
+        caps = np.concatenate([np.repeat(supply, n, axis=1), supply], axis=1)
+        supplies = np.concatenate([supply, -demand, (demand.sum(1) - supply.sum(1))[:, None]], axis=1)
+        for row, k in enumerate(short):
+            smcf.set_arc_capacities(arcs, caps[row])
+            smcf.set_nodes_supplies(nodes, supplies[row])
+            status = smcf.solve()
+            if status != smcf.OPTIMAL:
+                raise SolverError(f"min-cost rebalancing flow failed with OR-Tools status {status}")
+            flows[k] = smcf.flows(arcs)[: n * n].reshape(n, n)
+        flows[:, np.arange(n), np.arange(n)] = 0  # a region 'sending' to itself keeps its vehicles
+        return flows
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "_full": None}
+
+
+def _network(cost: np.ndarray) -> tuple:
+    """An OR-Tools network for senders x receivers with unit costs ``cost`` (s, r), capacities unset.
+
+    Nodes: senders 0..s-1, receivers s..s+r-1, slack sink s+r (absorbs vehicles that stay anywhere).
+    """
     from ortools.graph.python import min_cost_flow
 
-    idle, target = check_rebalance_inputs(idle, target)
-    need = np.maximum(target, 0)
-    n = idle.shape[0]
-    cost = integer_costs(check_array(cost, "rebalancing cost", shape=(n, n), minimum=0))
-    if need.sum() > idle.sum():
-        raise SolverError(f"rebalancing targets sum to {need.sum()} but only {idle.sum()} vehicles are idle")
-    flows = np.zeros((n, n), dtype=np.int64)
-    if metric:
-        senders = np.flatnonzero(idle > need)
-        receivers = np.flatnonzero(need > idle)
-        if receivers.size == 0:
-            return flows
-        supply = idle[senders] - need[senders]
-        demand = need[receivers] - idle[receivers]
-    else:
-        senders = receivers = np.arange(n)
-        supply, demand = idle, need
-    s, r = senders.size, receivers.size
-    # nodes: senders 0..s-1, receivers s..s+r-1, slack sink s+r (absorbs vehicles that stay anywhere)
+    s, r = cost.shape
     tail = np.concatenate([np.repeat(np.arange(s), r), np.arange(s)])
     head = np.concatenate([np.tile(np.arange(s, s + r), s), np.full(s, s + r)])
-    unit = np.concatenate([cost[np.ix_(senders, receivers)].ravel(), np.zeros(s, dtype=np.int64)])
-    cap = np.concatenate([np.repeat(supply, r), supply])
+    unit = np.concatenate([cost.ravel(), np.zeros(s, dtype=np.int64)]).astype(np.int64)
     smcf = min_cost_flow.SimpleMinCostFlow()
-    arcs = smcf.add_arcs_with_capacity_and_unit_cost(tail, head, cap, unit)
-    supplies = np.concatenate([supply, -demand, [demand.sum() - supply.sum()]])
-    smcf.set_nodes_supplies(np.arange(s + r + 1), supplies)
-    status = smcf.solve()
-    if status != smcf.OPTIMAL:
-        raise SolverError(f"min-cost rebalancing flow failed with OR-Tools status {status}")
-    f = smcf.flows(arcs)[: s * r].reshape(s, r)
-    flows[np.ix_(senders, receivers)] = f
-    np.fill_diagonal(flows, 0)  # a region 'sending' to itself keeps its vehicles
-    return flows
+    arcs = smcf.add_arcs_with_capacity_and_unit_cost(tail, head, np.zeros(tail.size, dtype=np.int64), unit)
+    return smcf, arcs, np.arange(s + r + 1)

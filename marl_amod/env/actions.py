@@ -63,12 +63,12 @@ def joint_action(actions: Mapping[str, Any], agents: Sequence[str], *, strict: b
 
 
 def weights(action: np.ndarray, mode: ActionMode) -> np.ndarray:
-    """(N,) non-negative weights from clipped actions in [0, 1]."""
+    """(..., N) non-negative weights from clipped actions (..., N) in [0, 1]."""
     if mode == "weight":
         return action
-    logits = LOGIT_RANGE * (2.0 * action - 1.0)
-    z = np.exp(logits - logits.max())
-    return z / z.sum()
+    logits = LOGIT_RANGE * (2.0 * action - 1.0)  # leading axes: a batch of joint actions
+    z = np.exp(logits - logits.max(axis=-1, keepdims=True))
+    return z / z.sum(axis=-1, keepdims=True)
 
 
 def targets(

@@ -12,6 +12,8 @@ Steps past the tabulated horizon count as zero (:func:`~marl_amod.scenario.types
 
 from __future__ import annotations
 
+import weakref
+
 import numpy as np
 
 from marl_amod.scenario.types import City, step_rows
@@ -33,11 +35,44 @@ def feature_names(lookahead: int = 6) -> list[str]:
 def node_features(system: FleetSystem, lookahead: int = 6, scale: float = FEATURE_SCALE) -> np.ndarray:
     """(N, 1 + 2T) float32 features of every region (the paper's GNN input)."""
     sim = system.sim
-    steps = np.arange(sim.t + 1, sim.t + lookahead + 1)
-    supply = sim.idle[None, :] + step_rows(sim.arrivals, steps)  # (T, N)
-    value = step_rows(system.city.expected_fares, steps)  # (T, N)
-    feats = np.concatenate([sim.idle[None, :], supply, value], axis=0).T * scale
+    return state_features(system.city, sim.t, sim.idle, sim.arrivals, lookahead, scale)
+
+
+def state_features(
+    city: City, t: int, idle: np.ndarray, arrivals: np.ndarray, lookahead: int = 6, scale: float = FEATURE_SCALE
+) -> np.ndarray:
+    """(..., N, 1 + 2T) float32 features from idle (..., N) and arrivals (..., L, N) at step t.
+
+    The leading axes are a batch of episodes in lockstep (:mod:`marl_amod.sim.batch`); the single
+    env passes none, so both paths run this one function.
+    """
+    steps = np.arange(t + 1, t + lookahead + 1)
+    inside = (steps < arrivals.shape[-2])[:, None]  # nothing arrives past the buffer (step_rows)
+    arriving = arrivals[..., np.minimum(steps, arrivals.shape[-2] - 1), :] * inside  # (..., T, N)
+    feats = np.empty((*idle.shape, 1 + 2 * lookahead))  # (..., N, 1 + 2T), float64 until scaled
+    feats[..., 0] = idle
+    feats[..., 1 : 1 + lookahead] = np.swapaxes(idle[..., None, :] + arriving, -1, -2)  # supply
+    feats[..., 1 + lookahead :] = _value_table(city, lookahead)[t].T  # value, the same in every episode
+    feats *= scale
     return feats.astype(np.float32)
+
+
+_VALUES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _value_table(city: City, lookahead: int) -> np.ndarray:
+    """(S, T, N) expected request value out of each region in steps t+1..t+T (zero past the table).
+
+    Depends on the city's tables alone, so it is computed once per city and look-ahead instead of
+    every step (the same products and sums as before, so the same numbers).
+    """
+    per_city = _VALUES.setdefault(city, {})
+    if lookahead not in per_city:
+        steps = np.arange(city.n_steps)[:, None] + np.arange(1, lookahead + 1)[None, :]  # (S, T)
+        table = step_rows(city.expected_fares, steps)
+        table.setflags(write=False)
+        per_city[lookahead] = table
+    return per_city[lookahead]
 
 
 def feature_high(city: City, lookahead: int = 6, scale: float = FEATURE_SCALE) -> np.ndarray:

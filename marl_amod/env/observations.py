@@ -22,6 +22,9 @@ neighbour mask       K          1.0 for a real neighbour slot, 0.0 for padding
 :func:`split_local` cuts such a vector (or a batch of them, numpy or torch) back into the blocks,
 so a shared-parameter message-passing layer runs from one agent's observation alone. The global
 state (:func:`global_state`) is the N x F feature matrix, flattened, followed by the 3 time values.
+:func:`local_from_features` and :func:`state_from_features` build both layouts from features with
+leading batch axes (B, N, F): the batched env (:mod:`marl_amod.env.vector`) and the single env run
+the same code.
 """
 
 from __future__ import annotations
@@ -91,14 +94,23 @@ def local_observations(
 
     ``table`` is a cached :func:`neighbour_table`; the env passes it to skip recomputing it.
     """
-    idx, mask = table if table is not None else neighbour_table(system.city, max_degree)
-    feats = node_features(system, lookahead)  # (N, F)
-    n, f = feats.shape
+    table = table if table is not None else neighbour_table(system.city, max_degree)
+    return local_from_features(node_features(system, lookahead), time_features(system.city, system.t), table)
+
+
+def local_from_features(feats: np.ndarray, context: np.ndarray, table: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """(..., N, D) float32 local observations from features (..., N, F), time features (3,) and a
+    :func:`neighbour_table`; the leading axes are a batch of episodes in lockstep (or none)."""
+    idx, mask = table
+    *lead, n, f = feats.shape
     k = idx.shape[1]
-    neigh = feats[idx] * mask[:, :, None]  # (N, K, F)
-    context = np.broadcast_to(time_features(system.city, system.t), (n, N_CONTEXT))
-    obs = np.concatenate([feats, context, neigh.reshape(n, k * f), mask], axis=1)
-    return obs.astype(np.float32, copy=False)
+    obs = np.empty((*lead, n, f + N_CONTEXT + k * (f + 1)), dtype=np.float32)
+    obs[..., :f] = feats
+    obs[..., f : f + N_CONTEXT] = context
+    start = f + N_CONTEXT
+    obs[..., start : start + k * f] = (feats[..., idx, :] * mask[:, :, None]).reshape(*lead, n, k * f)
+    obs[..., start + k * f :] = mask
+    return obs
 
 
 def local_bounds(feature_high: np.ndarray, max_degree: int) -> tuple[np.ndarray, np.ndarray]:
@@ -138,8 +150,14 @@ def split_local(obs: Any, n_features: int = 13) -> tuple[Any, Any, Any, Any]:
 
 def global_state(system: FleetSystem, lookahead: int = 6) -> np.ndarray:
     """(N*F + 3,) float32: every region's features, row by row, then the time features."""
-    feats = node_features(system, lookahead)
-    return np.concatenate([feats.ravel(), time_features(system.city, system.t)]).astype(np.float32)
+    return state_from_features(node_features(system, lookahead), time_features(system.city, system.t))
+
+
+def state_from_features(feats: np.ndarray, context: np.ndarray) -> np.ndarray:
+    """(..., N*F + 3) float32 global state from features (..., N, F) and time features (3,)."""
+    *lead, n, f = feats.shape
+    ctx = np.broadcast_to(context, (*lead, N_CONTEXT))
+    return np.concatenate([feats.reshape(*lead, n * f), ctx], axis=-1).astype(np.float32)
 
 
 def graph(system: FleetSystem, lookahead: int = 6) -> dict[str, np.ndarray]:
@@ -148,8 +166,12 @@ def graph(system: FleetSystem, lookahead: int = 6) -> dict[str, np.ndarray]:
     ``x`` (N, F) float32 node features, ``edge_index`` (2, E) int64 source -> target,
     ``edge_attr`` (E, 2) float32: rebalancing time in steps and rebalancing cost of the edge.
     """
-    city = system.city
+    return {"x": node_features(system, lookahead), **graph_edges(system.city)}
+
+
+def graph_edges(city: City) -> dict[str, np.ndarray]:
+    """``edge_index`` (2, E) int64 and ``edge_attr`` (E, 2) float32 of the city, shared by a batch."""
     edge_index = np.asarray(city.edge_index, dtype=np.int64)
     src, dst = edge_index
     edge_attr = np.stack([city.reb_time[src, dst], city.reb_cost[src, dst]], axis=1).astype(np.float32)
-    return {"x": node_features(system, lookahead), "edge_index": edge_index.copy(), "edge_attr": edge_attr}
+    return {"edge_index": edge_index.copy(), "edge_attr": edge_attr}

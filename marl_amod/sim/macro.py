@@ -9,6 +9,9 @@ Semantics follow the reference implementation: a vehicle that departs in step t 
 tau steps arrives in step t + tau and is idle from step t + tau + 1. Vehicles in transit are
 counted per arrival step, so no vehicle is ever created or lost. Requests not served within
 ``max_wait`` steps leave.
+
+Every transition is written over leading axes (``...``), so :class:`~marl_amod.sim.batch.BatchMacroSim`
+runs this same code on B episodes at once: state arrays gain a leading (B,) axis there.
 """
 
 from __future__ import annotations
@@ -39,8 +42,9 @@ class EpisodeTotals:
     rebalanced: np.ndarray  # vehicles sent away for rebalancing
 
     @classmethod
-    def zeros(cls, n: int) -> EpisodeTotals:
-        return cls(**{name: np.zeros(n) for name in cls.__dataclass_fields__})
+    def zeros(cls, n: int, lead: tuple[int, ...] = ()) -> EpisodeTotals:
+        """All-zero totals with fields (*lead, n)."""
+        return cls(**{name: np.zeros((*lead, n)) for name in cls.__dataclass_fields__})
 
     @property
     def dispatch_profit(self) -> np.ndarray:
@@ -51,13 +55,15 @@ class EpisodeTotals:
     def profit(self) -> np.ndarray:
         return self.dispatch_profit - self.rebalancing_cost
 
-    def book_trips(self, x: np.ndarray, city: City, t: int) -> float:
-        """Add the fares and operating costs of dispatch flows x (N, N) of step t; returns their profit."""
-        revenue = (x * city.price[t]).sum(axis=1)
-        cost = (x * city.trip_cost[t]).sum(axis=1)
+    def book_trips(self, x: np.ndarray, city: City, t: int) -> float | np.ndarray:
+        """Add the fares and operating costs of dispatch flows x (..., N, N) of step t; returns their
+        profit: a float for one episode, an array over the leading axes for a batch."""
+        revenue = (x * city.price[t]).sum(axis=-1)
+        cost = (x * city.trip_cost[t]).sum(axis=-1)
         self.revenue += revenue
         self.trip_cost += cost
-        return float(revenue.sum() - cost.sum())
+        profit = revenue.sum(axis=-1) - cost.sum(axis=-1)
+        return float(profit) if np.ndim(profit) == 0 else profit
 
 
 def check_max_wait(max_wait: int, city: City) -> int:
@@ -72,35 +78,43 @@ class MacroSim:
     dispatch_rounds = 1  # one dispatch per control step (the SUMO simulator may match more often)
 
     def __init__(self, city: City, *, max_wait: int = 0) -> None:
-        max_wait = check_max_wait(max_wait, city)
+        self._setup(city, check_max_wait(max_wait, city), ())
+
+    def _setup(self, city: City, max_wait: int, lead: tuple[int, ...]) -> None:
+        """State arrays with leading axes ``lead``: () for one episode, (B,) for a batch."""
         self.city = city
         self.max_wait = max_wait
+        self._lead = lead
         n = city.n_regions
         longest = int(max(city.trip_time.max(), city.reb_time.max()))
         self._arrival_len = city.n_steps + longest + 2
         self.t = 0
-        self.idle = city.initial_vehicles.astype(np.int64).copy()
-        self.arrivals = np.zeros((self._arrival_len, n), dtype=np.int64)
-        self.demand = np.zeros((city.n_steps, n, n), dtype=np.int64)
-        self.backlog = np.zeros((max_wait + 1, n, n), dtype=np.int64)
-        self.totals = EpisodeTotals.zeros(n)
-        self.last_dispatch = np.zeros((n, n), dtype=np.int64)
-        self.last_rebalance = np.zeros((n, n), dtype=np.int64)
+        self.idle = np.broadcast_to(city.initial_vehicles.astype(np.int64), (*lead, n)).copy()  # (..., N)
+        self.arrivals = np.zeros((*lead, self._arrival_len, n), dtype=np.int64)  # (..., L, N)
+        self.demand = np.zeros((*lead, city.n_steps, n, n), dtype=np.int64)  # (..., S, N, N)
+        self.backlog = np.zeros((*lead, max_wait + 1, n, n), dtype=np.int64)  # (..., W + 1, N, N) by age
+        self.totals = EpisodeTotals.zeros(n, lead)
+        self.last_dispatch = np.zeros((*lead, n, n), dtype=np.int64)
+        self.last_rebalance = np.zeros((*lead, n, n), dtype=np.int64)
 
     # ------------------------------------------------------------------ lifecycle
     def reset(self, rng: np.random.Generator) -> None:
         """Start an episode: draw every step's OD demand (one Poisson draw per pair and step)."""
+        self.demand = rng.poisson(self.city.demand_rate).astype(np.int64)
+        self._start()
+
+    def _start(self) -> None:
+        """Step 0 of fresh episodes whose demand is drawn."""
         n = self.city.n_regions
         self.t = 0
-        self.idle = self.city.initial_vehicles.astype(np.int64).copy()
+        self.idle = np.broadcast_to(self.city.initial_vehicles.astype(np.int64), (*self._lead, n)).copy()
         self.arrivals[:] = 0
-        self.demand = rng.poisson(self.city.demand_rate).astype(np.int64)
         self.backlog[:] = 0
-        self.backlog[0] = self.demand[0]
-        self.totals = EpisodeTotals.zeros(n)
-        self.totals.demand += self.demand[0].sum(axis=1)
-        self.last_dispatch = np.zeros((n, n), dtype=np.int64)
-        self.last_rebalance = np.zeros((n, n), dtype=np.int64)
+        self.backlog[..., 0, :, :] = self.demand[..., 0, :, :]
+        self.totals = EpisodeTotals.zeros(n, self._lead)
+        self.totals.demand += self.demand[..., 0, :, :].sum(axis=-1)
+        self.last_dispatch = np.zeros((*self._lead, n, n), dtype=np.int64)
+        self.last_rebalance = np.zeros((*self._lead, n, n), dtype=np.int64)
 
     @property
     def done(self) -> bool:
@@ -109,68 +123,74 @@ class MacroSim:
 
     def requests(self) -> np.ndarray:
         """(N, N) open requests right now: new ones plus those still willing to wait."""
-        return self.backlog.sum(axis=0)
+        return self.backlog.sum(axis=-3)
 
     def carried_over(self) -> np.ndarray:
         """(N, N) requests open now that will still wait at the next step if not served (the
         oldest age leaves at :meth:`advance`); zero with ``max_wait`` 0."""
-        return self.backlog[: self.max_wait].sum(axis=0)
+        return self.backlog[..., : self.max_wait, :, :].sum(axis=-3)
 
     def vehicles(self) -> int:
         """Idle plus in-transit vehicles; constant over an episode (conservation)."""
-        return int(self.idle.sum() + self.arrivals[self.t :].sum())
+        return int(self._vehicles())
+
+    def _vehicles(self) -> np.ndarray:
+        return self.idle.sum(axis=-1) + self.arrivals[..., self.t :, :].sum(axis=(-2, -1))
 
     # ------------------------------------------------------------------ transitions
     def apply_dispatch(self, x: np.ndarray) -> float:
         """Serve requests with passenger flows x (N, N); returns the step's dispatch profit."""
-        x = as_flows(x, self.city.n_regions, "dispatch")
-        check_dispatch(x, self.requests(), self.idle)
-        out = x.sum(axis=1)
+        return float(self._apply_dispatch(x))
+
+    def _apply_dispatch(self, x: np.ndarray) -> np.ndarray:
         c, t = self.city, self.t
-        duration = c.trip_time[t]
-        self._depart(x, duration)
+        x = as_flows(x, c.n_regions, "dispatch", self._lead)
+        check_dispatch(x, self.requests(), self.idle)
+        self._depart(x, c.trip_time[t])
         # serve the oldest requests first: they are the closest to leaving
         remaining = x.copy()
-        wait = np.zeros(c.n_regions)
+        wait = np.zeros((*self._lead, c.n_regions))
         for age in range(self.max_wait, -1, -1):
-            take = np.minimum(remaining, self.backlog[age])
-            self.backlog[age] -= take
+            take = np.minimum(remaining, self.backlog[..., age, :, :])
+            self.backlog[..., age, :, :] -= take
             remaining -= take
-            wait += age * c.tstep * take.sum(axis=1)
+            wait += age * c.tstep * take.sum(axis=-1)
         tot = self.totals
-        tot.served += out
+        tot.served += x.sum(axis=-1)
         tot.wait_minutes += wait
         self.last_dispatch = x
-        return tot.book_trips(x, c, t)
+        return np.asarray(tot.book_trips(x, c, t))
 
     def apply_rebalance(self, y: np.ndarray) -> float:
         """Move idle vehicles with flows y (N, N); returns the step's rebalancing cost."""
-        y = as_flows(y, self.city.n_regions, "rebalancing")
+        return float(self._apply_rebalance(y))
+
+    def _apply_rebalance(self, y: np.ndarray) -> np.ndarray:
+        y = as_flows(y, self.city.n_regions, "rebalancing", self._lead)
         check_rebalance(y, self.idle)
-        out = y.sum(axis=1)
         self._depart(y, self.city.reb_time)
-        cost = (y * self.city.reb_cost).sum(axis=1)
+        cost = (y * self.city.reb_cost).sum(axis=-1)
         self.totals.rebalancing_cost += cost
-        self.totals.rebalanced += out
+        self.totals.rebalanced += y.sum(axis=-1)
         self.last_rebalance = y
-        return float(cost.sum())
+        return cost.sum(axis=-1)
 
     def advance(self) -> None:
         """Close the step: arrivals become idle, unserved requests age or leave, new ones appear."""
         if self.done:
             raise RuntimeError("the episode is over; call reset()")
-        self.idle += self.arrivals[self.t]
-        self.totals.lost += self.backlog[self.max_wait].sum(axis=1)
-        self.backlog[1:] = self.backlog[:-1].copy()
+        self.idle += self.arrivals[..., self.t, :]
+        self.totals.lost += self.backlog[..., self.max_wait, :, :].sum(axis=-1)
+        self.backlog[..., 1:, :, :] = self.backlog[..., :-1, :, :].copy()
         self.t += 1
-        self.backlog[0] = self.demand[self.t]
-        self.totals.demand += self.demand[self.t].sum(axis=1)
+        self.backlog[..., 0, :, :] = self.demand[..., self.t, :, :]
+        self.totals.demand += self.demand[..., self.t, :, :].sum(axis=-1)
         self.last_dispatch = np.zeros_like(self.last_dispatch)
         self.last_rebalance = np.zeros_like(self.last_rebalance)
 
     def finish(self) -> None:
         """Count requests still open when the episode ends as lost (call after the last dispatch)."""
-        self.totals.lost += self.backlog.sum(axis=(0, 2))
+        self.totals.lost += self.backlog.sum(axis=(-3, -1))
         self.backlog[:] = 0
 
     def close(self) -> None:
@@ -178,13 +198,12 @@ class MacroSim:
 
     # ------------------------------------------------------------------ helpers
     def _depart(self, flows: np.ndarray, duration: np.ndarray) -> None:
-        """Vehicles leave now and arrive after ``duration`` steps (per pair)."""
-        self.idle -= flows.sum(axis=1)
-        moving = flows > 0
-        if not moving.any():
+        """Vehicles leave now and arrive after ``duration`` (N, N) steps (per pair, every episode)."""
+        self.idle -= flows.sum(axis=-1)
+        *episode, i, j = np.nonzero(flows)  # episode: () for one episode, (e,) for a batch
+        if i.size == 0:
             return
-        i, j = np.nonzero(moving)
-        arrive = self.t + duration[i, j]
-        np.add.at(self.arrivals, (arrive, j), flows[i, j])
+        np.add.at(self.arrivals, (*episode, self.t + duration[i, j], j), flows[(*episode, i, j)])
         steps_left = self.city.horizon - self.t
-        np.add.at(self.totals.busy_vehicle_steps, i, flows[i, j] * np.minimum(duration[i, j], steps_left))
+        # integer vehicle-steps: summing per origin first gives the same float totals as adding one by one
+        self.totals.busy_vehicle_steps += (flows * np.minimum(duration, steps_left)).sum(axis=-1)
