@@ -129,7 +129,7 @@ def run_compare(
     for name in cfg.baselines:
         done = tracker(f"evaluating {name}")
         rows.append({"label": name, "kind": "baseline",
-                     "result": evaluate(name, city, cfg.episodes, cfg.seed, progress=lambda k: done(k + 1, cfg.episodes))})
+                     "result": evaluate(name, city, cfg.episodes, cfg.seed, progress=lambda k, done=done: done(k + 1, cfg.episodes))})
     to_train = {run.label for run, _ in planned} - skipped
     for run in cfg.runs:
         if run.label in skipped:
@@ -137,10 +137,10 @@ def run_compare(
         args = args_for(run.algo, {**run.args, "scenario": cfg.scenario})
         if run.label in to_train:
             done = tracker(f"training {run.label} ({run.algo}, {args.mode})")
-            run_training(run.algo, args, config_path=config_path, progress=lambda ep, total, _stats: done(ep, total))
+            run_training(run.algo, args, config_path=config_path, progress=lambda ep, total, _stats, done=done: done(ep, total))
         card = read_card(args.policy_out)
         done = tracker(f"evaluating {run.label}")
-        result = evaluate(args.policy_out, city, cfg.episodes, cfg.seed, progress=lambda k: done(k + 1, cfg.episodes))
+        result = evaluate(args.policy_out, city, cfg.episodes, cfg.seed, progress=lambda k, done=done: done(k + 1, cfg.episodes))
         rows.append({"label": run.label, "kind": "learned", "result": result, "card": card, "run_dir": args.run_dir})
 
     best = max((r for r in rows if r["kind"] == "baseline"), key=lambda r: r["result"]["metrics"]["profit"]["mean"], default=None)
