@@ -83,6 +83,12 @@ def scenarios(data_dir: DataDir = None) -> None:
         console.print(f"[red]{broken} scenario file(s) could not be read[/red]; the others are listed.")
 
 
+NO_WAIT_NOTE = (
+    "wait_time is 0 because requests do not wait at --max-wait 0 (the default): each is served in the step it "
+    "appears or lost; give --max-wait N to let requests wait N steps"
+)
+
+
 def metrics_table(results: list[dict], title: str) -> Table:
     """Policies as rows, metrics as 'mean ± std' columns."""
     from marl_amod.metrics import DISPLAY_DIGITS, METRICS
@@ -135,6 +141,8 @@ def evaluate(
                 )
             )
     console.print(metrics_table(results, f"{city.name}: {episodes} episodes, seed {seed}"))
+    if max_wait == 0:
+        console.print(NO_WAIT_NOTE)
     if output is not None:
         payload = results_payload(results)
         save_or_fallback(output, lambda path: write_json(path, payload), what="the results")
@@ -299,14 +307,26 @@ def _train_rllib(config: Path, num_env_runners: int | None, address: str | None)
 @app.command()
 def compare(
     config: Annotated[Path, typer.Option(help="comparison config YAML (configs/compare/<city>.yaml)")],
+    no_train: Annotated[
+        bool, typer.Option("--no-train", help="skip runs whose policy file is missing instead of training them")
+    ] = False,
     data_dir: DataDir = None,
 ) -> None:
-    """Learned policies (centralised, decentralised, ablations) vs baselines on the same seeds: table + plots."""
+    """Learned policies (centralised, decentralised, ablations) vs baselines on the same seeds: table + plots.
+
+    A run whose policy file is missing is trained first (said before it starts, with progress); --no-train skips it.
+    """
     from marl_amod.comparison import load_compare_config, run_compare
 
     _use_data_dir(data_dir)
     cfg = load_compare_config(config)
-    payload = run_compare(cfg, log=console.print, config_path=str(config))
+    with progress_bar() as bar:
+
+        def tracker(description: str):  # noqa: ANN202 - the comparison's Tracker
+            task = bar.add_task(description, total=None)
+            return lambda done, total: bar.update(task, completed=done, total=total)
+
+        payload = run_compare(cfg, log=bar.console.print, config_path=str(config), train=not no_train, tracker=tracker)
     console.print((Path(cfg.output) / "compare.md").read_text())
     console.print(f"best baseline: {payload['best_baseline']}")
 

@@ -75,28 +75,72 @@ def load_compare_config(path: str | Path) -> CompareConfig:
     return cfg
 
 
-def run_compare(cfg: CompareConfig, log: Callable[[str], None] = print, config_path: str | None = None) -> dict[str, Any]:
-    """Train what is missing, evaluate everything on the same seeds, write table + plots."""
+Tracker = Callable[[str], Callable[[int, int], None]]
+"""Starts a progress line for a description; the returned callback takes (done, total)."""
+
+
+def _no_tracker(_description: str) -> Callable[[int, int], None]:
+    return lambda _done, _total: None
+
+
+def missing_runs(cfg: CompareConfig) -> list[tuple[RunSpec, Any]]:
+    """The runs ``compare`` would train (their policy file is missing, or ``retrain`` is set), with their args."""
+    from marl_amod.algos.registry import args_for
+
+    planned = []
+    for run in cfg.runs:
+        args = args_for(run.algo, {**run.args, "scenario": cfg.scenario})
+        if run.retrain or not Path(args.policy_out).is_file():
+            planned.append((run, args))
+    return planned
+
+
+def run_compare(
+    cfg: CompareConfig,
+    log: Callable[[str], None] = print,
+    config_path: str | None = None,
+    *,
+    train: bool = True,
+    tracker: Tracker = _no_tracker,
+) -> dict[str, Any]:
+    """Train what is missing (or skip it when ``train`` is False), evaluate everything on the same seeds, write table + plots.
+
+    What will be trained is said before anything runs, since one missing policy can cost many minutes.
+    """
     from marl_amod.algos.registry import args_for, run_training
     from marl_amod.checkpoints import read_card
     from marl_amod.evaluation import evaluate
     from marl_amod.scenario import load_city
 
+    planned = missing_runs(cfg)
+    skipped = {run.label for run, _ in planned} if not train else set()
+    for run, args in planned:
+        why = "retrain: true" if run.retrain else f"{args.policy_out} not found"
+        if train:
+            log(f"will train {run.label!r} ({run.algo}, {args.mode}, {_budget(args)}): {why}")
+        else:
+            log(f"skipping {run.label!r}: {why} (--no-train)")
+    if planned and train:
+        log("to skip training and compare only the policies that exist: --no-train")
     city = load_city(cfg.scenario)
     out = Path(cfg.output)
     out.mkdir(parents=True, exist_ok=True)
     rows: list[dict[str, Any]] = []
     for name in cfg.baselines:
-        log(f"evaluating {name}")
-        rows.append({"label": name, "kind": "baseline", "result": evaluate(name, city, cfg.episodes, cfg.seed)})
+        done = tracker(f"evaluating {name}")
+        rows.append({"label": name, "kind": "baseline",
+                     "result": evaluate(name, city, cfg.episodes, cfg.seed, progress=lambda k, done=done: done(k + 1, cfg.episodes))})
+    to_train = {run.label for run, _ in planned} - skipped
     for run in cfg.runs:
+        if run.label in skipped:
+            continue
         args = args_for(run.algo, {**run.args, "scenario": cfg.scenario})
-        if run.retrain or not Path(args.policy_out).is_file():
-            log(f"training {run.label} ({run.algo}, {args.mode})")
-            run_training(run.algo, args, config_path=config_path)
+        if run.label in to_train:
+            done = tracker(f"training {run.label} ({run.algo}, {args.mode})")
+            run_training(run.algo, args, config_path=config_path, progress=lambda ep, total, _stats, done=done: done(ep, total))
         card = read_card(args.policy_out)
-        log(f"evaluating {run.label}")
-        result = evaluate(args.policy_out, city, cfg.episodes, cfg.seed)
+        done = tracker(f"evaluating {run.label}")
+        result = evaluate(args.policy_out, city, cfg.episodes, cfg.seed, progress=lambda k, done=done: done(k + 1, cfg.episodes))
         rows.append({"label": run.label, "kind": "learned", "result": result, "card": card, "run_dir": args.run_dir})
 
     best = max((r for r in rows if r["kind"] == "baseline"), key=lambda r: r["result"]["metrics"]["profit"]["mean"], default=None)
@@ -116,6 +160,24 @@ def run_compare(cfg: CompareConfig, log: Callable[[str], None] = print, config_p
     return payload
 
 
+def _budget(args: Any) -> str:
+    """A run's training budget in words, from the fields its Args have."""
+    parts = [f"{getattr(args, key)} {key}" for key in ("episodes", "iterations") if hasattr(args, key)]
+    if getattr(args, "time_limit_s", None):
+        parts.append(f"at most {args.time_limit_s / 60:g} min")
+    return ", ".join(parts) or "its configured budget"
+
+
+def architecture(card: dict[str, Any]) -> str:
+    """The actor as trained: the message passing is named only for GNN actors (an MLP or CNN has none)."""
+    actor = card.get("actor", "?")
+    if actor == "gnn":
+        return f"GNN, {card.get('conv', 'gcn')}"
+    if actor == "local":
+        return "local GNN layer, sage"  # LocalActor is a GNN actor with conv="sage" on local observations
+    return actor.upper()
+
+
 def markdown_table(rows: list[dict], scenario: str, episodes: int, seed: int, best: str) -> str:
     lines = [
         f"### {scenario}: {episodes} evaluation episodes (demand streams seed {seed}, k = 0..{episodes - 1})",
@@ -126,7 +188,7 @@ def markdown_table(rows: list[dict], scenario: str, episodes: int, seed: int, be
     for r in rows:
         m = r["result"]["metrics"]
         card = r.get("card")
-        algo = f"{card['algorithm'].upper()} / {card['mode']} ({card['actor']}, {card['conv']})" if card else "baseline"
+        algo = f"{card['algorithm'].upper()} / {card['mode']} ({architecture(card)})" if card else "baseline"
         wall = f"{card['training_wall_s'] / 60:.1f} min ({card['episodes_trained']} ep.)" if card else "-"
         lines.append(
             f"| {r['label']} | {algo} | {m['profit']['mean']:,.0f} ± {m['profit']['std']:,.0f} | {m['served_demand']['mean']:,.0f} "
@@ -142,22 +204,44 @@ def plot_all(rows: list[dict], out: Path, scenario: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    for name, fig in (
+        ("learning_curves.png", learning_curves_figure(rows, scenario)),
+        ("profit.png", profit_figure(rows, scenario)),
+        ("served_by_region.png", served_figure(rows, scenario)),
+    ):
+        fig.savefig(out / name, dpi=120, bbox_inches="tight")  # "tight" keeps the legends beside the axes
+        plt.close(fig)
+
+
+def _legend_beside(ax: Any) -> None:
+    """Legend to the right of the axes, never over curves or bars."""
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
+
+
+def learning_curves_figure(rows: list[dict], scenario: str) -> Any:
+    """Validation profit of each learned run; baselines as dashed lines named in the legend, not on the plot."""
+    import matplotlib.pyplot as plt
+
     from marl_amod.algos.common import read_curve
 
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, ax = plt.subplots(figsize=(8, 4))
+    baseline_styles = iter(["--", ":", "-.", (0, (5, 1)), (0, (1, 3))] * 4)
     for r in rows:
         if r["kind"] == "learned":
             xs, ys = read_curve(r["run_dir"], "eval/profit")
             if xs:
                 ax.plot(xs, ys, marker=".", label=r["label"])
         else:
-            ax.axhline(r["result"]["metrics"]["profit"]["mean"], ls="--", lw=1, color="grey")
-            ax.text(0, r["result"]["metrics"]["profit"]["mean"], r["label"], fontsize=7, va="bottom", color="grey")
+            profit = r["result"]["metrics"]["profit"]["mean"]
+            ax.axhline(profit, ls=next(baseline_styles), lw=1, color="grey", label=f"{r['label']} (baseline)")
     ax.set(xlabel="training episodes", ylabel="validation profit per episode", title=f"{scenario}: learning curves")
-    ax.legend(fontsize=7)
+    _legend_beside(ax)
     fig.tight_layout()
-    fig.savefig(out / "learning_curves.png", dpi=120)
-    plt.close(fig)
+    return fig
+
+
+def profit_figure(rows: list[dict], scenario: str) -> Any:
+    import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(7, 4))
     means = [r["result"]["metrics"]["profit"]["mean"] for r in rows]
@@ -167,16 +251,19 @@ def plot_all(rows: list[dict], out: Path, scenario: str) -> None:
     ax.set_xticks(range(len(rows)), [r["label"] for r in rows], rotation=30, ha="right", fontsize=8)
     ax.set(ylabel="profit per episode (mean ± std)", title=f"{scenario}: profit")
     fig.tight_layout()
-    fig.savefig(out / "profit.png", dpi=120)
-    plt.close(fig)
+    return fig
 
-    fig, ax = plt.subplots(figsize=(8, 4))
+
+def served_figure(rows: list[dict], scenario: str) -> Any:
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 4))
     n = len(rows[0]["result"]["per_region"]["served_demand"])
     width = 0.8 / len(rows)
     for k, r in enumerate(rows):
         ax.bar(np.arange(n) + k * width, r["result"]["per_region"]["served_demand"], width, label=r["label"])
+    ax.set_xticks(np.arange(n) + 0.4 - width / 2, [str(i) for i in range(n)], fontsize=7)
     ax.set(xlabel="region", ylabel="served demand per episode", title=f"{scenario}: served demand by region")
-    ax.legend(fontsize=7)
+    _legend_beside(ax)
     fig.tight_layout()
-    fig.savefig(out / "served_by_region.png", dpi=120)
-    plt.close(fig)
+    return fig

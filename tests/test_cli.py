@@ -115,3 +115,10 @@ def test_error_messages_print_verbatim_including_brackets(monkeypatch, capsys):
         main()
     assert exc.value.code == 2
     assert 'pip install "marl-amod[sumo]"' in capsys.readouterr().out
+
+
+def test_wait_column_is_explained_only_when_requests_cannot_wait(tmp_path):
+    data, output = run_eval(tmp_path, "--policy", "equal-distribution")
+    assert data["metrics"]["wait_time"]["mean"] == 0.0 and "requests do not wait at --max-wait 0" in " ".join(output.split())
+    data, output = run_eval(tmp_path, "--policy", "equal-distribution", "--max-wait", "2")
+    assert data["metrics"]["wait_time"]["mean"] > 0.0 and "do not wait" not in output

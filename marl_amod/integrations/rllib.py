@@ -248,6 +248,11 @@ def build_ppo(args: RllibArgs, num_env_runners: int | None = None) -> Any:
         .framework("torch")
         .env_runners(num_env_runners=runners, num_envs_per_env_runner=1, num_cpus_per_env_runner=1, rollout_fragment_length="auto")
         .learners(num_learners=0)
+        # RLlib's default restarts a failed env runner (max_restarts=1000), but it hands each runner its
+        # config through the object store, which Ray cannot guarantee for a restart: Ray logs an error
+        # (core_worker "max_restarts", ray-project/ray#53727) at every start. An env runner that fails here
+        # fails for a reason a restart does not fix (the env is deterministic code), so fail the run instead.
+        .fault_tolerance(restart_failed_env_runners=False)
         .multi_agent(policies={POLICY_ID}, policy_mapping_fn=shared_policy, policies_to_train=[POLICY_ID])
         .rl_module(
             rl_module_spec=MultiRLModuleSpec(rl_module_specs={POLICY_ID: RLModuleSpec(module_class=AmodGNNModule, model_config=model)})
