@@ -17,7 +17,6 @@ from marl_amod.algos import common as C
 from marl_amod.algos import offline as O
 from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import LocalActor, build_actor
-from marl_amod.scenario import load_city
 
 
 class Args(O.OfflineArgs):
@@ -38,13 +37,7 @@ def make_actor(args: O.OfflineArgs, city) -> torch.nn.Module:
 
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
     """Clone the dataset's behaviour policy; keep the best validation actor; write its card."""
-    torch.set_num_threads(args.threads)
-    C.seed_everything(args.seed)
-    gen = torch.Generator().manual_seed(args.seed)
-    city = load_city(args.scenario)
-    data = O.Data(args, city)
-    local = args.mode == "decentralised"
-    edge_index = torch.tensor(city.edge_index, dtype=torch.long)
+    city, data, local, edge_index, gen = O.setup(args)
     actor = make_actor(args, city)
     opt = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
 

@@ -30,7 +30,6 @@ from marl_amod.algos.bc import make_actor
 from marl_amod.algos.sac import policy_sample
 from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import TwinQ, dirichlet
-from marl_amod.scenario import load_city
 
 
 class Args(O.OfflineArgs):
@@ -61,13 +60,7 @@ class Args(O.OfflineArgs):
 
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
     """Learn from the dataset with CQL; keep the best validation actor; write its card."""
-    torch.set_num_threads(args.threads)
-    C.seed_everything(args.seed)
-    gen = torch.Generator().manual_seed(args.seed)
-    city = load_city(args.scenario)
-    data = O.Data(args, city)
-    local = args.mode == "decentralised"
-    edge_index = torch.tensor(city.edge_index, dtype=torch.long)
+    city, data, local, edge_index, gen = O.setup(args)
     n, k = city.n_regions, args.n_actions
     actor = make_actor(args, city)
     critic = TwinQ(feature_count(args.lookahead), args.critic_hidden, "sage" if local else args.conv)

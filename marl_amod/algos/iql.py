@@ -27,7 +27,6 @@ from marl_amod.algos import offline as O
 from marl_amod.algos.bc import make_actor
 from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import GNNValueCritic, TwinQ
-from marl_amod.scenario import load_city
 
 
 class Args(O.OfflineArgs):
@@ -59,13 +58,7 @@ def expectile_loss(diff: torch.Tensor, tau: float) -> torch.Tensor:
 
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
     """Learn from the dataset with IQL; keep the best validation actor; write its card."""
-    torch.set_num_threads(args.threads)
-    C.seed_everything(args.seed)
-    gen = torch.Generator().manual_seed(args.seed)
-    city = load_city(args.scenario)
-    data = O.Data(args, city)
-    local = args.mode == "decentralised"
-    edge_index = torch.tensor(city.edge_index, dtype=torch.long)
+    city, data, local, edge_index, gen = O.setup(args)
     f = feature_count(args.lookahead)
     conv = "sage" if local else args.conv
     actor = make_actor(args, city)

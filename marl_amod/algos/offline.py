@@ -21,6 +21,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Literal, Protocol
 
+import numpy as np
 import torch
 from pydantic import Field
 
@@ -53,6 +54,19 @@ class OfflineArgs(C.RunArgs):
 
     def ignored_keys(self) -> dict[str, str]:
         return {**super().ignored_keys(), "episodes": "offline runs take no env episodes; set updates"}
+
+
+def setup(args: OfflineArgs) -> tuple[City, Data, bool, torch.Tensor, torch.Generator]:
+    """What every offline run starts with: threads and seeds set, then (city, its dataset, whether the
+    run is decentralised, the graph's edge_index, the minibatch generator)."""
+    from marl_amod.scenario import load_city
+
+    torch.set_num_threads(args.threads)
+    C.seed_everything(args.seed)
+    gen = torch.Generator().manual_seed(args.seed)
+    city = load_city(args.scenario)
+    edge_index = torch.tensor(np.array(city.edge_index), dtype=torch.long)
+    return city, Data(args, city), args.mode == "decentralised", edge_index, gen
 
 
 class Batch(dict):
