@@ -84,24 +84,24 @@ def scenarios(data_dir: DataDir = None) -> None:
 
 
 NO_WAIT_NOTE = (
-    "wait_time is 0 because requests do not wait at --max-wait 0 (the default): each is served in the step it "
+    "wait min and wait Gini are 0 because requests do not wait at --max-wait 0 (the default): each is served in the step it "
     "appears or lost; give --max-wait N to let requests wait N steps"
 )
 
 
 def metrics_table(results: list[dict], title: str) -> Table:
     """Policies as rows, metrics as 'mean ± std' columns."""
-    from marl_amod.metrics import DISPLAY_DIGITS, METRICS
+    from marl_amod.metrics import DISPLAY_DIGITS, DISPLAY_NAMES, METRICS
 
     table = Table(title=title)
-    table.add_column("policy")
+    table.add_column("policy", no_wrap=True)
     for key in METRICS:
-        table.add_column(key, justify="right")
+        table.add_column(DISPLAY_NAMES.get(key, key), justify="right", no_wrap=True)
     for r in results:
         cells = []
         for key in METRICS:
             m = r["metrics"][key]
-            digits = DISPLAY_DIGITS.get(key, 1)
+            digits = DISPLAY_DIGITS.get(key, 0)
             cells.append(f"{m['mean']:,.{digits}f} ± {m['std']:,.{digits}f}")
         table.add_row(r["policy"], *cells)
     return table

@@ -29,6 +29,11 @@ METRICS: dict[str, str] = {
 
 # decimals shown in tables; metrics not named here show one
 DISPLAY_DIGITS: dict[str, int] = {"wait_time": 2, "utilization": 2, "wait_time_gini": 3, "service_rate_gini": 3}
+# short column headers for terminal tables (the JSON keeps the full names)
+DISPLAY_NAMES: dict[str, str] = {
+    "served_demand": "served", "rebalancing_cost": "reb. cost", "wait_time": "wait min",
+    "utilization": "util.", "wait_time_gini": "wait Gini", "service_rate_gini": "service Gini",
+}
 
 
 def gini(values: np.ndarray | list[float], axis: int = -1) -> np.ndarray | float:
