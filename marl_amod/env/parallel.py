@@ -82,10 +82,11 @@ from marl_amod.env import ENV_ID, ENV_VERSION
 from marl_amod.env import actions as act
 from marl_amod.env import observations as ob
 from marl_amod.env.features import feature_high as feature_bounds
-from marl_amod.env.rewards import REWARD_MODES, RewardMode, rewards, typical_step_revenue
+from marl_amod.env.options import env_options
+from marl_amod.env.rewards import RewardMode, rewards
 from marl_amod.errors import ConfigError
 from marl_amod.metrics import episode_metrics
-from marl_amod.scenario import City, load_city
+from marl_amod.scenario import City
 from marl_amod.system import FleetSystem, StepOutcome
 from marl_amod.validation import as_seed
 
@@ -112,32 +113,15 @@ class AmodParallelEnv(ParallelEnv):
         render_mode: str | None = None,
         **scenario_overrides: Any,
     ) -> None:
-        if reward_mode not in REWARD_MODES:
-            raise ConfigError(f"reward_mode must be one of {REWARD_MODES}, got {reward_mode!r}")
-        if action_mode not in act.ACTION_MODES:
-            raise ConfigError(f"action_mode must be one of {act.ACTION_MODES}, got {action_mode!r}")
         if render_mode is not None and render_mode not in RENDER_MODES:
             raise ConfigError(f"render_mode must be None or one of {RENDER_MODES}, got {render_mode!r}")
-        if not isinstance(lookahead, (int, np.integer)) or lookahead < 1:
-            raise ConfigError(f"lookahead must be a positive number of steps, got {lookahead!r}")
-        if max_cycles is not None and (not isinstance(max_cycles, (int, np.integer)) or max_cycles < 1):
-            raise ConfigError(f"max_cycles must be None or a positive number of steps, got {max_cycles!r}")
-        if reward_scale != "auto" and not (isinstance(reward_scale, (int, float)) and np.isfinite(reward_scale) and reward_scale > 0):
-            raise ConfigError(f"reward_scale must be a positive number or 'auto', got {reward_scale!r}")
-        if isinstance(scenario, City):
-            if scenario_overrides:
-                raise ConfigError(f"scenario overrides {sorted(scenario_overrides)} need a scenario name, not a City")
-            city = scenario
-        else:
-            city = load_city(scenario, **scenario_overrides)
-        if city.horizon < 2:
-            raise ConfigError(f"{city.name}: the env needs a horizon of at least 2 steps, got {city.horizon}")
-        self.reward_mode = reward_mode
-        self.action_mode = action_mode
-        self.lookahead = int(lookahead)
-        self.strict_actions = bool(strict_actions)
-        self.max_cycles = city.horizon - 1 if max_cycles is None else min(int(max_cycles), city.horizon - 1)
-        self.reward_scale = 1.0 / typical_step_revenue(city) if reward_scale == "auto" else float(reward_scale)
+        opts = env_options(
+            scenario, reward_mode=reward_mode, action_mode=action_mode, lookahead=lookahead, reward_scale=reward_scale,
+            strict_actions=strict_actions, max_cycles=max_cycles, scenario_overrides=scenario_overrides,
+        )
+        city = opts.city
+        self.reward_mode, self.action_mode, self.lookahead = opts.reward_mode, opts.action_mode, opts.lookahead
+        self.strict_actions, self.max_cycles, self.reward_scale = opts.strict_actions, opts.max_cycles, opts.reward_scale
         self.render_mode = render_mode
         self.system = FleetSystem(city, max_wait=max_wait, objective=objective)
 

@@ -37,10 +37,11 @@ from marl_amod.coordinator.coordinator import Objective
 from marl_amod.env import actions as act
 from marl_amod.env import observations as ob
 from marl_amod.env.features import feature_high, state_features
-from marl_amod.env.rewards import REWARD_MODES, RewardMode, typical_step_revenue
+from marl_amod.env.options import env_options
+from marl_amod.env.rewards import RewardMode
 from marl_amod.errors import ActionError, ConfigError
 from marl_amod.metrics import metric_arrays
-from marl_amod.scenario import City, load_city
+from marl_amod.scenario import City
 
 
 class AmodVectorEnv:
@@ -63,38 +64,21 @@ class AmodVectorEnv:
         max_cycles: int | None = None,
         **scenario_overrides: Any,
     ) -> None:
-        if reward_mode not in REWARD_MODES:
-            raise ConfigError(f"reward_mode must be one of {REWARD_MODES}, got {reward_mode!r}")
-        if action_mode not in act.ACTION_MODES:
-            raise ConfigError(f"action_mode must be one of {act.ACTION_MODES}, got {action_mode!r}")
-        if not isinstance(lookahead, (int, np.integer)) or lookahead < 1:
-            raise ConfigError(f"lookahead must be a positive number of steps, got {lookahead!r}")
-        if max_cycles is not None and (not isinstance(max_cycles, (int, np.integer)) or max_cycles < 1):
-            raise ConfigError(f"max_cycles must be None or a positive number of steps, got {max_cycles!r}")
-        if reward_scale != "auto" and not (isinstance(reward_scale, (int, float)) and np.isfinite(reward_scale) and reward_scale > 0):
-            raise ConfigError(f"reward_scale must be a positive number or 'auto', got {reward_scale!r}")
         if not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
             raise ConfigError(f"num_envs must be a positive integer, got {num_envs!r}")
-        if isinstance(scenario, City):
-            if scenario_overrides:
-                raise ConfigError(f"scenario overrides {sorted(scenario_overrides)} need a scenario name, not a City")
-            city = scenario
-        else:
-            city = load_city(scenario, **scenario_overrides)
-        if city.horizon < 2:
-            raise ConfigError(f"{city.name}: the env needs a horizon of at least 2 steps, got {city.horizon}")
-        self.reward_mode = reward_mode
-        self.action_mode = action_mode
-        self.lookahead = int(lookahead)
+        opts = env_options(
+            scenario, reward_mode=reward_mode, action_mode=action_mode, lookahead=lookahead, reward_scale=reward_scale,
+            strict_actions=strict_actions, max_cycles=max_cycles, scenario_overrides=scenario_overrides,
+        )
+        city = opts.city
+        self.reward_mode, self.action_mode, self.lookahead = opts.reward_mode, opts.action_mode, opts.lookahead
+        self.strict_actions, self.max_cycles, self.reward_scale = opts.strict_actions, opts.max_cycles, opts.reward_scale
         self.num_envs = int(num_envs)
-        self.strict_actions = bool(strict_actions)
-        self.max_cycles = city.horizon - 1 if max_cycles is None else min(int(max_cycles), city.horizon - 1)
-        self.reward_scale = 1.0 / typical_step_revenue(city) if reward_scale == "auto" else float(reward_scale)
         self._steps = 0
         self.system = BatchFleetSystem(city, self.num_envs, max_wait=max_wait, objective=objective)
         n = city.n_regions
         self.num_agents = n
-        self.possible_agents = [f"region_{i}" for i in range(n)]
+        self.possible_agents = ob.agent_names(n)
         self.max_degree = ob.max_in_degree(city)
         self._table = ob.neighbour_table(city, self.max_degree)
         high = feature_high(city, self.lookahead)

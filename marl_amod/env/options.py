@@ -1,0 +1,72 @@
+"""The env options both faces share (the ParallelEnv and the batched vector env), checked once.
+
+Both envs take the same keywords and must read them identically, or a policy trained on one
+would meet different rewards or episode lengths on the other; so the checks and the values
+derived from them (the episode's step count, the reward multiplier) live here.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+
+from marl_amod.env import actions as act
+from marl_amod.env.rewards import REWARD_MODES, RewardMode, typical_step_revenue
+from marl_amod.errors import ConfigError
+from marl_amod.scenario import City, load_city
+
+
+@dataclass(frozen=True)
+class EnvOptions:
+    """Checked options: the city, and the values the envs read every step."""
+
+    city: City
+    reward_mode: RewardMode
+    action_mode: act.ActionMode
+    lookahead: int
+    strict_actions: bool
+    max_cycles: int  # control steps per episode: min(horizon - 1, max_cycles)
+    reward_scale: float  # multiplies every reward ("auto": 1 / the city's expected fares per step)
+
+
+def env_options(
+    scenario: str | City,
+    *,
+    reward_mode: RewardMode,
+    action_mode: act.ActionMode,
+    lookahead: int,
+    reward_scale: float | Literal["auto"],
+    strict_actions: bool,
+    max_cycles: int | None,
+    scenario_overrides: dict[str, Any],
+) -> EnvOptions:
+    """The options checked (a ConfigError naming the bad one) and the city loaded."""
+    if reward_mode not in REWARD_MODES:
+        raise ConfigError(f"reward_mode must be one of {REWARD_MODES}, got {reward_mode!r}")
+    if action_mode not in act.ACTION_MODES:
+        raise ConfigError(f"action_mode must be one of {act.ACTION_MODES}, got {action_mode!r}")
+    if not isinstance(lookahead, (int, np.integer)) or lookahead < 1:
+        raise ConfigError(f"lookahead must be a positive number of steps, got {lookahead!r}")
+    if max_cycles is not None and (not isinstance(max_cycles, (int, np.integer)) or max_cycles < 1):
+        raise ConfigError(f"max_cycles must be None or a positive number of steps, got {max_cycles!r}")
+    if reward_scale != "auto" and not (isinstance(reward_scale, (int, float)) and np.isfinite(reward_scale) and reward_scale > 0):
+        raise ConfigError(f"reward_scale must be a positive number or 'auto', got {reward_scale!r}")
+    if isinstance(scenario, City):
+        if scenario_overrides:
+            raise ConfigError(f"scenario overrides {sorted(scenario_overrides)} need a scenario name, not a City")
+        city = scenario
+    else:
+        city = load_city(scenario, **scenario_overrides)
+    if city.horizon < 2:
+        raise ConfigError(f"{city.name}: the env needs a horizon of at least 2 steps, got {city.horizon}")
+    return EnvOptions(
+        city=city,
+        reward_mode=reward_mode,
+        action_mode=action_mode,
+        lookahead=int(lookahead),
+        strict_actions=bool(strict_actions),
+        max_cycles=city.horizon - 1 if max_cycles is None else min(int(max_cycles), city.horizon - 1),
+        reward_scale=1.0 / typical_step_revenue(city) if reward_scale == "auto" else float(reward_scale),
+    )
