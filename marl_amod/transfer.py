@@ -3,8 +3,9 @@
 Strategies (what each may use of the target city before it is evaluated):
 
 * ``zero-shot``: a single-city GNN policy trained elsewhere, applied unchanged (0 episodes);
-* ``fine-tune``: that policy given ``K_FINE_TUNE`` online A2C episodes in the target (a fresh critic,
-  gradient steps on the actor);
+* ``fine-tune``: that policy given ``K_FINE_TUNE`` online A2C episodes in the target
+  (:func:`marl_amod.algos.a2c.train` with ``init_actor``: a fresh critic, gradient steps on the
+  actor, the better of start and end on a few validation episodes kept);
 * ``meta-rl``: the recurrent meta-policy (:mod:`marl_amod.algos.meta`), trained on ten other cities,
   runs ``K`` adaptation episodes in the target with its memory carried, no gradient step;
 * ``single-city``: a policy trained in the target city itself (the RL reference);
@@ -22,17 +23,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-import numpy as np
-import torch
-
 from marl_amod.errors import ConfigError
 from marl_amod.evaluation import evaluate
-from marl_amod.scenario import City, load_city
+from marl_amod.scenario import load_city
 
 Strategy = Literal["zero-shot", "fine-tune", "meta-rl", "single-city", "mpc-forecast", "mpc-oracle"]
 STRATEGIES: tuple[Strategy, ...] = ("zero-shot", "fine-tune", "meta-rl", "single-city", "mpc-forecast", "mpc-oracle")
-K_FINE_TUNE = 10  # online episodes fine-tuning gets in the target city
-META_POLICY = "policies/meta_rl_cities_rl_only.pt"  # chosen over the warm-started run by validation on training cities
+K_FINE_TUNE = 10  # online (training) episodes fine-tuning gets in the target city
+FINE_TUNE_VALIDATION = 2  # deterministic validation episodes of the start and of the end
+META_POLICY = "policies/meta_rl_cities.pt"  # configs/meta/cities.yaml
 
 
 @dataclass(frozen=True)
@@ -58,42 +57,29 @@ STUDIES = {"intercity": ("san_francisco", "nyc_brooklyn", "shenzhen_downtown_wes
 # --------------------------------------------------------------------------------------------
 # Fine-tuning: K online A2C episodes from a single-city policy
 # --------------------------------------------------------------------------------------------
-def fine_tune(policy_path: str, city: City, episodes: int = K_FINE_TUNE, seed: int = 0, lr: float = 1e-3, per_update: int = 2):
-    """The policy at ``policy_path`` after ``episodes`` online A2C episodes in ``city`` (updates of
-    ``per_update`` episodes; a fresh critic, returns standardised as in training)."""
-    import torch.nn.functional as F
+def fine_tune(policy_path: str, scenario: str, episodes: int = K_FINE_TUNE, seed: int = 0, per_update: int = 2) -> Any:
+    """The policy at ``policy_path`` after ``episodes`` online A2C episodes in ``scenario``.
 
-    from marl_amod.algos.a2c import act, concentrations, discounted_returns, value
-    from marl_amod.algos.meta import adapt_seed
-    from marl_amod.algos.rollout import Rollout
+    It is :func:`marl_amod.algos.a2c.train` with ``init_actor`` (a fresh critic, updates of
+    ``per_update`` episodes on training streams), so fine-tuning is the one A2C. As every warm-started
+    A2C run it keeps the better of the start and the end on ``FINE_TUNE_VALIDATION`` validation
+    episodes each (seed 1000), never a report stream.
+    """
+    import tempfile
+
+    from marl_amod.algos import a2c
     from marl_amod.checkpoints import ActorPolicy, load_actor
-    from marl_amod.models import GNNValueCritic
 
-    torch.manual_seed(seed)
-    actor, card = load_actor(policy_path, city)
-    actor.train()
-    critic = GNNValueCritic(card["n_features"], card["hidden"], card["conv"])
-    opt_a, opt_c = torch.optim.Adam(actor.parameters(), lr=lr), torch.optim.Adam(critic.parameters(), lr=lr)
-    rollout = Rollout(city, "centralised", card["lookahead"])
-    edge_index = torch.as_tensor(np.array(city.edge_index), dtype=torch.long)
-    for first in range(0, episodes, per_update):
-        logps, values, returns = [], [], []
-        for k in range(first, min(first + per_update, episodes)):
-            obs, rewards = rollout.reset(adapt_seed(seed, k)), []
-            while not rollout.done:
-                w, logp, _ = act(concentrations(actor, obs, edge_index, "centralised"), "centralised")
-                values.append(value(critic, obs, edge_index, False, False))
-                logps.append(logp)
-                obs, r = rollout.step(w)
-                rewards.append(r)
-            returns.append(torch.as_tensor(discounted_returns(rewards, 0.97), dtype=torch.float32))
-        ret = torch.cat(returns)
-        ret = (ret - ret.mean()) / (ret.std() + 1e-8)
-        v = torch.stack(values)
-        loss_pi = -(torch.stack(logps) * (ret - v.detach())).mean()
-        opt_a.zero_grad(), loss_pi.backward(), opt_a.step()
-        opt_c.zero_grad(), F.smooth_l1_loss(v, ret).backward(), opt_c.step()
-    actor.eval()
+    card = _card(policy_path)
+    with tempfile.TemporaryDirectory(prefix="marl-amod-fine-tune-") as tmp:
+        args = a2c.Args(
+            scenario=scenario, actor=card["actor"], conv=card["conv"], hidden=card["hidden"], lookahead=card["lookahead"],
+            init_actor=str(policy_path), episodes=episodes, episodes_per_update=min(per_update, episodes), seed=seed,
+            eval_every=episodes, eval_episodes=FINE_TUNE_VALIDATION, final_eval_episodes=1, run_dir=tmp, policy_out=f"{tmp}/fine_tuned.pt",
+        )  # fmt: skip
+        summary = a2c.train(args)
+        city = load_city(scenario)
+        actor, _ = load_actor(summary["policy"], city)
     return ActorPolicy(actor, city, card["lookahead"], name=f"fine-tune({Path(policy_path).stem})")
 
 
@@ -137,8 +123,9 @@ def run_strategy(
     elif strategy == "fine-tune":
         k = K_FINE_TUNE if adapt_episodes is None else adapt_episodes
         card = _card(policy)
-        pol = fine_tune(policy, city, k, seed)
-        used.update(source=policy, source_city=card["scenario"], source_episodes=card.get("episodes_trained"), target_episodes=k)
+        pol = fine_tune(policy, scenario, k, seed)
+        used.update(source=policy, source_city=card["scenario"], source_episodes=card.get("episodes_trained"), target_episodes=k,
+                    validation_episodes=2 * FINE_TUNE_VALIDATION)
     else:
         from marl_amod.algos.meta import adapt, load_meta
 
@@ -206,10 +193,12 @@ def study_markdown(payload: dict[str, Any]) -> str:
             source = used.get("source_city", "-")
             if used.get("source_episodes") is not None:
                 source = f"{source} ({used['source_episodes']:,})"
+            in_target = f"{used.get('target_episodes', 0) or 0:,}"
+            if used.get("validation_episodes"):
+                in_target += f" + {used['validation_episodes']} val."
             lines.append(
                 f"| {name} | {m['profit']['mean'] / 1e3:.1f} ± {m['profit']['std'] / 1e3:.1f} | {rec['normalised_score']:.1f} "
-                f"| {m['served_demand']['mean']:,.0f} | {m['rebalancing_cost']['mean'] / 1e3:.2f} "
-                f"| {used.get('target_episodes', 0) or 0:,} | {source} |"
+                f"| {m['served_demand']['mean']:,.0f} | {m['rebalancing_cost']['mean'] / 1e3:.2f} | {in_target} | {source} |"
             )
         lines.append("")
     return "\n".join(lines)

@@ -34,62 +34,104 @@ def test_city_scale_makes_a_tenfold_city_look_alike():
         system.reset(np.random.SeedSequence(0))
         feats.append(meta.task_features(system, scale, lookahead=3))
     assert feats[0].shape == (9, meta.n_task_features(3))
-    np.testing.assert_allclose(feats[0][:, 4:], feats[1][:, 4:], rtol=1e-5)  # request values and t / horizon
-    # idle vehicles after the first dispatch: in units of fleet / N, about the same in both cities
-    assert abs(feats[0][:, 0].mean() - feats[1][:, 0].mean()) < 0.3
+    np.testing.assert_allclose(feats[0][:, 4:7], feats[1][:, 4:7], rtol=1e-5)  # request values
+    np.testing.assert_allclose(feats[0][:, -1], feats[1][:, -1])  # t / horizon
+    # idle vehicles and served requests after the first dispatch: in units of fleet / N, about the same
+    for col in (0, 7):
+        assert abs(feats[0][:, col].mean() - feats[1][:, col].mean()) < 0.3
 
 
-def test_recurrent_gnn_is_size_agnostic_and_its_memory_changes_the_action():
+def test_task_features_show_the_served_and_unserved_requests_of_the_step():
+    city = grid_city(rows=2, cols=2, vehicles_per_region=1, requests_per_region=6.0)
+    system = FleetSystem(city)
+    system.reset(np.random.SeedSequence(3))
+    feats, scale = meta.task_features(system, meta.CityScale.of(city), lookahead=2), meta.CityScale.of(city)
+    sim = system.sim
+    np.testing.assert_allclose(feats[:, -3] * scale.vehicles, sim.last_dispatch.sum(-1), rtol=1e-6)
+    np.testing.assert_allclose(feats[:, -2] * scale.vehicles, sim.requests().sum(-1), rtol=1e-6)
+    assert feats[:, -2].sum() > 0  # more requests than vehicles: some go unserved
+
+
+def test_recurrent_gnn_is_size_agnostic_batched_and_its_memory_changes_the_action():
+    from marl_amod.models.dense import DenseGraph
+
     torch.manual_seed(0)
     model = RecurrentGNN(n_features=5, hidden=8)
     for city in (grid_city(rows=2, cols=3), grid_city(rows=4, cols=4)):
         n = city.n_regions
         edges = torch.as_tensor(np.array(city.edge_index), dtype=torch.long)
-        x, a, r = torch.rand(n, 5), torch.ones(n), torch.tensor(0.5)
-        alpha, v, mem = model(x, a, r, model.initial_memory(n), edges)
-        assert alpha.shape == (n,) and (alpha > 0).all() and v.shape == () and mem.shape == (n, 8)
-        again, _, _ = model(x, a, r, mem, edges)  # same input, what it remembers differs
+        x, a, rr, r = torch.rand(3, n, 5), torch.ones(3, n), torch.rand(3, n), torch.rand(3)
+        alpha, v, mem = model(x, a, rr, r, model.initial_memory(n, 3), DenseGraph(edges, n))
+        assert alpha.shape == (3, n) and (alpha > 0).all() and v.shape == (3,) and mem.shape == (3, n, 8)
+        for b in range(3):  # each trial of the batch is the unbatched model on its own, on either graph form
+            one, w, m = model(x[b], a[b], rr[b], r[b], model.initial_memory(n), edges)
+            torch.testing.assert_close(one, alpha[b]), torch.testing.assert_close(w, v[b]), torch.testing.assert_close(m, mem[b])
+        again, _, _ = model(x, a, rr, r, mem, edges)  # same input, what it remembers differs
         assert not torch.allclose(alpha, again)
 
 
+def test_each_regions_reward_reaches_the_memory():
+    """The same team reward split differently over the regions: the policy must tell them apart
+    (a special event shows as a local reward, not only as a blur in the team's)."""
+    city = grid_city(rows=2, cols=2, horizon=4)
+    torch.manual_seed(0)
+    model = RecurrentGNN(meta.n_task_features(2), hidden=8)
+    system = FleetSystem(city)
+    system.reset(np.random.SeedSequence(0))
+    alphas = []
+    for split in ([4.0, 0.0, 0.0, 0.0], [1.0, 1.0, 1.0, 1.0]):
+        agent = meta.MetaAgent(model, city, 2)
+        team = agent.observe(np.array(split) * agent.scale.reward / 4)
+        assert team == pytest.approx([1.0])
+        alphas.append(agent.act(system, sample=False)[0])
+    assert not np.allclose(alphas[0], alphas[1])
+
+
+def test_random_shocks_change_the_draw_not_the_forecast():
+    city = load_city("synthetic")
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        shocked = meta.random_shock(city, rng)
+        np.testing.assert_array_equal(shocked.forecast_rate, city.forecast_rate)
+        changed = np.flatnonzero((np.asarray(shocked.demand_rate) != np.asarray(city.demand_rate)).any(axis=(1, 2)))
+        assert changed.size and changed.min() < city.horizon and 3 <= changed.size <= 10  # a window of 3-10 steps
+        assert meta.CityScale.of(shocked) == meta.CityScale.of(city)  # units read the forecast
+
+
 def test_the_deployed_policy_replays_the_trained_agent_exactly():
-    """MetaPolicy (through evaluate) rebuilds the previous reward from the booked money: its
-    episode must be the trial agent's deterministic episode from the same memory, to the cent."""
+    """MetaPolicy (through evaluate, one episode on a FleetSystem) rebuilds the previous rewards from
+    the booked money: its episode must be the batched trial's deterministic one from the same memory."""
+    from marl_amod.batch_system import BatchFleetSystem
+
     city = grid_city(rows=3, cols=3, horizon=6)
     torch.manual_seed(1)
     model = RecurrentGNN(meta.n_task_features(6), hidden=8)
     policy = meta.adapt(model, city, episodes=2, lookahead=6)
     got = evaluate(policy, city, episodes=2, seed=0)["metrics"]["profit"]["mean"]
-    want = []
-    for k in range(2):
-        agent = meta.MetaAgent(model, city, 6)
-        agent.memory = policy.adapted.clone()
-        trial = meta.run_trial(agent, FleetSystem(city), [np.random.SeedSequence([0, k])], sample=False)
-        want.append(trial.profits[0])
-    # the trial's profit omits the first dispatch (booked at reset), evaluate counts it
-    first = []
-    for k in range(2):
-        system = FleetSystem(city)
-        system.reset(np.random.SeedSequence([0, k]))
-        first.append(float(system.sim.totals.profit.sum()))
-    assert got == pytest.approx(np.mean(np.add(want, first)), rel=1e-9)
+    agent = meta.MetaAgent(model, city, 6, num_trials=2)
+    agent.memory = policy.adapted.expand(2, -1, -1).clone()
+    trial = meta.run_trials(agent, BatchFleetSystem(city, 2), [[np.random.SeedSequence([0, k]) for k in range(2)]], sample=False)
+    assert got == pytest.approx(trial.profits.mean(), rel=1e-9)
 
 
 def test_meta_training_resumes_exactly_and_ships_a_policy_that_adapts(tmp_path):
     tasks = [_city_yaml(tmp_path, "small", rows=2, cols=3, vehicles_per_region=5),
              _city_yaml(tmp_path, "large", rows=3, cols=3, vehicles_per_region=40, requests_per_region=20)]  # fmt: skip
-    args = meta.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, episodes=8, trial_episodes=2,
-                     trials_per_update=2, eval_every=4, final_eval_episodes=2, run_dir=str(tmp_path / "full"),
-                     policy_out=str(tmp_path / "full.pt"))  # fmt: skip
+    # 2 cities x 2 trials x 2 episodes = 8 episodes per update; half the draws shocked
+    args = meta.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, episodes=24, trial_episodes=2,
+                     num_envs=2, cities_per_update=2, shock_prob=0.5, eval_every=8, eval_episodes=2, final_eval_episodes=2,
+                     run_dir=str(tmp_path / "full"), policy_out=str(tmp_path / "full.pt"))  # fmt: skip
     assert "meta" in ALGOS
     summary = ALGOS["meta"].train(args)
-    assert summary["card"]["algorithm"] == "meta" and summary["card"]["episodes_trained"] == 8
+    assert summary["card"]["algorithm"] == "meta" and summary["card"]["episodes_trained"] == 24
     half = args.model_copy(update={"run_dir": str(tmp_path / "half"), "policy_out": str(tmp_path / "resumed.pt")})
-    ALGOS["meta"].train(half.model_copy(update={"episodes": 4}))
+    ALGOS["meta"].train(half.model_copy(update={"episodes": 16}))
     ALGOS["meta"].train(half, resume=str(tmp_path / "half" / "state.pt"))
     full, resumed = (torch.load(tmp_path / f, weights_only=True)["state_dict"] for f in ("full.pt", "resumed.pt"))
     for key in full:
         torch.testing.assert_close(full[key], resumed[key], rtol=0, atol=0)
+    shocked = [row for row in (tmp_path / "full" / "log.csv").read_text().splitlines() if "shocked" in row]
+    assert {row.rsplit(",", 1)[1] for row in shocked} - {"0.0"}  # some draws did get a shock
     # the checkpoint evaluates like any policy file: it adapts (1 episode) to the city first
     result = evaluate(str(tmp_path / "full.pt"), "synthetic", episodes=1)
     assert result["policy"] == "full" and np.isfinite(result["metrics"]["profit"]["mean"])
@@ -113,17 +155,26 @@ def test_transfer_strategies_and_the_normalised_score(tmp_path):
     assert rec["transfer"]["target_episodes"] == 0
 
 
-def test_fine_tuning_takes_k_episodes_and_changes_the_actor():
-    from marl_amod.checkpoints import load_actor
+def test_fine_tuning_is_a2c_with_init_actor_for_k_episodes(monkeypatch):
+    from marl_amod.algos import a2c
     from marl_amod.transfer import fine_tune
 
-    city = load_city("synthetic")
-    before, _ = load_actor("policies/a2c_gnn_synthetic.pt", city)
-    policy = fine_tune("policies/a2c_gnn_synthetic.pt", city, episodes=2, per_update=2)
-    changed = [not torch.equal(p, q) for p, q in zip(before.state_dict().values(), policy.actor.state_dict().values(), strict=True)]
-    assert any(changed)
+    real, seen, trained = a2c.train, [], []
+
+    def spy(args, **kw):
+        out = real(args, **kw)
+        seen.append(args), trained.append(torch.load(out["policy"], weights_only=True)["state_dict"])
+        return out
+
+    monkeypatch.setattr(a2c, "train", spy)
+    policy = fine_tune("policies/a2c_gnn_synthetic.pt", "synthetic", episodes=4, per_update=2)
+    (args,) = seen
+    assert args.init_actor == "policies/a2c_gnn_synthetic.pt" and args.episodes == 4 and args.scenario == "synthetic"
+    for key, value in policy.actor.state_dict().items():  # the policy is what that A2C run kept
+        torch.testing.assert_close(value, trained[0][key], rtol=0, atol=0)
+    assert policy.name == "fine-tune(a2c_gnn_synthetic)"
     rec = run_strategy("fine-tune", "synthetic", policy="policies/a2c_gnn_synthetic.pt", adapt_episodes=2, episodes=1)
-    assert rec["transfer"]["target_episodes"] == 2
+    assert rec["transfer"]["target_episodes"] == 2 and rec["transfer"]["validation_episodes"] == 4
 
 
 def test_a_study_reruns_only_the_rows_asked_for(monkeypatch):

@@ -1,7 +1,8 @@
 """Meta-RL through recurrence (RL², the paper's "Meta-RL"): cities as tasks, one recurrent policy.
 
-Read top to bottom: the task set and its per-city scaling, the agent that carries memory, a
-trial, Args, ``train``, then adaptation to a new city (no gradient steps).
+Read top to bottom: the task set and its per-city scaling, random demand shocks, the agent that
+carries memory, trials in lockstep, Args, ``train``, then adaptation to a new city (no gradient
+steps).
 
 Tasks. The ten training cities are every real city except the three held out for the
 inter-city study (San Francisco, NY Brooklyn, Shenzhen downtown west). Fleets differ 35-fold
@@ -12,21 +13,28 @@ units (:class:`CityScale`):
 * request values (expected fares out of a region) are divided by the mean fare and by fleet / N,
   so they read as expected requests in the same unit as the vehicles, and the supply-demand
   balance of a city stays visible;
+* the requests served out of each region at the step just dispatched and those left unserved,
+  in vehicles per region: what the operator saw happen (a shock the forecast misses shows here);
 * a last column is the step fraction t / horizon;
 * the reward is the step's profit divided by the city's expected fare revenue per step
-  (``forecast_rate * price`` over the episode, / horizon): about 0.5-1 per step in every city.
+  (``forecast_rate * price`` over the episode, / horizon): about 0.5-1 per step in every city;
+  the memory also reads each region's own reward (its trips' profit minus its rebalancing cost)
+  in the same unit per region, so a region can tell that *its* demand departs from the usual.
 
-Trials. A trial is ``trial_episodes`` consecutive episodes on one city, drawn at random, with the
+Shocks (``shock_prob``). A city draw may get a random special event (:func:`random_shock`, the
+scenario events of :mod:`marl_amod.scenario.events`): for all its trials and every episode of
+them, requests out of a few regions surge (and sometimes drop out of others) over a window the
+forecast does not know. The memory thus learns to notice a departure from the usual demand and
+answer it in later steps and episodes: what the special-event study asks.
+
+Trials in lockstep. A trial is ``trial_episodes`` consecutive episodes on one city with the
 recurrent memory (:class:`~marl_amod.models.recurrent.RecurrentGNN`) carried from one episode to
-the next; the previous action and reward are reset to zero at each episode start. The A2C update
-treats the trial as one sequence (discount ``gamma``, GAE ``gae_lambda``; back-propagation through
-the whole trial), so the memory learns to infer the city from what happened in earlier episodes.
-
-Warm start (optional, ``bc_trials`` > 0). Before the RL² updates, the model imitates MPC-Forecast
-(the expected-demand planner, never the oracle) on trials of the training cities: Dirichlet
-log-likelihood of MPC's desired distribution plus the critic fitted to the trials' returns. A2C
-from scratch learns slowly on a shared 2-core machine; the warm start gives it a competent
-starting point, and the RL² updates then train the memory to adapt. Training cities only.
+the next; the previous action and rewards restart at zero with each episode. Each update draws
+``cities_per_update`` cities and runs ``num_envs`` trials of each in lockstep on the batched
+simulator (:class:`~marl_amod.batch_system.BatchFleetSystem`): one (B, N, F) forward pass on the
+dense graph per step, the memory a (B, N, H) tensor. The A2C update treats each trial as one
+sequence (discount ``gamma``, GAE ``gae_lambda``; back-propagation through the whole trial), so
+the memory learns to infer the city from what happened in earlier episodes.
 
 Adaptation. In a new city the policy runs ``trial_episodes - 1`` episodes (stochastic actions,
 their own demand streams, never the report streams), and each evaluation episode starts from
@@ -48,10 +56,13 @@ from pydantic import Field
 from marl_amod.algos import common as C
 from marl_amod.algos.rollout import train_seed
 from marl_amod.baselines.base import WeightPolicy
-from marl_amod.env.features import node_features
+from marl_amod.batch_system import BatchFleetSystem
+from marl_amod.env.features import state_features
+from marl_amod.models.dense import DenseGraph
 from marl_amod.models.distributions import dirichlet
 from marl_amod.models.recurrent import RecurrentGNN
 from marl_amod.scenario import City, load_city
+from marl_amod.scenario.events import DemandEvent, apply_events
 from marl_amod.system import FleetSystem
 
 TRAIN_CITIES = (
@@ -81,94 +92,122 @@ class CityScale:
         return cls(vehicles=per_region, requests=revenue / max(requests, 1e-9) * per_region, reward=revenue / city.horizon)
 
 
-def task_features(system: FleetSystem, scale: CityScale, lookahead: int) -> np.ndarray:
-    """(N, 2T + 2) float32: the paper's features in per-city units, then t / horizon."""
-    raw = node_features(system, lookahead, scale=1.0).astype(np.float64)  # idle, supply x T, value x T
-    raw[:, : 1 + lookahead] /= scale.vehicles
-    raw[:, 1 + lookahead :] /= scale.requests
-    step = np.full((raw.shape[0], 1), system.t / system.city.horizon)
-    return np.concatenate([raw, step], axis=1).astype(np.float32)
+def task_features(system: FleetSystem | BatchFleetSystem, scale: CityScale, lookahead: int) -> np.ndarray:
+    """(..., N, 2T + 4) float32: the paper's features in per-city units, the step's served and
+    unserved requests out of each region (vehicles per region), then t / horizon."""
+    sim = system.sim
+    raw = state_features(system.city, sim.t, sim.idle, sim.arrivals, lookahead, scale=1.0).astype(np.float64)  # idle, supply x T, value x T
+    raw[..., : 1 + lookahead] /= scale.vehicles
+    raw[..., 1 + lookahead :] /= scale.requests
+    served = sim.last_dispatch.sum(-1) / scale.vehicles  # (..., N) trips that just left each region
+    unserved = sim.requests().sum(-1) / scale.vehicles  # (..., N) requests no vehicle was there for
+    step = np.full(sim.idle.shape, sim.t / system.city.horizon)
+    return np.concatenate([raw, np.stack([served, unserved, step], axis=-1)], axis=-1).astype(np.float32)
 
 
 def n_task_features(lookahead: int) -> int:
-    return 2 + 2 * lookahead
+    return 4 + 2 * lookahead
 
 
 # --------------------------------------------------------------------------------------------
-# The agent: a policy with memory on one city
+# Task variants: random demand shocks the forecast does not know
+# --------------------------------------------------------------------------------------------
+def random_shock(city: City, rng: np.random.Generator) -> City:
+    """``city`` with a random special event (:mod:`marl_amod.scenario.events`): requests out of 1-3
+    regions x1.5-8 and, half the time, out of 1-2 others x0.2-0.8, over 3-10 steps; the forecast
+    (what the features read) keeps the usual demand."""
+    n, h = city.n_regions, city.horizon
+    up, down = int(rng.integers(1, 4)), int(rng.integers(1, 3)) * int(rng.random() < 0.5)
+    regions = rng.choice(n, size=min(n, up + down), replace=False).tolist()
+    start = int(rng.integers(0, h - 3))
+    end = min(h, start + int(rng.integers(3, 11)))
+    events = [DemandEvent(name="surge", regions=regions[:up], start=start, end=end, multiplier=float(np.exp(rng.uniform(np.log(1.5), np.log(8.0)))))]
+    if regions[up:]:
+        events.append(DemandEvent(name="drop", regions=regions[up:], start=start, end=end, multiplier=float(rng.uniform(0.2, 0.8))))
+    return apply_events(city, events)
+
+
+# --------------------------------------------------------------------------------------------
+# The agent: a policy with memory on one city, B trials in lockstep
 # --------------------------------------------------------------------------------------------
 class MetaAgent:
-    """The recurrent policy on one city: its scale, graph, memory and previous action/reward."""
+    """The recurrent policy on one city for B trials in lockstep: its scale, graph, memory (B, N, H)
+    and previous action / rewards. It acts on a :class:`BatchFleetSystem` of B episodes, or (B = 1)
+    on a :class:`FleetSystem`, the deployed case."""
 
-    def __init__(self, model: RecurrentGNN, city: City, lookahead: int) -> None:
-        self.model, self.city, self.lookahead = model, city, lookahead
+    def __init__(self, model: RecurrentGNN, city: City, lookahead: int, num_trials: int = 1) -> None:
+        self.model, self.city, self.lookahead, self.num_trials = model, city, lookahead, num_trials
         self.scale = CityScale.of(city)
-        self.edge_index = torch.as_tensor(np.array(city.edge_index), dtype=torch.long)
-        self.memory = model.initial_memory(city.n_regions)  # a new trial: nothing known yet
+        self.graph = DenseGraph(torch.tensor(np.array(city.edge_index), dtype=torch.long), city.n_regions)
+        self.memory = model.initial_memory(city.n_regions, num_trials)  # a new trial: nothing known yet
         self.new_episode()
 
     def new_episode(self) -> None:
-        """Previous action and reward restart; the memory does not (that is the adaptation)."""
-        n = self.city.n_regions
-        self.prev_action, self.prev_reward = torch.zeros(n), torch.zeros(())
+        """Previous action and rewards restart; the memory does not (that is the adaptation)."""
+        b, n = self.num_trials, self.city.n_regions
+        self.prev_action, self.prev_region_reward, self.prev_reward = torch.zeros(b, n), torch.zeros(b, n), torch.zeros(b)
 
-    def act(self, system: FleetSystem, sample: bool) -> tuple[np.ndarray, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(weights (N,), log pi (), entropy (), value ()) and the memory moves one step."""
-        x = torch.as_tensor(task_features(system, self.scale, self.lookahead))
-        alpha, v, self.memory = self.model(x, self.prev_action, self.prev_reward, self.memory, self.edge_index)
+    def act(self, system: FleetSystem | BatchFleetSystem, sample: bool) -> tuple[np.ndarray, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(weights (B, N), log pi (B,), entropy (B,), value (B,)) and the memory moves one step."""
+        b, n = self.num_trials, self.city.n_regions
+        x = torch.as_tensor(task_features(system, self.scale, self.lookahead)).reshape(b, n, -1)
+        alpha, v, self.memory = self.model(x, self.prev_action, self.prev_region_reward, self.prev_reward, self.memory, self.graph)
         dist = dirichlet(alpha)
         if sample:
             y = dist.sample().clamp_min(1e-6)
-            y = y / y.sum()
+            y = y / y.sum(-1, keepdim=True)
         else:
-            y = alpha / alpha.sum()  # the Dirichlet mean, as every deterministic evaluation
-        self.prev_action = y.detach() * self.city.n_regions  # mean 1 per region in every city
-        return y.detach().numpy().astype(np.float64), dist.log_prob(y.detach()), dist.entropy(), v
+            y = alpha / alpha.sum(-1, keepdim=True)  # the Dirichlet mean, as every deterministic evaluation
+        y = y.detach()
+        self.prev_action = y * n  # mean 1 per region in every city
+        return y.numpy().astype(np.float64), dist.log_prob(y), dist.entropy(), v
 
-    def observe(self, reward: float) -> float:
-        """Feed the step's profit back (in per-city units); returns the scaled reward."""
-        r = reward / self.scale.reward
-        self.prev_reward = torch.tensor(r, dtype=torch.float32)
-        return r
+    def observe(self, region_reward: np.ndarray) -> np.ndarray:
+        """Feed the step's per-region rewards back (money, (B, N)) in per-city units; returns the
+        scaled team rewards (B,)."""
+        per_region = np.asarray(region_reward, dtype=np.float64).reshape(self.num_trials, self.city.n_regions)
+        team = per_region.sum(-1) / self.scale.reward
+        self.prev_region_reward = torch.as_tensor(per_region * (self.city.n_regions / self.scale.reward), dtype=torch.float32)
+        self.prev_reward = torch.as_tensor(team, dtype=torch.float32)
+        return team
 
 
 @dataclass
 class Trial:
-    """What a trial produced, one entry per control step (across its episodes), plus per-episode profit."""
+    """What B trials in lockstep produced: S = episodes x steps decisions each."""
 
-    logps: list[torch.Tensor]
-    entropies: list[torch.Tensor]
-    values: list[torch.Tensor]
-    rewards: list[float]  # scaled
-    profits: list[float]  # money, one per episode
+    logps: torch.Tensor  # (S, B)
+    entropies: torch.Tensor  # (S, B)
+    values: torch.Tensor  # (S, B)
+    rewards: np.ndarray  # (S, B) scaled team rewards
+    profits: np.ndarray  # (K, B) money of each episode, its first dispatch included
 
 
-def run_trial(agent: MetaAgent, system: FleetSystem, seeds: list[np.random.SeedSequence], sample: bool = True) -> Trial:
-    """Run one episode per seed on ``system`` with ``agent``'s memory carried across them."""
-    trial = Trial([], [], [], [], [])
-    for seed in seeds:
-        system.reset(seed)
+def run_trials(agent: MetaAgent, system: BatchFleetSystem, seeds: list[list[np.random.SeedSequence]], sample: bool = True) -> Trial:
+    """Episode k of trial b draws its demand from ``seeds[k][b]``; the memory is carried across the K episodes."""
+    logps, ents, values, rewards, profits = [], [], [], [], []
+    for row in seeds:
+        profit = system.reset(row).reward  # (B,) the first dispatch: before any decision
         agent.new_episode()
-        profit = 0.0
         while not system.done:
             w, logp, ent, v = agent.act(system, sample)
             out = system.step(system.targets_from_weights(w))
-            trial.logps.append(logp), trial.entropies.append(ent), trial.values.append(v)
-            trial.rewards.append(agent.observe(out.reward))
-            profit += out.reward
-        trial.profits.append(profit)
-    return trial
+            logps.append(logp), ents.append(ent), values.append(v)
+            rewards.append(agent.observe(out.region_reward))
+            profit = profit + out.reward
+        profits.append(profit)
+    return Trial(torch.stack(logps), torch.stack(ents), torch.stack(values), np.stack(rewards), np.stack(profits))
 
 
-def advantages(rewards: list[float], values: torch.Tensor, gamma: float, lam: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """GAE(lambda) over one trial (terminal at its end); returns (advantages, value targets), (S,)."""
-    v = values.detach().numpy()
-    adv, running = np.zeros(len(rewards), dtype=np.float32), 0.0
+def advantages(rewards: np.ndarray, values: torch.Tensor, gamma: float, lam: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """GAE(lambda) over trials (S, B), terminal at each trial's end; returns (advantages, value targets) (S, B)."""
+    v = values.detach().numpy().astype(np.float64)
+    adv, running = np.zeros_like(v), np.zeros(v.shape[1:])
     for t in reversed(range(len(rewards))):
         nxt = v[t + 1] if t + 1 < len(rewards) else 0.0
         running = rewards[t] + gamma * nxt - v[t] + gamma * lam * running
         adv[t] = running
-    adv_t = torch.as_tensor(adv)
+    adv_t = torch.as_tensor(adv, dtype=torch.float32)
     return adv_t, adv_t + values.detach()
 
 
@@ -185,11 +224,15 @@ class Args(C.RunArgs):
     conv: Literal["gcn", "sage"] = "sage"
     """message passing between regions' memories"""
     episodes: int = Field(20000, ge=1)
-    """training episodes in all (trials x trial_episodes)"""
+    """training episodes in all (updates x cities_per_update x num_envs x trial_episodes)"""
     trial_episodes: int = Field(6, ge=2, le=11)
     """episodes per trial on one city with memory carried; adaptation uses one fewer"""
-    trials_per_update: int = Field(2, ge=1)
-    """trials (cities) per gradient step"""
+    num_envs: int = Field(16, ge=1)
+    """trials of one city run in lockstep on the batched simulator (one (B, N, F) pass per step)"""
+    cities_per_update: int = Field(2, ge=1)
+    """cities drawn per gradient step, each running ``num_envs`` trials"""
+    shock_prob: float = Field(0.0, ge=0, le=1)
+    """share of the city draws that get a random demand shock for their trials (:func:`random_shock`)"""
     lr: float = Field(1e-3, gt=0)
     """Adam learning rate (actor and critic share the recurrent trunk)"""
     gae_lambda: float = Field(0.95, ge=0, le=1)
@@ -200,14 +243,8 @@ class Args(C.RunArgs):
     """weight of the policy entropy bonus"""
     max_grad_norm: float = Field(1.0, gt=0)
     """gradient clipping (recurrent nets need it tight)"""
-    bc_trials: int = Field(0, ge=0)
-    """warm start: MPC-Forecast trials per training city to imitate before RL² (0: none)"""
-    bc_epochs: int = Field(20, ge=1)
-    """passes over the demonstrations"""
-    bc_lr: float = Field(3e-3, gt=0)
-    """Adam learning rate of the warm start"""
     val_cities: list[str] = Field(default_factory=lambda: ["porto", "nyc_man_north", "shenzhen_north", "washington_dc"], min_length=1)
-    """training cities whose adapted profit (validation seeds) picks the best model"""
+    """training cities whose adapted profit (``eval_episodes`` trials each, validation seeds) picks the best model"""
     eval_every: int = Field(600, ge=1)
     """episodes between validations (and training-state saves)"""
     run_dir: str = "runs/meta"
@@ -215,7 +252,8 @@ class Args(C.RunArgs):
 
     def ignored_keys(self) -> dict[str, str]:
         return {"actor": "meta-RL always uses the recurrent GNN", "mode": "meta-RL is centralised",
-                "central_critic": "meta-RL is centralised"}  # fmt: skip
+                "central_critic": "meta-RL is centralised", "critic_time": "the recurrent critic reads t / horizon already",
+                "init_actor": "meta-RL starts its recurrent model from scratch"}  # fmt: skip
 
 
 def _check_tasks(args: Args) -> None:
@@ -226,83 +264,16 @@ def _check_tasks(args: Args) -> None:
         raise ConfigError(f"meta-RL training cities include held-out {sorted(set(leaked))}; the study tests on them")
 
 
-def validate(model: RecurrentGNN, args: Args, systems: dict[str, FleetSystem]) -> float:
-    """Mean scaled reward of the last (deterministic) episode of a trial on each validation city."""
-    scores = []
+def validate(model: RecurrentGNN, args: Args, cities: dict[str, City]) -> float:
+    """Mean scaled profit of the last (deterministic) episode of ``eval_episodes`` trials on each validation city."""
+    scores, b = [], args.eval_episodes
     with torch.no_grad():
         for name in args.val_cities:
-            system = systems[name]
-            agent = MetaAgent(model, system.city, args.lookahead)
-            adapt = [adapt_seed(args.eval_seed, k) for k in range(args.trial_episodes - 1)]
-            run_trial(agent, system, adapt, sample=True)
-            last = run_trial(agent, system, [np.random.SeedSequence([args.eval_seed, 0])], sample=False)
-            scores.append(sum(last.rewards))
+            agent, system = MetaAgent(model, cities[name], args.lookahead, b), BatchFleetSystem(cities[name], b)
+            run_trials(agent, system, [[adapt_seed(args.eval_seed, k, j) for j in range(b)] for k in range(args.trial_episodes - 1)])
+            last = run_trials(agent, system, [[np.random.SeedSequence([args.eval_seed, j]) for j in range(b)]], sample=False)
+            scores.append(float(last.profits.mean()) / (cities[name].horizon * agent.scale.reward))
     return float(np.mean(scores))
-
-
-@dataclass
-class Demo:
-    """One demonstrated trial on one city: per step the model's inputs and MPC's distribution."""
-
-    city: str
-    x: list[torch.Tensor]  # (N, F) each
-    prev_action: list[torch.Tensor]  # (N,)
-    prev_reward: list[torch.Tensor]  # ()
-    target: list[torch.Tensor]  # (N,) MPC's desired share of the idle fleet per region
-    returns: torch.Tensor  # (S,) discounted scaled returns over the trial
-
-
-def demonstrate(args: Args, systems: dict[str, FleetSystem]) -> list[Demo]:
-    """MPC-Forecast trials (``trial_episodes`` episodes each) on every training city, training streams."""
-    from marl_amod.baselines.mpc import MPCForecast
-
-    demos, mpc = [], MPCForecast()
-    for c, name in enumerate(args.cities):
-        system, scale = systems[name], CityScale.of(systems[name].city)
-        n = system.city.n_regions
-        for trial in range(args.bc_trials):
-            demo, rewards = Demo(name, [], [], [], [], torch.zeros(0)), []
-            for k in range(args.trial_episodes):
-                episode = 10**6 + (c * args.bc_trials + trial) * args.trial_episodes + k  # apart from the RL² streams
-                system.reset(train_seed(args.seed, episode))
-                mpc.reset(system, np.random.default_rng([args.seed, episode]))
-                prev_a, prev_r = torch.zeros(n), torch.zeros(())
-                while not system.done:
-                    target = mpc.target(system).astype(np.float64)
-                    share = target / target.sum() if target.sum() > 0 else np.full(n, 1.0 / n)
-                    demo.x.append(torch.as_tensor(task_features(system, scale, args.lookahead)))
-                    demo.prev_action.append(prev_a), demo.prev_reward.append(prev_r), demo.target.append(torch.as_tensor(share, dtype=torch.float32))
-                    r = system.step(system.targets_from_weights(share)).reward / scale.reward
-                    prev_a, prev_r = torch.as_tensor(share * n, dtype=torch.float32), torch.tensor(r, dtype=torch.float32)
-                    rewards.append(r)
-            demo.returns = advantages(rewards, torch.zeros(len(rewards)), args.gamma, 1.0)[1]
-            demos.append(demo)
-    return demos
-
-
-def imitate(model: RecurrentGNN, demos: list[Demo], args: Args, systems: dict[str, FleetSystem]) -> float:
-    """Fit the policy to MPC's distributions (Dirichlet NLL) and the critic to the returns; last epoch's loss."""
-    opt = torch.optim.Adam(model.parameters(), lr=args.bc_lr)
-    edges = {name: torch.as_tensor(np.array(s.city.edge_index), dtype=torch.long) for name, s in systems.items()}
-    order = np.random.default_rng([args.seed, 23])
-    for _ in range(args.bc_epochs):
-        total = 0.0
-        for i in order.permutation(len(demos)):
-            demo = demos[i]
-            memory = model.initial_memory(demo.x[0].shape[0])
-            nll, values = [], []
-            for x, a, r, y in zip(demo.x, demo.prev_action, demo.prev_reward, demo.target, strict=True):
-                alpha, v, memory = model(x, a, r, memory, edges[demo.city])
-                y = y.clamp_min(1e-3)
-                nll.append(-dirichlet(alpha).log_prob(y / y.sum()) / x.shape[0])  # per region: cities differ in N
-                values.append(v)
-            loss = torch.stack(nll).mean() + args.value_coef * F.smooth_l1_loss(torch.stack(values), demo.returns)
-            opt.zero_grad()
-            loss.backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), args.max_grad_norm)
-            opt.step()
-            total += loss.item()
-    return total / max(len(demos), 1)
 
 
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
@@ -310,10 +281,11 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     _check_tasks(args)
     torch.set_num_threads(args.threads)
     C.seed_everything(args.seed)
-    systems = {name: FleetSystem(load_city(name)) for name in dict.fromkeys([*args.cities, *args.val_cities])}
+    cities = {name: load_city(name) for name in dict.fromkeys([*args.cities, *args.val_cities])}
+    systems = {name: BatchFleetSystem(cities[name], args.num_envs) for name in args.cities}  # reused: the coordinator caches per city
     model = RecurrentGNN(n_task_features(args.lookahead), args.hidden, args.conv)
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
-    rng = np.random.default_rng([args.seed, 17])  # which city each trial draws
+    rng = np.random.default_rng([args.seed, 17])  # which city (and shock) each draw gets
 
     start_ep, prior_wall, best = 0, 0.0, C.BestActor.of(model)
     if resume:
@@ -324,11 +296,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     log = C.Logger(args.run_dir, resume_from=start_ep if resume else None)
     timer = C.Timer(prior_wall)
     done_ep = ep = start_ep
-    if args.bc_trials and not resume:
-        demos = demonstrate(args, systems)
-        log.log(0, **{"bc/loss": imitate(model, demos, args, systems), "bc/episodes": len(demos) * args.trial_episodes})
-        best = C.BestActor(validate(model, args, systems), copy.deepcopy(model.state_dict()))
-        log.log(0, **{"eval/scaled_return": best.value, "time/wall_s": timer()})
+    b, k_eps = args.num_envs, args.trial_episodes
+    per_update = args.cities_per_update * b * k_eps
 
     def save() -> tuple[Path, int]:
         path = C.state_path(args)
@@ -338,22 +307,24 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
 
     with C.interruptible(save):
         while ep < args.episodes:
-            losses, profits, rewards = [], [], []
-            for _ in range(args.trials_per_update):
+            losses, profits, rewards, shocked = [], [], [], 0
+            for _ in range(args.cities_per_update):
                 name = args.cities[int(rng.integers(len(args.cities)))]
-                system = systems[name]
-                agent = MetaAgent(model, system.city, args.lookahead)
-                seeds = [train_seed(args.seed, ep + k) for k in range(args.trial_episodes)]
-                trial = run_trial(agent, system, seeds, sample=True)
-                ep += args.trial_episodes
-                values = torch.stack(trial.values)  # (S,) S = trial_episodes x horizon
-                adv, target = advantages(trial.rewards, values, args.gamma, args.gae_lambda)
+                city, system = cities[name], systems[name]
+                if args.shock_prob and rng.random() < args.shock_prob:
+                    city = random_shock(city, rng)
+                    system, shocked = BatchFleetSystem(city, b), shocked + 1
+                agent = MetaAgent(model, city, args.lookahead, b)
+                # episode k of trial j: training stream ep + k * B + j, each used once
+                trial = run_trials(agent, system, [[train_seed(args.seed, ep + k * b + j) for j in range(b)] for k in range(k_eps)])
+                ep += b * k_eps
+                adv, target = advantages(trial.rewards, trial.values, args.gamma, args.gae_lambda)
                 adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-                loss = (-(torch.stack(trial.logps) * adv).mean() + args.value_coef * F.smooth_l1_loss(values, target)
-                        - args.entropy_coef * torch.stack(trial.entropies).mean())  # fmt: skip
+                loss = (-(trial.logps * adv).mean() + args.value_coef * F.smooth_l1_loss(trial.values, target)
+                        - args.entropy_coef * trial.entropies.mean())  # fmt: skip
                 losses.append(loss)
-                profits.append(trial.profits[-1] / (system.city.horizon * agent.scale.reward))
-                rewards.append(float(np.mean(trial.rewards)))
+                profits.append(float(trial.profits[-1].mean()) / (city.horizon * agent.scale.reward))
+                rewards.append(float(trial.rewards.mean()))
             opt.zero_grad()
             total = torch.stack(losses).mean()
             total.backward()
@@ -362,10 +333,10 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
             done_ep = ep
 
             stats = {"train/last_episode_scaled_profit": float(np.mean(profits)), "train/scaled_reward": float(np.mean(rewards)),
-                     "loss/total": total.item()}  # fmt: skip
-            per_update = args.trials_per_update * args.trial_episodes
-            if ep // args.eval_every != (ep - per_update) // args.eval_every or ep >= args.episodes:
-                stats["eval/scaled_return"] = val = validate(model, args, systems)
+                     "train/shocked_cities": shocked, "loss/total": total.item()}  # fmt: skip
+            out_of_time = bool(args.time_limit_s) and timer() > args.time_limit_s  # validate the last model too
+            if C.crossed(ep, per_update, args.eval_every) or ep >= args.episodes or out_of_time:
+                stats["eval/scaled_return"] = val = validate(model, args, cities)
                 if val > best.value:
                     best = C.BestActor(val, copy.deepcopy(model.state_dict()))
                 save()
@@ -373,7 +344,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
             log.log(ep, **stats)
             if progress is not None:
                 progress(ep, args.episodes, stats)
-            if args.time_limit_s and timer() > args.time_limit_s:
+            if out_of_time:
                 break
 
     log.close()
@@ -410,9 +381,9 @@ def _finish(args: Args, model: RecurrentGNN, wall_s: float, episodes: int, confi
 # --------------------------------------------------------------------------------------------
 # Adaptation to a new city: K episodes with memory, no gradient step
 # --------------------------------------------------------------------------------------------
-def adapt_seed(seed: int, episode: int) -> np.random.SeedSequence:
-    """Demand of adaptation episode k: neither a report stream (seed, k) nor a training stream."""
-    return np.random.SeedSequence([seed, episode, 4243])
+def adapt_seed(seed: int, episode: int, trial: int = 0) -> np.random.SeedSequence:
+    """Demand of adaptation episode k (of trial j): neither a report stream (seed, k) nor a training stream."""
+    return np.random.SeedSequence([seed, episode, 4243] + ([trial] if trial else []))
 
 
 class MetaPolicy(WeightPolicy):
@@ -426,16 +397,16 @@ class MetaPolicy(WeightPolicy):
         super().reset(system, rng)
         self.agent.memory = self.adapted.clone()
         self.agent.new_episode()
-        self._last: float | None = None
+        self._last: tuple[np.ndarray, np.ndarray] | None = None
 
     @torch.no_grad()
     def weights(self, system: FleetSystem) -> np.ndarray:
-        totals = system.sim.totals
-        booked = float((totals.revenue - totals.trip_cost - totals.rebalancing_cost).sum())
-        if self._last is not None:  # the step just taken: its dispatch profit minus its rebalancing cost
-            self.agent.observe(booked - self._last)
+        totals = system.sim.totals  # booked as BatchFleetSystem books a step: profit and cost apart
+        booked = (totals.revenue - totals.trip_cost, totals.rebalancing_cost.copy())
+        if self._last is not None:  # the step just taken: each region's dispatch profit minus its rebalancing cost
+            self.agent.observe((booked[0] - self._last[0]) - (booked[1] - self._last[1]))
         self._last = booked
-        return self.agent.act(system, sample=False)[0]
+        return self.agent.act(system, sample=False)[0][0]
 
 
 @torch.no_grad()
@@ -443,7 +414,7 @@ def adapt(model: RecurrentGNN, city: City, episodes: int, lookahead: int, seed: 
     """Run ``episodes`` adaptation episodes in ``city`` (memory carried, no gradient) -> the policy."""
     model.eval()
     agent = MetaAgent(model, city, lookahead)
-    run_trial(agent, FleetSystem(city), [adapt_seed(seed, k) for k in range(episodes)], sample=True)
+    run_trials(agent, BatchFleetSystem(city, 1), [[adapt_seed(seed, k)] for k in range(episodes)], sample=True)
     return MetaPolicy(agent)
 
 

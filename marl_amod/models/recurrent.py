@@ -1,27 +1,37 @@
 """A recurrent graph policy for meta-RL through recurrence (RL², Duan et al. 2016).
 
 Every region keeps a GRU memory that reads, each control step, the region's (scaled) features,
-the share of the fleet the previous action asked of it and the previous team reward. The memory
-is *not* reset between the episodes of a trial on one city, so what it learned about this city
-(how the fleet, demand and rewards respond) carries into the next episode: adaptation without a
-gradient step. Message passing between regions follows the memory, so each region's action sees
-its neighbours' memories too. The same weights act on every region (size-agnostic): one policy
-serves cities of 10 to 23 regions.
+the share of the fleet the previous action asked of it, the previous reward *of that region*
+(the profit of the trips that left it, minus its rebalancing cost) and the previous team reward.
+The memory is *not* reset between the episodes of a trial on one city, so what it learned about
+this city (how the fleet, demand and rewards respond, and where and when demand departs from the
+forecast) carries into the next episode: adaptation without a gradient step. The per-region
+reward is what lets a region's memory notice a local shock (a special event) that the team
+reward only shows as a blur. Message passing between regions follows the memory, so each
+region's action sees its neighbours' memories too. The same weights act on every region
+(size-agnostic): one policy serves cities of 10 to 23 regions.
 
-Shapes: N regions, F features, H hidden units, E directed edges.
+Shapes: B trials in lockstep (optional leading axes), N regions, F features, H hidden units.
+The graph is ``edge_index`` (2, E) or a :class:`~marl_amod.models.dense.DenseGraph` (one matmul
+per layer over the whole batch, what meta-training uses).
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from marl_amod.models.gnn import ConvKind, concentration, make_conv, mlp_head
+from marl_amod.models.dense import DenseGraph
+from marl_amod.models.gnn import ConvKind, Graph, batch_edge_index, concentration, make_conv, mlp_head
+
+N_FEEDBACK = 3  # previous action share, previous region reward, previous team reward
 
 
 class RecurrentGNN(nn.Module):
-    """(features, previous action, previous reward, memory) -> (concentrations, value, memory).
+    """(features, previous action, previous rewards, memory) -> (concentrations, value, memory).
 
     Actor and critic share the memory and the message passing (one trunk, two heads): the value
     of a state depends on what the memory has inferred about the city as much as the action does.
@@ -30,25 +40,33 @@ class RecurrentGNN(nn.Module):
     def __init__(self, n_features: int, hidden: int = 64, conv: ConvKind = "sage") -> None:
         super().__init__()
         self.hidden = hidden
-        self.encode = nn.Sequential(nn.Linear(n_features + 2, hidden), nn.ReLU())
+        self.encode = nn.Sequential(nn.Linear(n_features + N_FEEDBACK, hidden), nn.ReLU())
         self.memory = nn.GRUCell(hidden, hidden)
         self.conv = make_conv(conv, hidden)
         self.actor = mlp_head(2 * hidden, hidden)
         self.critic = mlp_head(2 * hidden, hidden)
 
-    def initial_memory(self, n_regions: int) -> torch.Tensor:
-        """(N, H) zeros: the memory at the start of a trial (a new city)."""
-        return torch.zeros(n_regions, self.hidden)
+    def initial_memory(self, n_regions: int, *lead: int) -> torch.Tensor:
+        """(*lead, N, H) zeros: the memory at the start of a trial (a new city)."""
+        return torch.zeros(*lead, n_regions, self.hidden)
 
     def forward(
-        self, x: torch.Tensor, prev_action: torch.Tensor, prev_reward: torch.Tensor, memory: torch.Tensor, edge_index: torch.Tensor
+        self, x: torch.Tensor, prev_action: torch.Tensor, prev_region_reward: torch.Tensor, prev_reward: torch.Tensor,
+        memory: torch.Tensor, graph: Graph,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """x (N, F), prev_action (N,), prev_reward () , memory (N, H) -> alpha (N,), value (), memory (N, H)."""
-        n = x.shape[0]
-        inputs = torch.cat([x, prev_action.view(n, 1), prev_reward.view(1, 1).expand(n, 1)], dim=1)  # (N, F + 2)
-        memory = self.memory(self.encode(inputs), memory)  # (N, H)
-        mixed = F.relu(self.conv(memory, edge_index))  # (N, H) neighbours' memories
-        z = torch.cat([memory, mixed], dim=1)  # (N, 2H)
-        alpha = concentration(self.actor(z).squeeze(-1))  # (N,)
-        value = self.critic(z).mean()  # () mean over regions: rewards are per-city scaled, so N-free
+        """x (..., N, F), prev_action (..., N), prev_region_reward (..., N), prev_reward (...),
+        memory (..., N, H) -> alpha (..., N), value (...), memory (..., N, H)."""
+        *lead, n, _ = x.shape
+        team = prev_reward.reshape(*lead, 1, 1).expand(*lead, n, 1)
+        inputs = torch.cat([x, prev_action.unsqueeze(-1), prev_region_reward.unsqueeze(-1), team], dim=-1)  # (..., N, F + 3)
+        flat = self.encode(inputs).reshape(-1, self.hidden)
+        memory = self.memory(flat, memory.reshape(-1, self.hidden)).reshape(*lead, n, self.hidden)  # (..., N, H)
+        if isinstance(graph, DenseGraph):
+            mixed = graph.conv(self.conv, memory)
+        else:  # torch-geometric: the batch as one graph of B copies
+            edges = batch_edge_index(graph, math.prod(lead), n) if lead else graph
+            mixed = self.conv(memory.reshape(-1, self.hidden), edges).reshape(*lead, n, self.hidden)
+        z = torch.cat([memory, F.relu(mixed)], dim=-1)  # (..., N, 2H): own memory, neighbours' memories
+        alpha = concentration(self.actor(z).squeeze(-1))  # (..., N)
+        value = self.critic(z).squeeze(-1).mean(-1)  # (...) mean over regions: rewards are per-city scaled, so N-free
         return alpha, value, memory
