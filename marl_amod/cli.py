@@ -277,11 +277,11 @@ def finetune_curve(
     policy: Annotated[Path, typer.Option(help="the offline policy to fine-tune (a bc/iql/cql .pt with its dataset on the card)")] = Path(
         "policies/bc_gnn_nyc_brooklyn_prop.pt"
     ),
-    episodes: Annotated[int, typer.Option(min=1, help="online episodes of each run (fine-tuned and scratch)")] = 3200,
-    num_envs: Annotated[int, typer.Option(min=1, help="episodes in lockstep, one A2C update each")] = 16,
-    eval_every: Annotated[int, typer.Option(min=1, help="episodes between validations")] = 160,
-    eval_episodes: Annotated[int, typer.Option(min=1)] = 5,
-    critic_warmup: Annotated[int, typer.Option(min=0, help="first fine-tuning updates that train the critic only")] = 20,
+    episodes: Annotated[int, typer.Option(min=1, help="online episodes of each run (fine-tuned and scratch)")] = 6000,
+    num_envs: Annotated[int, typer.Option(min=1, help="episodes in lockstep, one A2C update each")] = 4,
+    eval_every: Annotated[int, typer.Option(min=1, help="episodes between validations")] = 200,
+    eval_episodes: Annotated[int, typer.Option(min=1)] = 10,
+    critic_warmup: Annotated[int, typer.Option(min=0, help="first fine-tuning updates that train the critic only")] = 50,
     finetune_lr: Annotated[float, typer.Option(min=0, help="actor learning rate when fine-tuning")] = 1e-4,
     out: Annotated[Path, typer.Option(help="folder for finetune.json and finetune.png")] = Path("docs/offline"),
     run_root: Annotated[Path, typer.Option(help="the two runs' logs")] = Path("runs/finetune"),

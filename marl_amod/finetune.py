@@ -38,8 +38,8 @@ METRICS = ("eval/profit", "train/revenue", "train/rebalancing_cost")
 
 
 def finetune_curve(
-    policy: str, *, episodes: int = 3200, num_envs: int = 16, eval_every: int = 160, eval_episodes: int = 5, seed: int = 0,
-    lr_actor: float = 1e-3, finetune_lr_actor: float = 1e-4, critic_warmup: int = 20, run_root: str | Path = "runs/finetune",
+    policy: str, *, episodes: int = 6000, num_envs: int = 4, eval_every: int = 200, eval_episodes: int = 10, seed: int = 0,
+    lr_actor: float = 1e-3, finetune_lr_actor: float = 1e-4, critic_warmup: int = 50, run_root: str | Path = "runs/finetune",
     progress: a2c.C.Progress | None = None,
 ) -> dict[str, Any]:
     """Fine-tune ``policy`` (an offline policy file) online and train from scratch with the same budget;
