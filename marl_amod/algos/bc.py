@@ -2,8 +2,8 @@
 
 Read top to bottom: Args, then ``train``. The loss is :func:`marl_amod.algos.offline.imitation_loss`
 over minibatches of the dataset: the cross-entropy of the logged action under the Dirichlet mean
-alpha / sum(alpha) (what the deterministic policy plays) plus the likelihood of its spread
-(:mod:`marl_amod.algos.offline` has the data, both modes and the loop).
+alpha / sum(alpha), which is what the deterministic policy plays (:mod:`marl_amod.algos.offline`
+has the data, both modes and the loop).
 """
 
 from __future__ import annotations

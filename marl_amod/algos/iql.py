@@ -7,7 +7,7 @@ Read top to bottom: Args, then ``train``. IQL never queries Q at actions outside
 * Q(s, a) -> r + gamma (1 - done) V(s') (twin Q critics, Polyak-averaged targets);
 * actor: advantage-weighted regression, loss exp(beta (Q_targ(s, a) - V(s))) times the
   imitation loss of the logged action (:func:`marl_amod.algos.offline.imitation_loss`; the
-  paper's -log pi(a|s), with the mean fitted by cross-entropy), weights clipped at
+  cross-entropy of the logged action under the policy's mean, in place of -log pi(a|s)), weights clipped at
   ``max_weight``: behaviour cloning that leans towards the better actions.
 
 Critics read the global graph with the action as a node feature (as SAC's); the actor is the
