@@ -275,7 +275,7 @@ def train(
 @app.command("finetune-curve")
 def finetune_curve(
     policy: Annotated[Path, typer.Option(help="the offline policy to fine-tune (a bc/iql/cql .pt with its dataset on the card)")] = Path(
-        "policies/bc_gnn_nyc_brooklyn_prop.pt"
+        "policies/iql_gnn_nyc_brooklyn_prop.pt"
     ),
     episodes: Annotated[int, typer.Option(min=1, help="online episodes of each run (fine-tuned and scratch)")] = 6000,
     num_envs: Annotated[int, typer.Option(min=1, help="episodes in lockstep, one A2C update each")] = 4,
