@@ -71,7 +71,6 @@ def to_minari(data: OfflineDataset, dataset_id: str, *, card: dict[str, Any] | N
     view; ``card`` (the dataset card) adds the ED / MPC-Oracle references as Minari's score range."""
     minari = _need("minari", "minari")
     from gymnasium import spaces
-
     from minari.data_collector import EpisodeBuffer
 
     a = centralised_arrays(data)

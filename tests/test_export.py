@@ -38,7 +38,8 @@ def test_d3rlpy_trains_on_the_exported_dataset(data):
     ds = to_d3rlpy(data)
     assert ds.size() == 3 and sum(ep.size() for ep in ds.episodes) == len(data)
     bc = d3rlpy.algos.BCConfig(batch_size=8).create(device="cpu:0")
-    bc.fit(ds, n_steps=5, n_steps_per_epoch=5, show_progress=False, save_interval=10**9)
+    bc.fit(ds, n_steps=5, n_steps_per_epoch=5, show_progress=False, save_interval=10**9,
+           logger_adapter=d3rlpy.logging.NoopAdapterFactory())  # no d3rlpy_logs/ in the working directory
     assert bc.predict(ds.episodes[0].observations[:2]).shape == (2, 9)
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 import yaml
@@ -16,6 +17,7 @@ from marl_amod.errors import ConfigError
 from marl_amod.policies import make_policy
 from marl_amod.scenario import load_city
 
+ROOT = Path(__file__).resolve().parent.parent
 
 @pytest.fixture(scope="module")
 def offline_policy(tmp_path_factory) -> str:
@@ -84,7 +86,7 @@ def test_a_policy_without_a_dataset_is_refused(tmp_path, offline_policy):
     card = json.loads(open(offline_policy.replace(".pt", ".json")).read())
     assert card["dataset"]["policy"] == "prop"
     with pytest.raises(ConfigError, match="offline policy"):
-        finetune.finetune_curve("policies/a2c_gnn_synthetic.pt", episodes=2, num_envs=2, run_root=tmp_path)
+        finetune.finetune_curve(str(ROOT / "policies/a2c_gnn_synthetic.pt"), episodes=2, num_envs=2, run_root=tmp_path)
 
 
 def test_cli_finetune_curve(tmp_path, offline_policy):

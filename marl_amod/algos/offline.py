@@ -29,7 +29,6 @@ from marl_amod.algos import common as C
 from marl_amod.datasets import OfflineDataset, normalised_score, read_card
 from marl_amod.env.observations import split_local
 from marl_amod.errors import ConfigError, DataError
-from marl_amod.models import dirichlet
 from marl_amod.models.dense import DenseGraph
 from marl_amod.models.gnn import Graph
 from marl_amod.scenario import City
