@@ -272,6 +272,38 @@ def train(
         console.print(f"wrote {summary['policy']} (+ .json, .md); logs in {args.run_dir}")
 
 
+@app.command("finetune-curve")
+def finetune_curve(
+    policy: Annotated[Path, typer.Option(help="the offline policy to fine-tune (a bc/iql/cql .pt with its dataset on the card)")] = Path(
+        "policies/iql_gnn_nyc_brooklyn_prop.pt"
+    ),
+    episodes: Annotated[int, typer.Option(min=1, help="online episodes of each run (fine-tuned and scratch)")] = 6000,
+    num_envs: Annotated[int, typer.Option(min=1, help="episodes in lockstep, one A2C update each")] = 4,
+    eval_every: Annotated[int, typer.Option(min=1, help="episodes between validations")] = 200,
+    eval_episodes: Annotated[int, typer.Option(min=1)] = 10,
+    critic_warmup: Annotated[int, typer.Option(min=0, help="first fine-tuning updates that train the critic only")] = 50,
+    finetune_lr: Annotated[float, typer.Option(min=0, help="actor learning rate when fine-tuning")] = 1e-4,
+    out: Annotated[Path, typer.Option(help="folder for finetune.json and finetune.png")] = Path("docs/offline"),
+    run_root: Annotated[Path, typer.Option(help="the two runs' logs")] = Path("runs/finetune"),
+    seed: Annotated[int, typer.Option(min=0)] = 0,
+    data_dir: DataDir = None,
+) -> None:
+    """Offline -> online: fine-tune an offline policy with A2C next to A2C from scratch; plot and numbers."""
+    from marl_amod import finetune
+
+    _use_data_dir(data_dir)
+    with progress_bar() as bar:
+        task = bar.add_task("A2C", total=episodes)
+        study = finetune.finetune_curve(
+            str(policy), episodes=episodes, num_envs=num_envs, eval_every=eval_every, eval_episodes=eval_episodes, seed=seed,
+            finetune_lr_actor=finetune_lr, critic_warmup=critic_warmup, run_root=run_root,
+            progress=lambda ep, total, stats: bar.update(task, completed=ep),
+        )  # fmt: skip
+    paths = finetune.write(study, out)
+    console.print(finetune.describe(study), soft_wrap=True)
+    console.print(f"wrote {paths[0]} and {paths[1]}")
+
+
 def _train_rllib(config: Path, num_env_runners: int | None, address: str | None) -> None:
     """PPO with one shared GNN module on Ray RLlib; a log line per iteration, the policy in the native format."""
     from marl_amod.integrations.rllib import load_rllib_config, train_rllib

@@ -131,3 +131,30 @@ def test_online_runs_warm_start_from_an_offline_policy(tmp_path, tiny):
     summary = a2c.train(a2c.Args(scenario=tiny[0], hidden=8, episodes=2, episodes_per_update=2, eval_every=2, eval_episodes=1,
                                  final_eval_episodes=1, run_dir=str(tmp_path / "a2c"), init_actor=str(tmp_path / "p.pt")))
     assert summary["card"]["args"]["init_actor"] == str(tmp_path / "p.pt")
+
+
+class _FreeAlpha(torch.nn.Module):
+    """An 'actor' whose concentrations are free parameters, the same in every state."""
+
+    def __init__(self, n: int) -> None:
+        super().__init__()
+        self.raw = torch.nn.Parameter(torch.zeros(n))
+
+    def forward(self, x, graph):
+        return torch.nn.functional.softplus(self.raw).expand(x.shape[0], -1) + 1e-3
+
+
+def test_imitation_loss_fits_the_mean_action_of_sparse_targets():
+    """Logged targets are mostly zeros (INF, DTV, MPC): the fitted Dirichlet mean, which the
+    deterministic policy plays, must be their average, as the cross-entropy makes it."""
+    y = torch.tensor([[1.0, 0, 0]] * 6 + [[0, 0.5, 0.5]] * 2)  # average (0.75, 0.125, 0.125)
+    b = O.Batch({"x": torch.zeros(8, 3, 1), "action": y})
+    actor = _FreeAlpha(3)
+    opt = torch.optim.Adam(actor.parameters(), lr=0.05)
+    for _ in range(600):
+        loss = O.imitation_loss(actor, b, None, local=False).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    alpha = actor(b["x"], None)[0].detach()
+    assert (alpha / alpha.sum()).tolist() == pytest.approx([0.75, 0.125, 0.125], abs=0.02)

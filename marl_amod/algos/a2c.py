@@ -49,6 +49,9 @@ class Args(C.RunArgs):
     """standardise the batch's returns before computing advantages (as RL4AMOD's A2C)"""
     entropy_coef: float = Field(0.0, ge=0)
     """weight of the policy entropy bonus"""
+    critic_warmup: int = Field(0, ge=0)
+    """first updates that train the critic only: a warm-started actor (``init_actor``) is not
+    pushed around by the advantages of a critic that has not learnt the values yet"""
     run_dir: str = "runs/a2c"
     """TensorBoard + CSV logs and the resumable training state"""
 
@@ -149,7 +152,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     with C.interruptible(save):
         while ep < args.episodes:
             # ---- collect a batch of whole episodes, num_envs at a time ----
-            logps, values, returns, ents, ep_rewards = [], [], [], [], []
+            logps, values, returns, ents, ep_rewards, ep_money = [], [], [], [], [], []
             for _ in range(args.episodes_per_update // rollout.num_envs):
                 obs = rollout.reset(train_seed(args.seed, ep)) if rollout.num_envs == 1 else rollout.reset(args.seed, ep)
                 steps: list[tuple[torch.Tensor, ...]] = []
@@ -165,6 +168,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                 logps.append(logp_t), values.append(v_t), ents.append(ent_t)
                 returns.append(torch.tensor(discounted_returns(r_te, args.gamma).T.reshape(-1), dtype=torch.float32))
                 ep_rewards.extend(r_te.sum(0) / args.reward_scale)
+                totals = rollout.system.sim.totals  # the episodes' books: revenue and rebalancing cost apart
+                ep_money.append((totals.revenue.sum(-1), totals.rebalancing_cost.sum(-1)))
                 ep += rollout.num_envs
             ret = torch.cat(returns)  # (E*T,)
             if args.normalize_returns:
@@ -175,17 +180,20 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
             # ---- one actor and one critic step ----
             loss_pi = -(torch.cat(logps) * adv).mean() - args.entropy_coef * torch.cat(ents).mean()
             loss_v = F.smooth_l1_loss(v, ret)
-            opt_a.zero_grad()
-            loss_pi.backward()
-            torch.nn.utils.clip_grad_norm_(actor.parameters(), args.max_grad_norm)
-            opt_a.step()
+            if ep > args.critic_warmup * args.episodes_per_update:  # after the critic-only warm-up
+                opt_a.zero_grad()
+                loss_pi.backward()
+                torch.nn.utils.clip_grad_norm_(actor.parameters(), args.max_grad_norm)
+                opt_a.step()
             opt_c.zero_grad()
             loss_v.backward()
             torch.nn.utils.clip_grad_norm_(critic.parameters(), args.max_grad_norm)
             opt_c.step()
             done_ep = ep
 
-            stats = {"train/episode_reward": float(np.mean(ep_rewards)), "loss/policy": loss_pi.item(), "loss/value": loss_v.item()}
+            revenue, reb_cost = (float(np.mean(np.concatenate([np.atleast_1d(m[i]) for m in ep_money]))) for i in (0, 1))
+            stats = {"train/episode_reward": float(np.mean(ep_rewards)), "train/revenue": revenue, "train/rebalancing_cost": reb_cost,
+                     "loss/policy": loss_pi.item(), "loss/value": loss_v.item()}  # fmt: skip
             # ---- periodic validation, best-actor selection, resumable state ----
             out_of_time = bool(args.time_limit_s) and timer() > args.time_limit_s  # validate the last actor too
             if C.crossed(ep, args.episodes_per_update, args.eval_every) or ep >= args.episodes or out_of_time:

@@ -1,9 +1,9 @@
-"""Behaviour cloning: maximise the likelihood of the logged joint action under the Dirichlet policy.
+"""Behaviour cloning: imitate the logged joint action with the Dirichlet policy.
 
-Read top to bottom: Args, then ``train``. The loss is -log Dir(y; alpha(s)) over minibatches of
-the dataset (:mod:`marl_amod.algos.offline` has the data, both modes and the loop). A cloned
-policy is evaluated deterministically (the Dirichlet mean alpha / sum(alpha)), so a confident
-fit (large alpha) reproduces the behaviour policy's mean action.
+Read top to bottom: Args, then ``train``. The loss is :func:`marl_amod.algos.offline.imitation_loss`
+over minibatches of the dataset: the cross-entropy of the logged action under the Dirichlet mean
+alpha / sum(alpha), which is what the deterministic policy plays (:mod:`marl_amod.algos.offline`
+has the data, both modes and the loop).
 """
 
 from __future__ import annotations
@@ -37,12 +37,12 @@ def make_actor(args: O.OfflineArgs, city) -> torch.nn.Module:
 
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
     """Clone the dataset's behaviour policy; keep the best validation actor; write its card."""
-    city, data, local, edge_index, gen = O.setup(args)
+    city, data, local, graph, gen = O.setup(args)
     actor = make_actor(args, city)
     opt = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
 
     def update(b: O.Batch, step: int) -> dict[str, float]:
-        loss = -O.log_prob(actor, b, edge_index, local).mean()  # negative log-likelihood of the logged action
+        loss = O.imitation_loss(actor, b, graph, local).mean()
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(actor.parameters(), args.max_grad_norm)

@@ -60,7 +60,7 @@ class Args(O.OfflineArgs):
 
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
     """Learn from the dataset with CQL; keep the best validation actor; write its card."""
-    city, data, local, edge_index, gen = O.setup(args)
+    city, data, local, graph, gen = O.setup(args)
     n, k = city.n_regions, args.n_actions
     actor = make_actor(args, city)
     critic = TwinQ(feature_count(args.lookahead), args.critic_hidden, "sage" if local else args.conv)
@@ -73,17 +73,17 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         bsz = b["x"].shape[0]
         # ---- twin Q: soft Bellman backup ----
         with torch.no_grad():
-            y2, logp2 = policy_sample(actor, b, "next_", edge_index, local)
-            q_next = torch.min(*critic_targ(b["next_x"], edge_index, y2))  # (B,)
+            y2, logp2 = policy_sample(actor, b, "next_", graph, local)
+            q_next = torch.min(*critic_targ(b["next_x"], graph, y2))  # (B,)
             backup = b["reward"] + args.gamma * (1 - b["done"]) * (q_next - args.alpha * logp2)
             # ---- actions for the penalty: K uniform on the simplex, K from pi(.|s) ----
             rep = O.Batch({key: val.repeat_interleave(k, 0) for key, val in b.items()})  # (B*K, ...)
-            y_pi, _ = policy_sample(actor, rep, "", edge_index, local)  # (B*K, N)
+            y_pi, _ = policy_sample(actor, rep, "", graph, local)  # (B*K, N)
             y_rand = uniform.sample((bsz * k,))  # (B*K, N)
-        q1, q2 = critic(b["x"], edge_index, b["action"])
+        q1, q2 = critic(b["x"], graph, b["action"])
         loss_bellman = F.mse_loss(q1, backup) + F.mse_loss(q2, backup)
         x_all = torch.cat([rep["x"], rep["x"]])  # (2*B*K, N, F)
-        q1_all, q2_all = critic(x_all, edge_index, torch.cat([y_rand, y_pi]))  # (2*B*K,)
+        q1_all, q2_all = critic(x_all, graph, torch.cat([y_rand, y_pi]))  # (2*B*K,)
         penalty = 0.0
         for q_all, q_data in ((q1_all, q1), (q2_all, q2)):
             per_state = torch.cat([q_all[: bsz * k].view(bsz, k), q_all[bsz * k :].view(bsz, k)], 1)  # (B, 2K)
@@ -95,11 +95,11 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         opt_c.step()
         # ---- actor: BC warm start, then min Q - alpha log pi (critics frozen) ----
         if step < args.bc_steps:
-            loss_pi = -O.log_prob(actor, b, edge_index, local).mean()
+            loss_pi = O.imitation_loss(actor, b, graph, local).mean()
         else:
             critic.requires_grad_(False)
-            y, logp = policy_sample(actor, b, "", edge_index, local)
-            loss_pi = (args.alpha * logp - torch.min(*critic(b["x"], edge_index, y))).mean()
+            y, logp = policy_sample(actor, b, "", graph, local)
+            loss_pi = (args.alpha * logp - torch.min(*critic(b["x"], graph, y))).mean()
             critic.requires_grad_(True)
         opt_a.zero_grad()
         loss_pi.backward()

@@ -5,8 +5,10 @@ Read top to bottom: Args, then ``train``. IQL never queries Q at actions outside
 * V(s) -> the tau-expectile of min Q_targ(s, a) over logged actions (tau > 0.5: an upper
   expectile, i.e. close to the best action the data shows in s);
 * Q(s, a) -> r + gamma (1 - done) V(s') (twin Q critics, Polyak-averaged targets);
-* actor: advantage-weighted regression, loss -exp(beta (Q_targ(s, a) - V(s))) log pi(a|s),
-  weights clipped at ``max_weight``: behaviour cloning that leans towards the better actions.
+* actor: advantage-weighted regression, loss exp(beta (Q_targ(s, a) - V(s))) times the
+  imitation loss of the logged action (:func:`marl_amod.algos.offline.imitation_loss`; the
+  cross-entropy of the logged action under the policy's mean, in place of -log pi(a|s)), weights clipped at
+  ``max_weight``: behaviour cloning that leans towards the better actions.
 
 Critics read the global graph with the action as a node feature (as SAC's); the actor is the
 paper's GNN (centralised) or the local one (decentralised, per-agent Gamma; see
@@ -58,7 +60,7 @@ def expectile_loss(diff: torch.Tensor, tau: float) -> torch.Tensor:
 
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
     """Learn from the dataset with IQL; keep the best validation actor; write its card."""
-    city, data, local, edge_index, gen = O.setup(args)
+    city, data, local, graph, gen = O.setup(args)
     f = feature_count(args.lookahead)
     conv = "sage" if local else args.conv
     actor = make_actor(args, city)
@@ -78,19 +80,19 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     def update(b: O.Batch, step: int) -> dict[str, float]:
         # ---- V: expectile of the target Q over the logged actions ----
         with torch.no_grad():
-            q_min = torch.min(*q_targ(b["x"], edge_index, b["action"]))  # (B,)
-        v_s = v(b["x"], edge_index)  # (B,)
+            q_min = torch.min(*q_targ(b["x"], graph, b["action"]))  # (B,)
+        v_s = v(b["x"], graph)  # (B,)
         loss_v = expectile_loss(q_min - v_s, args.expectile)
         step_on(opt_v, loss_v, v)
         # ---- Q: one-step backup through V(s') (no action outside the data) ----
         with torch.no_grad():
-            backup = b["reward"] + args.gamma * (1 - b["done"]) * v(b["next_x"], edge_index)
-        q1, q2 = q(b["x"], edge_index, b["action"])
+            backup = b["reward"] + args.gamma * (1 - b["done"]) * v(b["next_x"], graph)
+        q1, q2 = q(b["x"], graph, b["action"])
         loss_q = F.mse_loss(q1, backup) + F.mse_loss(q2, backup)
         step_on(opt_q, loss_q, q)
         # ---- actor: advantage-weighted log-likelihood of the logged action ----
         weight = torch.exp(args.beta * (q_min - v_s.detach())).clamp(max=args.max_weight)  # (B,)
-        loss_pi = -(weight * O.log_prob(actor, b, edge_index, local)).mean()
+        loss_pi = (weight * O.imitation_loss(actor, b, graph, local)).mean()
         step_on(opt_a, loss_pi, actor)
         with torch.no_grad():
             for p, pt in zip(q.parameters(), q_targ.parameters(), strict=True):

@@ -1,0 +1,94 @@
+"""The offline datasets in other libraries' formats, so their algorithms run on our data.
+
+Both libraries are single-agent, so both get the centralised view: the observation is
+``env.state()`` (N F + 3), the action the joint action (N,) on the simplex (the env's normalised
+weights: what the Dirichlet policy outputs), the reward the team reward; terminations and
+truncations stay apart (the env never terminates; the horizon truncates).
+
+* :func:`to_d3rlpy` -> ``d3rlpy.dataset.MDPDataset`` (``pip install "marl-amod[d3rlpy]"``;
+  d3rlpy 2.8 pins gymnasium 1.0.0, so it installs beside the base package, not beside the
+  rllib or torchrl extras, which need gymnasium >= 1.1).
+* :func:`to_minari` -> a Minari dataset (``pip install "marl-amod[minari]"``; Minari 0.5 has no
+  multi-agent datasets). It is written where Minari keeps datasets (``MINARI_DATASETS_PATH``).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from marl_amod.datasets import OfflineDataset, action_share
+from marl_amod.errors import ConfigError
+
+
+def centralised_arrays(data: OfflineDataset) -> dict[str, np.ndarray]:
+    """(T, D) observations and next observations, (T, N) actions, (T,) rewards, terminations, truncations."""
+    return {
+        "observations": np.asarray(data.states, dtype=np.float32),
+        "next_observations": np.asarray(data.next_states, dtype=np.float32),
+        "actions": action_share(data.actions).astype(np.float32),
+        "rewards": np.asarray(data.team_rewards, dtype=np.float32),
+        "terminations": np.asarray(data.terminations, dtype=bool),
+        "truncations": np.asarray(data.truncations, dtype=bool),
+    }
+
+
+def episodes(data: OfflineDataset) -> list[slice]:
+    """Row ranges of the episodes, in the order they were logged (rows are episode-major)."""
+    ids = np.asarray(data.episode_ids)
+    starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
+    ends = np.r_[starts[1:], len(ids)]
+    return [slice(int(a), int(b)) for a, b in zip(starts, ends, strict=True)]
+
+
+def _need(module: str, extra: str) -> Any:
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError:
+        raise ConfigError(f"exporting to {extra} needs it installed: pip install \"marl-amod[{extra}]\"") from None
+
+
+def to_d3rlpy(data: OfflineDataset) -> Any:
+    """A ``d3rlpy.dataset.MDPDataset`` of the centralised view (continuous actions on the simplex).
+
+    d3rlpy marks an episode's end by ``terminals`` (a true end: no bootstrap) or ``timeouts``
+    (cut by the horizon: bootstrap); our episodes end by truncation, so they are timeouts.
+    """
+    d3rlpy = _need("d3rlpy", "d3rlpy")
+    a = centralised_arrays(data)
+    return d3rlpy.dataset.MDPDataset(
+        observations=a["observations"], actions=a["actions"], rewards=a["rewards"][:, None],
+        terminals=a["terminations"].astype(np.float32), timeouts=a["truncations"].astype(np.float32),
+        action_space=d3rlpy.constants.ActionSpace.CONTINUOUS,
+    )  # fmt: skip
+
+
+def to_minari(data: OfflineDataset, dataset_id: str, *, card: dict[str, Any] | None = None) -> Any:
+    """A Minari dataset ``dataset_id`` (e.g. ``"marl_amod/nyc_brooklyn/prop-v0"``) of the centralised
+    view; ``card`` (the dataset card) adds the ED / MPC-Oracle references as Minari's score range."""
+    minari = _need("minari", "minari")
+    from gymnasium import spaces
+    from minari.data_collector import EpisodeBuffer
+
+    a = centralised_arrays(data)
+    buffers = []
+    for k, rows in enumerate(episodes(data)):
+        obs = np.concatenate([a["observations"][rows], a["next_observations"][rows][-1:]])  # (T + 1, D)
+        buffers.append(EpisodeBuffer(id=k, observations=obs, actions=a["actions"][rows], rewards=a["rewards"][rows],
+                                     terminations=a["terminations"][rows], truncations=a["truncations"][rows]))  # fmt: skip
+    refs = (card or {}).get("reference_scores", {})
+    scores = {}
+    if refs:
+        scores = {"ref_min_score": refs["equal-distribution"]["mean"], "ref_max_score": refs["mpc-oracle"]["mean"]}
+    meta = data.meta
+    return minari.create_dataset_from_buffers(
+        dataset_id, buffers, algorithm_name=str(meta.get("policy")), author="marl_amod", data_format="arrow",
+        observation_space=spaces.Box(-np.inf, np.inf, a["observations"].shape[1:], np.float32),
+        action_space=spaces.Box(0.0, 1.0, a["actions"].shape[1:], np.float32),
+        description=f"marl_amod {meta.get('scenario')} logged by {meta.get('policy')}: centralised view (env.state(), joint action "
+                    "on the simplex, team reward); the per-agent view is in the .npz (marl_amod.datasets)",
+        **scores,
+    )  # fmt: skip

@@ -1,0 +1,158 @@
+"""Offline -> online: fine-tune an offline policy with A2C next to A2C from scratch (the paper's figure).
+
+Both runs are :func:`marl_amod.algos.a2c.train` with the same budget, batch and training streams
+(episode k draws the same demand in both, so they are compared pair by pair); the fine-tuned one
+starts its actor from the offline policy (``init_actor``), trains its fresh critic alone for
+``critic_warmup`` updates (advantages from an untrained critic would push the actor off its
+start) and moves the actor with a smaller learning rate. Every ``eval_every`` episodes each actor
+is scored deterministically on the validation seeds (never the report seeds).
+
+What the study reports, as the paper does:
+
+* ``steps_to_match``: online control steps scratch training needs until its validation profit
+  reaches the pre-trained policy's (None when it does not within the budget);
+* ``revenue_lost`` and ``excess_rebalancing_cost``: over the training episodes until then, the
+  revenue scratch training earned less and the rebalancing cost it paid more than the fine-tuned
+  run on the same demand (the price of learning online from nothing instead of from the logs);
+* ``above_behaviour_throughout``: whether every validation of the fine-tuned actor beats the
+  dataset's behaviour policy on the same seeds.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from marl_amod.algos import a2c
+from marl_amod.algos.common import evaluate_actor, read_curve
+from marl_amod.checkpoints import load_actor, read_card
+from marl_amod.errors import ConfigError
+from marl_amod.evaluation import evaluate
+from marl_amod.files import write_json
+from marl_amod.scenario import load_city
+
+RUNS = ("finetune", "scratch")
+METRICS = ("eval/profit", "train/revenue", "train/rebalancing_cost")
+
+
+def finetune_curve(
+    policy: str, *, episodes: int = 6000, num_envs: int = 4, eval_every: int = 200, eval_episodes: int = 10, seed: int = 0,
+    lr_actor: float = 1e-3, finetune_lr_actor: float = 1e-4, critic_warmup: int = 50, run_root: str | Path = "runs/finetune",
+    progress: a2c.C.Progress | None = None,
+) -> dict[str, Any]:
+    """Fine-tune ``policy`` (an offline policy file) online and train from scratch with the same budget;
+    returns the curves and the study's numbers (see the module docstring)."""
+    trained = read_card(policy)
+    city = load_city(trained.get("args", {}).get("scenario") or trained["scenario"])  # the scenario file it was trained on
+    actor, card = load_actor(policy, city)
+    behaviour = card.get("dataset", {}).get("policy")
+    if not behaviour:
+        raise ConfigError(f"{policy} has no dataset on its card: the study starts from an offline policy (bc, iql, cql)")
+    common = {
+        "scenario": trained.get("args", {}).get("scenario") or city.name, "mode": "centralised", "actor": card["actor"], "conv": card["conv"], "hidden": card["hidden"],
+        "lookahead": card["lookahead"], "episodes": episodes, "num_envs": num_envs, "episodes_per_update": num_envs,
+        "eval_every": eval_every, "eval_episodes": eval_episodes, "seed": seed, "gamma": 0.97, "reward_scale": 0.001,
+        "final_eval_episodes": 1, "policy_out": "",
+    }  # fmt: skip
+    runs = {
+        "finetune": a2c.Args(**common, init_actor=str(policy), lr_actor=finetune_lr_actor, critic_warmup=critic_warmup,
+                             run_dir=str(Path(run_root) / "finetune")),  # fmt: skip
+        "scratch": a2c.Args(**common, lr_actor=lr_actor, run_dir=str(Path(run_root) / "scratch")),
+    }
+    val = {"episodes": eval_episodes, "seed": runs["scratch"].eval_seed}
+    pretrained = evaluate_actor(actor, city, eval_episodes, val["seed"], card["lookahead"])["metrics"]["profit"]["mean"]
+    beh = evaluate(behaviour, city, eval_episodes, val["seed"])["metrics"]["profit"]["mean"]
+    out: dict[str, Any] = {
+        "scenario": city.name, "policy": str(policy), "policy_algorithm": card["algorithm"], "behaviour_policy": behaviour,
+        "steps_per_episode": city.horizon - 1, "validation": val, "pretrained_profit": pretrained, "behaviour_profit": beh, "runs": {},
+    }  # fmt: skip
+    for name, args in runs.items():
+        summary = a2c.train(args, progress=progress)
+        curves = {m: read_curve(args.run_dir, m) for m in METRICS}
+        out["runs"][name] = {
+            "args": {k: v for k, v in args.model_dump(mode="json").items() if k in ("init_actor", "lr_actor", "lr_critic", "critic_warmup", "num_envs", "episodes_per_update")},
+            "validation": [list(p) for p in zip(*curves["eval/profit"], strict=True)],  # [episodes, profit]
+            "train": [[e, r, c] for e, r, c in zip(curves["train/revenue"][0], curves["train/revenue"][1], curves["train/rebalancing_cost"][1], strict=True)],
+            "wall_s": summary["card"]["training_wall_s"],
+        }  # fmt: skip
+    out["runs"]["finetune"]["validation"].insert(0, [0, pretrained])  # the start, validated before any update
+    out["summary"] = summarise(out)
+    return out
+
+
+def summarise(study: dict[str, Any]) -> dict[str, Any]:
+    """The study's numbers from its curves: steps scratch needs to match the pre-trained policy,
+    the revenue lost and excess rebalancing cost meanwhile (scratch's training episodes against
+    the fine-tuned run's, same demand), and whether fine-tuning stayed above the behaviour policy."""
+    ft, sc = study["runs"]["finetune"], study["runs"]["scratch"]
+    match = next((ep for ep, profit in sc["validation"] if profit >= study["pretrained_profit"]), None)
+    per_update = sc["args"]["episodes_per_update"]
+    ft_train = {ep: (r, c) for ep, r, c in ft["train"]}
+    lost = excess = 0.0
+    horizon = match if match is not None else sc["train"][-1][0]
+    for ep, rev, cost in sc["train"]:
+        if ep > horizon or ep not in ft_train:
+            continue
+        lost += (ft_train[ep][0] - rev) * per_update  # the logs hold batch means
+        excess += (cost - ft_train[ep][1]) * per_update
+    ft_profits = [p for _, p in ft["validation"]]
+    steps = study["steps_per_episode"]
+    return {
+        "episodes_to_match": match, "steps_to_match": None if match is None else match * steps,
+        "budget_steps": sc["train"][-1][0] * steps if sc["train"] else 0,
+        "revenue_lost": lost, "excess_rebalancing_cost": excess, "matched": match is not None,
+        "finetune_min_profit": min(ft_profits), "finetune_final_profit": ft_profits[-1], "scratch_final_profit": sc["validation"][-1][1],
+        "above_behaviour_throughout": bool(min(ft_profits) > study["behaviour_profit"]),
+    }  # fmt: skip
+
+
+def plot(study: dict[str, Any], path: str | Path) -> Path:
+    """Validation profit against online control steps: fine-tuned, scratch, and the two reference levels."""
+    import matplotlib.pyplot as plt
+
+    steps = study["steps_per_episode"]
+    fig, ax = plt.subplots(figsize=(7, 4.2))
+    for name, label, colour in (("finetune", f"fine-tuned from offline {study['policy_algorithm'].upper()}", "tab:blue"),
+                                ("scratch", "A2C from scratch", "tab:orange")):  # fmt: skip
+        pts = np.array(study["runs"][name]["validation"], dtype=float)
+        ax.plot(pts[:, 0] * steps, pts[:, 1] / 1000, marker="o", ms=3, color=colour, label=label)
+    ax.axhline(study["pretrained_profit"] / 1000, ls="--", color="tab:blue", lw=1, label="offline policy (start)")
+    ax.axhline(study["behaviour_profit"] / 1000, ls=":", color="grey", lw=1.2, label=f"behaviour policy ({study['behaviour_policy'].upper()})")
+    s = study["summary"]
+    if s["steps_to_match"] is not None:
+        ax.axvline(s["steps_to_match"], color="tab:orange", lw=0.8, alpha=0.6)
+    ax.set_xlabel("online control steps")
+    ax.set_ylabel("validation profit (thousand $)")
+    ax.set_title(f"Offline -> online on {study['scenario']}")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
+
+
+def write(study: dict[str, Any], out_dir: str | Path, stem: str = "finetune") -> tuple[Path, Path]:
+    """``<out_dir>/<stem>.json`` and ``.png``."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_json(out_dir / f"{stem}.json", study)
+    return out_dir / f"{stem}.json", plot(study, out_dir / f"{stem}.png")
+
+
+def describe(study: dict[str, Any]) -> str:
+    """The study's numbers in two sentences (the CLI prints it; docs/offline quotes it)."""
+    s, k = study["summary"], lambda x: f"{x / 1000:,.1f}k"
+    start = f"offline {study['policy_algorithm'].upper()} starts at {k(study['pretrained_profit'])} (behaviour {study['behaviour_policy'].upper()} {k(study['behaviour_profit'])})"
+    ft = f"fine-tuned: min {k(s['finetune_min_profit'])}, final {k(s['finetune_final_profit'])}; scratch final {k(s['scratch_final_profit'])}"
+    if s["matched"]:
+        gap = f"scratch matches the offline start after {s['steps_to_match']:,} online steps ({s['episodes_to_match']:,} episodes)"
+    else:
+        gap = f"scratch does not match the offline start within {s['budget_steps']:,} online steps"
+    paid = f"revenue lost meanwhile ${s['revenue_lost']:,.0f}, excess rebalancing cost ${s['excess_rebalancing_cost']:,.0f}"
+    above = "above" if s["above_behaviour_throughout"] else "NOT above"
+    return f"{start}; {ft}. {gap}; {paid}. Fine-tuning stayed {above} the behaviour policy throughout (validation seeds)."

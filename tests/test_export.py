@@ -1,0 +1,67 @@
+"""Export of the centralised view to d3rlpy and Minari (each test skips when its library is absent)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+
+from marl_amod.datasets import collect
+from marl_amod.errors import ConfigError
+from marl_amod.export import centralised_arrays, episodes
+from marl_amod.policies import make_policy
+from marl_amod.scenario import load_city
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    scenario = tmp_path_factory.mktemp("export") / "tiny.yaml"
+    scenario.write_text(yaml.safe_dump({"name": "tiny", "source": "synthetic", "rows": 3, "cols": 3, "horizon": 6, "vehicles_per_region": 5}))
+    city = load_city(str(scenario))
+    return collect(city, make_policy("prop", city), episodes=3, seed=0)
+
+
+def test_centralised_view_is_the_state_the_joint_action_and_the_team_reward(data):
+    a = centralised_arrays(data)
+    assert a["observations"].shape == (len(data), 9 * 13 + 3) and a["actions"].shape == (len(data), 9)
+    assert np.allclose(a["actions"].sum(1), 1.0, atol=1e-5)
+    assert np.allclose(a["rewards"], data.team_rewards)
+    spans = episodes(data)
+    assert len(spans) == 3 and all(a["truncations"][s][-1] and not a["truncations"][s][:-1].any() for s in spans)
+    assert not a["terminations"].any()  # the env never terminates; the horizon truncates
+
+
+def test_d3rlpy_trains_on_the_exported_dataset(data):
+    d3rlpy = pytest.importorskip("d3rlpy")
+    from marl_amod.export import to_d3rlpy
+
+    ds = to_d3rlpy(data)
+    assert ds.size() == 3 and sum(ep.size() for ep in ds.episodes) == len(data)
+    bc = d3rlpy.algos.BCConfig(batch_size=8).create(device="cpu:0")
+    bc.fit(ds, n_steps=5, n_steps_per_epoch=5, show_progress=False, save_interval=10**9,
+           logger_adapter=d3rlpy.logging.NoopAdapterFactory())  # no d3rlpy_logs/ in the working directory
+    assert bc.predict(ds.episodes[0].observations[:2]).shape == (2, 9)
+
+
+def test_minari_holds_the_episodes(data, tmp_path, monkeypatch):
+    pytest.importorskip("minari")
+    from marl_amod.export import to_minari
+
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path))
+    refs = {"equal-distribution": {"mean": 1.0}, "mpc-oracle": {"mean": 2.0}}
+    ds = to_minari(data, "marl_amod/tiny/prop-v0", card={"reference_scores": refs})
+    assert ds.total_episodes == 3 and ds.total_steps == len(data)
+    ep = next(ds.iterate_episodes())
+    rows = episodes(data)[0]
+    assert np.allclose(ep.actions, centralised_arrays(data)["actions"][rows])
+    assert ep.observations.shape[0] == rows.stop - rows.start + 1
+
+
+def test_a_missing_library_is_a_config_error_naming_the_extra(data, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "d3rlpy", None)  # import d3rlpy now raises ImportError
+    from marl_amod.export import to_d3rlpy
+
+    with pytest.raises(ConfigError, match=r"marl-amod\[d3rlpy\]"):
+        to_d3rlpy(data)

@@ -1,0 +1,96 @@
+"""Offline -> online: the fine-tuning study on a 3x3 grid, and its numbers from hand-made curves."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from marl_amod import finetune
+from marl_amod.algos.registry import ALGOS, args_for
+from marl_amod.cli import app
+from marl_amod.datasets import collect, write_card
+from marl_amod.errors import ConfigError
+from marl_amod.policies import make_policy
+from marl_amod.scenario import load_city
+
+ROOT = Path(__file__).resolve().parent.parent
+
+@pytest.fixture(scope="module")
+def offline_policy(tmp_path_factory) -> str:
+    """A BC policy (8 updates) cloned from 4 PROP episodes on the 3x3 grid."""
+    root = tmp_path_factory.mktemp("finetune")
+    scenario = root / "tiny.yaml"
+    scenario.write_text(yaml.safe_dump({"name": "tiny", "source": "synthetic", "rows": 3, "cols": 3, "horizon": 6, "vehicles_per_region": 5}))
+    city = load_city(str(scenario))
+    data = collect(city, make_policy("prop", city), episodes=4, seed=0)
+    path = data.save(root / "tiny_prop.npz")
+    write_card(path, data, city, make_policy("prop", city), eval_episodes=1, eval_seed=0)
+    args = {"scenario": str(scenario), "dataset": str(path), "updates": 8, "batch_size": 8, "eval_every": 8, "eval_episodes": 1,
+            "final_eval_episodes": 1, "hidden": 8, "run_dir": str(root / "bc"), "policy_out": str(root / "bc.pt")}  # fmt: skip
+    ALGOS["bc"].train(args_for("bc", args))
+    return str(root / "bc.pt")
+
+
+def test_study_runs_both_arms_with_the_same_budget_and_writes_json_and_png(tmp_path, offline_policy):
+    study = finetune.finetune_curve(offline_policy, episodes=8, num_envs=2, eval_every=4, eval_episodes=1, critic_warmup=2, run_root=tmp_path / "runs")
+    ft, sc = study["runs"]["finetune"], study["runs"]["scratch"]
+    assert study["behaviour_policy"] == "prop" and study["steps_per_episode"] == 5
+    assert ft["validation"][0] == [0, study["pretrained_profit"]]  # the curve starts at the offline policy
+    assert [ep for ep, _ in ft["validation"][1:]] == [ep for ep, _ in sc["validation"]] == [4, 8]
+    assert [row[0] for row in ft["train"]] == [row[0] for row in sc["train"]] == [2, 4, 6, 8]
+    assert ft["args"]["init_actor"] == offline_policy and sc["args"]["init_actor"] == ""
+    assert all(cost >= 0 and revenue > 0 for _, revenue, cost in ft["train"] + sc["train"])
+    json_path, png = finetune.write(study, tmp_path / "out")
+    assert json.loads(json_path.read_text())["summary"] == study["summary"] and png.stat().st_size > 0
+    assert "online steps" in finetune.describe(study)
+
+
+def test_critic_warmup_holds_the_actor_still(tmp_path, offline_policy):
+    """With every update a warm-up one, the fine-tuned actor never moves: its validations equal the start."""
+    study = finetune.finetune_curve(offline_policy, episodes=4, num_envs=2, eval_every=2, eval_episodes=1, critic_warmup=2, run_root=tmp_path)
+    profits = [p for _, p in study["runs"]["finetune"]["validation"]]
+    assert profits == pytest.approx([profits[0]] * len(profits))
+
+
+def _study(scratch_val, ft_val=((0, 50.0), (10, 51.0), (20, 52.0))) -> dict:
+    """Curves in the study's shape: validations every 10 episodes, train rows every 5 (batch means)."""
+    rows = lambda rev, cost: [[ep, rev, cost] for ep in (5, 10, 15, 20)]  # noqa: E731
+    return {
+        "steps_per_episode": 19, "pretrained_profit": 50.0, "behaviour_profit": 49.0,
+        "runs": {
+            "finetune": {"args": {"episodes_per_update": 5}, "validation": [list(p) for p in ft_val], "train": rows(100.0, 10.0)},
+            "scratch": {"args": {"episodes_per_update": 5}, "validation": [list(p) for p in scratch_val], "train": rows(90.0, 14.0)},
+        },
+    }
+
+
+def test_summary_counts_steps_revenue_and_cost_until_scratch_matches():
+    s = finetune.summarise(_study([(10, 45.0), (20, 50.5)]))
+    assert s["episodes_to_match"] == 20 and s["steps_to_match"] == 20 * 19
+    assert s["revenue_lost"] == pytest.approx(4 * 5 * 10.0)  # four updates of five episodes, $10 each
+    assert s["excess_rebalancing_cost"] == pytest.approx(4 * 5 * 4.0)
+    assert s["above_behaviour_throughout"]
+
+
+def test_summary_when_scratch_never_matches_and_fine_tuning_dips():
+    s = finetune.summarise(_study([(10, 45.0), (20, 49.0)], ft_val=((0, 50.0), (10, 48.5), (20, 51.0))))
+    assert not s["matched"] and s["steps_to_match"] is None and s["budget_steps"] == 20 * 19
+    assert not s["above_behaviour_throughout"] and s["finetune_min_profit"] == 48.5
+
+
+def test_a_policy_without_a_dataset_is_refused(tmp_path, offline_policy):
+    card = json.loads(open(offline_policy.replace(".pt", ".json")).read())
+    assert card["dataset"]["policy"] == "prop"
+    with pytest.raises(ConfigError, match="offline policy"):
+        finetune.finetune_curve(str(ROOT / "policies/a2c_gnn_synthetic.pt"), episodes=2, num_envs=2, run_root=tmp_path)
+
+
+def test_cli_finetune_curve(tmp_path, offline_policy):
+    res = CliRunner().invoke(app, ["finetune-curve", "--policy", offline_policy, "--episodes", "4", "--num-envs", "2", "--eval-every", "2",
+                                   "--eval-episodes", "1", "--out", str(tmp_path / "o"), "--run-root", str(tmp_path / "r")])  # fmt: skip
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "o" / "finetune.json").is_file() and (tmp_path / "o" / "finetune.png").is_file()
