@@ -5,7 +5,7 @@
 
 Rows: one per dataset (its card in ``docs/offline/datasets/``: behaviour policy, its score and
 the ED / MPC-Oracle references on the same evaluation seeds). Columns: the behaviour policy,
-online SAC (``policies/sac_gnn_long_<city>.json``), and BC / IQL / CQL trained on the dataset
+online SAC (``policies/sac_gnn_<city>_fast.json``, 29 min on the batched path), and BC / IQL / CQL trained on the dataset
 (``policies/<algo>_gnn_<city>_<dataset>.json``). Every cell is profit (mean +- std over the 10
 evaluation episodes of ``marl-amod evaluate --seed 0``) and the normalised score (0 = equal
 distribution, 100 = MPC-Oracle). Writes ``docs/offline/table.md`` and ``table.json``.
@@ -20,7 +20,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 DATASETS = ["inf", "dtv", "prop", "mpc_forecast", "prop_noise"]
 ALGOS = ["bc", "iql", "cql"]
-ONLINE = "sac_gnn_long_{city}"
+ONLINE = "sac_gnn_{city}_fast"
 
 
 def normalised(profit: float, refs: dict) -> float:
