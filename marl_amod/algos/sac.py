@@ -148,6 +148,11 @@ def _obs_items(obs: Obs, prefix: str, local: bool, time: bool) -> dict[str, torc
     return items
 
 
+def both_halves(b: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The actor's inputs of a sampled batch, observations then next observations: (2B, ...)."""
+    return {k: torch.cat([b[k], b[f"next_{k}"]]) for k in ("x", "own", "nbrs", "mask") if k in b}
+
+
 def policy_sample(actor, b: dict[str, torch.Tensor], prefix: str, edge_index: Graph, local: bool) -> tuple[torch.Tensor, torch.Tensor]:
     """Reparameterised action y (B, N) on the simplex and log pi (B,)."""
     if local:
@@ -241,9 +246,12 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     def update() -> dict[str, torch.Tensor]:
         b = buffer.sample(args.batch_size, gen)
         a = log_alpha.detach().exp()
+        # one actor pass for the target's next actions and the policy loss's actions (the actor
+        # does not change in between); the target half is used without gradients
+        y_both, logp_both = policy_sample(actor, both_halves(b), "", edge_index, local)
+        (y, y2), (logp, logp2) = y_both.chunk(2), logp_both.chunk(2)
         # ---- twin Q regression towards the soft Bellman target ----
         with torch.no_grad():
-            y2, logp2 = policy_sample(actor, b, "next_", edge_index, local)
             q_targ = torch.min(*critic_targ(C.with_time(b["next_x"], b.get("next_ctx"), args.critic_time), edge_index, y2))  # (B,)
             backup = b["reward"] + args.gamma * (1 - b["done"]) * (q_targ - a * logp2)
         x = C.with_time(b["x"], b.get("ctx"), args.critic_time)  # (B, N, F [+ 3])
@@ -254,7 +262,6 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         torch.nn.utils.clip_grad_norm_(critic_params, args.max_grad_norm, foreach=True)
         opt_c.step()
         # ---- policy: maximise min Q minus entropy cost (gradients reach the actor only) ----
-        y, logp = policy_sample(actor, b, "", edge_index, local)
         loss_pi = (a * logp - torch.min(*critic(x, edge_index, y))).mean()
         opt_a.zero_grad()
         loss_pi.backward(inputs=actor_params)  # no critic weight gradients computed
