@@ -14,8 +14,12 @@ a log pi(y|s) - min Q(s, y); Polyak-averaged targets; clipped gradients.
 
 ``num_envs`` > 1 steps that many episodes in lockstep on the batched simulator, adds their
 transitions to the buffer together and runs ``updates_per_step`` gradient steps per transition
-on the dense graph path (one matmul per layer for the whole (batch, N, F) sample);
-``critic_time`` gives the critics the time context; ``auto_entropy`` tunes the temperature.
+on the dense graph path (one matmul per layer for the whole (batch, N, F) sample), with the twin
+critics as one :class:`~marl_amod.models.gnn.StackedTwinQ` (both critics' weights stacked: one
+batched matmul per layer for the pair); ``critic_time`` gives the critics the time context;
+``auto_entropy`` tunes the temperature. On these small graphs an update is dominated by per-op
+overhead, so the update does each thing once: one replay gather, one actor pass for the target's
+and the policy loss's actions, fused Adam, no critic weight gradients in the policy step.
 """
 
 from __future__ import annotations
