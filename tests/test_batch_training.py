@@ -64,9 +64,10 @@ def test_batched_runs_train_validate_and_write_a_card(tmp_path, tiny_yaml, algo,
     assert card["episodes_trained"] == 8 and card["args"]["num_envs"] == 4 and np.isfinite(card["profit_mean"])
     state = torch.load(tmp_path / "run" / "state.pt", map_location="cpu", weights_only=False)
     critic = state["critic"]
-    first = next(v for k, v in critic.items() if k.endswith("lin.weight") or k.endswith("lin_l.weight"))
+    first = next(v for k, v in critic.items() if k.endswith(("lin.weight", "lin_l.weight", "conv.weight")))
     assert first.shape[-1] == 13 + 3 + (1 if algo == "sac" else 0)  # features + time context (+ the action for Q)
     if algo == "sac":
+        assert first.shape[0] == 2 and "q1.value.out.weight" not in critic  # the twin critics' weights stacked
         # 8 episodes x 5 steps, half an update per transition after the warm-up
         assert state["n_steps"] == 40 and state["replay"]["size"] == 40
         evals = [line for line in (tmp_path / "run" / "log.csv").read_text().splitlines() if ",eval/profit," in line]
@@ -106,3 +107,59 @@ def test_a2c_batches_must_fill_whole_updates(tiny_yaml):
 
     with pytest.raises(ConfigError, match="multiple of num_envs"):
         args_for("a2c", {"scenario": tiny_yaml, "num_envs": 4, "episodes_per_update": 6})
+
+
+def test_replay_sample_is_one_gather_whose_fields_are_the_stored_rows():
+    from marl_amod.algos.sac import Replay
+
+    buf = Replay(10)
+    buf.add(6, x=torch.arange(6 * 4, dtype=torch.float32).view(6, 2, 2), reward=torch.arange(6.0), done=torch.tensor(0.0))
+    idx = torch.randint(0, 6, (5,), generator=torch.Generator().manual_seed(1))
+    b = buf.sample(5, torch.Generator().manual_seed(1))
+    assert b["x"].shape == (5, 2, 2) and b["reward"].shape == (5,)
+    torch.testing.assert_close(b["x"], torch.arange(24, dtype=torch.float32).view(6, 2, 2)[idx], rtol=0, atol=0)
+    torch.testing.assert_close(b["reward"], idx.float(), rtol=0, atol=0)
+    restored = Replay(10)
+    restored.load_state_dict(buf.state_dict())
+    torch.testing.assert_close(restored.storage, buf.storage, rtol=0, atol=0)
+
+
+def test_a_state_saved_with_two_critics_resumes_with_the_stacked_critics():
+    """Training states written before the critics were stacked: critics, targets and Adam moments are
+    stacked, so the next update is the one the two critics would have made."""
+    import copy
+
+    from marl_amod.algos.sac import stack_twin_state
+    from marl_amod.models import TwinQ
+    from marl_amod.models.dense import DenseGraph
+    from marl_amod.models.gnn import StackedTwinQ
+    from marl_amod.scenario import grid_city
+
+    city = grid_city(3, 3, seed=0)
+    graph = DenseGraph(torch.as_tensor(city.edge_index), city.n_regions)
+    torch.manual_seed(0)
+    x, action = torch.rand(5, 9, 16), torch.rand(5, 9)
+    twin = TwinQ(16, 8, "gcn")
+    target = copy.deepcopy(twin)
+    opt = torch.optim.Adam(twin.parameters(), lr=1e-2)
+
+    def step(critic: torch.nn.Module, optimiser: torch.optim.Optimizer) -> None:
+        optimiser.zero_grad()
+        q1, q2 = critic(x, graph, action)
+        ((q1 - 1).square().sum() + (q2 + 1).square().sum()).backward()
+        optimiser.step()
+
+    for _ in range(3):
+        step(twin, opt)
+    state = {"critic": twin.state_dict(), "critic_targ": target.state_dict(), "opt_c": opt.state_dict(), "episode": 3}
+    converted = stack_twin_state(copy.deepcopy(state), TwinQ(16, 8, "gcn"))
+    stacked, stacked_target = StackedTwinQ(TwinQ(16, 8, "gcn")), StackedTwinQ(TwinQ(16, 8, "gcn"))
+    stacked.load_state_dict(converted["critic"])
+    stacked_target.load_state_dict(converted["critic_targ"])
+    opt_stacked = torch.optim.Adam(stacked.parameters(), lr=1e-2, fused=True)
+    opt_stacked.load_state_dict(converted["opt_c"])
+    step(twin, opt)
+    step(stacked, opt_stacked)
+    for net, ref in ((stacked, twin), (stacked_target, target)):
+        for q, r in zip(net(x, graph, action), ref(x, graph, action), strict=True):
+            torch.testing.assert_close(q, r, atol=1e-5, rtol=1e-5)

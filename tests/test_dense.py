@@ -58,3 +58,47 @@ def test_dense_models_equal_the_graph_models_with_the_same_weights(kind: str) ->
 def test_graph_operator_rejects_unknown_kind() -> None:
     with pytest.raises(ValueError, match="unknown conv"):
         graph_operator("gat", torch.zeros(2, 0, dtype=torch.long), 3)  # type: ignore[arg-type]
+
+
+def _nonzero_biases(module: torch.nn.Module) -> None:
+    for name, p in module.named_parameters():
+        if name.endswith("bias"):
+            torch.nn.init.normal_(p)  # torch-geometric starts some biases at zero; zeros hide misplaced ones
+
+
+@pytest.mark.parametrize("kind", ["gcn", "sage"])
+def test_stacked_twin_critics_equal_the_two_critics_in_values_and_gradients(kind: str) -> None:
+    """StackedTwinQ (one batched matmul per layer) computes TwinQ's two functions: the same Q values,
+    action gradients (the policy loss) and weight gradients, each critic in its own slice."""
+    from marl_amod.models.gnn import StackedTwinQ
+
+    edge_index, n = _graphs()[1]
+    torch.manual_seed(3)
+    twin = TwinQ(16, 24, kind)
+    _nonzero_biases(twin)
+    stacked = StackedTwinQ(twin)
+    dense = DenseGraph(edge_index, n)
+    x = torch.rand(6, n, 16) * 3
+    action = torch.rand(6, n)
+    a1, a2 = action.clone().requires_grad_(True), action.clone().requires_grad_(True)
+    q_twin, q_stacked = twin(x, edge_index, a1), stacked(x, dense, a2)
+    for q, s in zip(q_twin, q_stacked, strict=True):
+        torch.testing.assert_close(s, q, atol=1e-5, rtol=1e-5)
+    loss = lambda q: (q[0] ** 2).sum() + 3 * torch.min(*q).sum()  # noqa: E731 - mixes both critics unevenly
+    loss(q_twin).backward()
+    loss(q_stacked).backward()
+    torch.testing.assert_close(a2.grad, a1.grad, atol=1e-4, rtol=1e-4)
+    for (name, p), (_, p1), (_, p2) in zip(stacked.named_parameters(), _pairs(twin, stacked, 0), _pairs(twin, stacked, 1), strict=True):
+        torch.testing.assert_close(p.grad[0], p1.grad, atol=1e-4, rtol=1e-4, msg=name)
+        torch.testing.assert_close(p.grad[1], p2.grad, atol=1e-4, rtol=1e-4, msg=name)
+
+
+def _pairs(twin: TwinQ, stacked: torch.nn.Module, which: int) -> list[tuple[str, torch.nn.Parameter]]:
+    """Critic ``which``'s parameters in StackedTwinQ's order (found by value: stacked was built from twin)."""
+    critic = (twin.q1, twin.q2)[which]
+    out = []
+    for name, p in stacked.named_parameters():
+        match = [q for q in critic.parameters() if q.shape == p.shape[1:] and torch.equal(q.detach(), p.detach()[which])]
+        assert len(match) == 1, name
+        out.append((name, match[0]))
+    return out

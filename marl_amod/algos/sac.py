@@ -14,13 +14,18 @@ a log pi(y|s) - min Q(s, y); Polyak-averaged targets; clipped gradients.
 
 ``num_envs`` > 1 steps that many episodes in lockstep on the batched simulator, adds their
 transitions to the buffer together and runs ``updates_per_step`` gradient steps per transition
-on the dense graph path (one matmul per layer for the whole (batch, N, F) sample);
-``critic_time`` gives the critics the time context; ``auto_entropy`` tunes the temperature.
+on the dense graph path (one matmul per layer for the whole (batch, N, F) sample), with the twin
+critics as one :class:`~marl_amod.models.gnn.StackedTwinQ` (both critics' weights stacked: one
+batched matmul per layer for the pair); ``critic_time`` gives the critics the time context;
+``auto_entropy`` tunes the temperature. On these small graphs an update is dominated by per-op
+overhead, so the update does each thing once: one replay gather, one actor pass for the target's
+and the policy loss's actions, fused Adam, no critic weight gradients in the policy step.
 """
 
 from __future__ import annotations
 
 import copy
+import math
 from pathlib import Path
 from typing import Any
 
@@ -28,12 +33,14 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from pydantic import Field
+from torch.distributions import Dirichlet
 
 from marl_amod.algos import common as C
 from marl_amod.algos.rollout import Obs, train_seed
 from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import LocalActor, TwinQ, build_actor, dirichlet, gamma, gamma_log_prob
-from marl_amod.models.gnn import Graph
+from marl_amod.models.dense import DenseGraph
+from marl_amod.models.gnn import Graph, StackedTwinQ
 from marl_amod.scenario import load_city
 
 
@@ -79,40 +86,61 @@ class Args(C.RunArgs):
 
 
 class Replay:
-    """Fixed-size ring buffer of (obs, action y, reward, next obs, done) as stacked tensors."""
+    """Fixed-size ring buffer of (obs, action y, reward, next obs, done).
+
+    One (capacity, D) float tensor whose column blocks are the fields (``data[k]`` are views of
+    it), so a sample is one row gather and every field of it a view: no per-field copies.
+    """
 
     def __init__(self, capacity: int) -> None:
         self.capacity, self.size, self.ptr = capacity, 0, 0
+        self.shapes: dict[str, tuple[int, ...]] = {}
+        self.storage = torch.zeros(0, 0)
         self.data: dict[str, torch.Tensor] = {}
+
+    def _allocate(self, shapes: dict[str, tuple[int, ...]]) -> None:
+        self.shapes = dict(shapes)
+        self.storage = torch.zeros(self.capacity, sum(math.prod(s) for s in self.shapes.values()))
+        self.data = self._fields(self.storage)
+
+    def _fields(self, rows: torch.Tensor) -> dict[str, torch.Tensor]:
+        """The fields of rows (M, D) as views (M, *shape)."""
+        out, col = {}, 0
+        for k, shape in self.shapes.items():
+            width = math.prod(shape)
+            out[k] = rows[:, col : col + width].view(rows.shape[0], *shape)
+            col += width
+        return out
 
     def add(self, rows: int | None = None, **item: torch.Tensor) -> None:
         """One transition, or ``rows`` of them stacked on a leading axis (episodes in lockstep)."""
         if rows is None:
             item = {k: torch.as_tensor(v, dtype=torch.float32)[None] for k, v in item.items()}
             rows = 1
+        item = {k: torch.as_tensor(v, dtype=torch.float32).expand(rows, *torch.as_tensor(v).shape[1:]) for k, v in item.items()}
+        if not self.shapes:
+            self._allocate({k: tuple(v.shape[1:]) for k, v in item.items()})
         idx = (self.ptr + torch.arange(rows)) % self.capacity
         for k, v in item.items():
-            v = torch.as_tensor(v, dtype=torch.float32).expand(rows, *torch.as_tensor(v).shape[1:])
-            if k not in self.data:
-                self.data[k] = torch.zeros((self.capacity, *v.shape[1:]), dtype=torch.float32)
             self.data[k][idx] = v
         self.ptr = (self.ptr + rows) % self.capacity
         self.size = min(self.size + rows, self.capacity)
 
     def state_dict(self) -> dict[str, Any]:
-        """The filled part only (a resumed run continues with the same transitions)."""
+        """The filled part only, field by field (a resumed run continues with the same transitions)."""
         return {"capacity": self.capacity, "size": self.size, "ptr": self.ptr, "data": {k: v[: self.size].clone() for k, v in self.data.items()}}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         self.size, self.ptr = state["size"], state["ptr"]
-        self.data = {}
-        for k, v in state["data"].items():
-            self.data[k] = torch.zeros((self.capacity, *v.shape[1:]), dtype=torch.float32)
-            self.data[k][: self.size] = v
+        self.shapes, self.data = {}, {}
+        if state["data"]:
+            self._allocate({k: tuple(v.shape[1:]) for k, v in state["data"].items()})
+            for k, v in state["data"].items():
+                self.data[k][: self.size] = v
 
     def sample(self, batch: int, gen: torch.Generator) -> dict[str, torch.Tensor]:
         idx = torch.randint(0, self.size, (batch,), generator=gen)
-        return {k: v[idx] for k, v in self.data.items()}
+        return self._fields(self.storage[idx])
 
 
 def _obs_items(obs: Obs, prefix: str, local: bool, time: bool) -> dict[str, torch.Tensor]:
@@ -124,16 +152,49 @@ def _obs_items(obs: Obs, prefix: str, local: bool, time: bool) -> dict[str, torc
     return items
 
 
+def both_halves(b: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The actor's inputs of a sampled batch, observations then next observations: (2B, ...)."""
+    return {k: torch.cat([b[k], b[f"next_{k}"]]) for k in ("x", "own", "nbrs", "mask") if k in b}
+
+
 def policy_sample(actor, b: dict[str, torch.Tensor], prefix: str, edge_index: Graph, local: bool) -> tuple[torch.Tensor, torch.Tensor]:
     """Reparameterised action y (B, N) on the simplex and log pi (B,)."""
     if local:
         alpha = actor.forward_local(b[f"{prefix}own"], b[f"{prefix}nbrs"], b[f"{prefix}mask"])  # (B, N)
         g = gamma(alpha).rsample().clamp_min(1e-8)
         return g / g.sum(-1, keepdim=True), gamma_log_prob(g, alpha)
-    alpha = actor(b[f"{prefix}x"], edge_index)  # (B, N)
-    y = dirichlet(alpha).rsample().clamp_min(1e-6)
+    # one distribution for both calls, unvalidated: alpha > 0 by construction, y on the simplex
+    law = Dirichlet(actor(b[f"{prefix}x"], edge_index), validate_args=False)  # (B, N)
+    y = law.rsample().clamp_min(1e-6)
     y = y / y.sum(-1, keepdim=True)
-    return y, dirichlet(alpha).log_prob(y)
+    return y, law.log_prob(y)
+
+
+def stack_twin_state(state: dict[str, Any], twin: TwinQ) -> dict[str, Any]:
+    """A dense-path training state saved with TwinQ's two critics, in StackedTwinQ's layout.
+
+    Critic, target and the critic optimiser's Adam moments are stacked the way
+    :class:`StackedTwinQ` stacks weights (``twin`` is overwritten on the way), so a run started
+    before the critics were stacked resumes with the same numbers.
+    """
+    state = dict(state)
+    for key in ("critic", "critic_targ"):
+        twin.load_state_dict(state[key])
+        state[key] = StackedTwinQ(twin).state_dict()
+    opt, params = state["opt_c"], list(twin.parameters())
+    moments: dict[str, list[torch.Tensor]] = {}
+    if opt["state"]:
+        for m in ("exp_avg", "exp_avg_sq"):
+            with torch.no_grad():
+                for i, p in enumerate(params):
+                    p.copy_(opt["state"][i][m])
+            moments[m] = [t.detach().clone() for t in StackedTwinQ(twin).parameters()]
+    n = len(list(StackedTwinQ(twin).parameters()))
+    state["opt_c"] = {
+        "state": {i: {"step": opt["state"][0]["step"].clone(), "exp_avg": moments["exp_avg"][i], "exp_avg_sq": moments["exp_avg_sq"][i]} for i in range(n)} if moments else {},
+        "param_groups": [{**opt["param_groups"][0], "params": list(range(n)), "foreach": None, "fused": True}],
+    }
+    return state
 
 
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
@@ -148,10 +209,13 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     n_features = feature_count(args.lookahead)
     actor = LocalActor(n_features, args.hidden) if local else build_actor(args.actor, city, n_features, args.hidden, args.conv)
     C.warm_start(actor, args, city)  # offline -> online: start from a trained policy
-    critic = TwinQ(C.critic_features(n_features, args), args.hidden, "sage" if local else args.conv)
+    twin = TwinQ(C.critic_features(n_features, args), args.hidden, "sage" if local else args.conv)
+    # the dense path stacks the twin critics' weights: one batched matmul per layer for both
+    critic = StackedTwinQ(twin) if isinstance(edge_index, DenseGraph) else twin
     critic_targ = copy.deepcopy(critic).requires_grad_(False)
-    opt_a = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
-    opt_c = torch.optim.Adam(critic.parameters(), lr=args.lr_critic)
+    actor_params, critic_params, targ_params = list(actor.parameters()), list(critic.parameters()), list(critic_targ.parameters())
+    opt_a = torch.optim.Adam(actor_params, lr=args.lr_actor, fused=True)  # one kernel per step for all tensors
+    opt_c = torch.optim.Adam(critic_params, lr=args.lr_critic, fused=True)
     log_alpha = torch.tensor(float(np.log(args.alpha)), requires_grad=True)
     opt_alpha = torch.optim.Adam([log_alpha], lr=args.lr_alpha)
     target_entropy = (-1.0 if args.target_entropy is None else args.target_entropy) * city.n_regions
@@ -160,6 +224,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     start_ep, prior_wall, n_steps, credit, best = 0, 0.0, 0, 0.0, C.BestActor.of(actor)
     if resume:
         st = C.load_state(resume, "sac")
+        if critic is not twin and "q1.value.out.weight" in st["critic"]:
+            st = stack_twin_state(st, twin)  # saved before the critics were stacked
         actor.load_state_dict(st["actor"]), critic.load_state_dict(st["critic"]), critic_targ.load_state_dict(st["critic_targ"])
         opt_a.load_state_dict(st["opt_a"]), opt_c.load_state_dict(st["opt_c"]), opt_alpha.load_state_dict(st["opt_alpha"])
         start_ep, prior_wall, best = st["episode"], st["wall_s"], C.BestActor(st["best_val"], st["best_actor"])
@@ -181,12 +247,15 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         )
         return path, ep
 
-    def update() -> dict[str, float]:
+    def update() -> dict[str, torch.Tensor]:
         b = buffer.sample(args.batch_size, gen)
-        a = log_alpha.exp().detach()
+        a = log_alpha.detach().exp()
+        # one actor pass for the target's next actions and the policy loss's actions (the actor
+        # does not change in between); the target half is used without gradients
+        y_both, logp_both = policy_sample(actor, both_halves(b), "", edge_index, local)
+        (y, y2), (logp, logp2) = y_both.chunk(2), logp_both.chunk(2)
         # ---- twin Q regression towards the soft Bellman target ----
         with torch.no_grad():
-            y2, logp2 = policy_sample(actor, b, "next_", edge_index, local)
             q_targ = torch.min(*critic_targ(C.with_time(b["next_x"], b.get("next_ctx"), args.critic_time), edge_index, y2))  # (B,)
             backup = b["reward"] + args.gamma * (1 - b["done"]) * (q_targ - a * logp2)
         x = C.with_time(b["x"], b.get("ctx"), args.critic_time)  # (B, N, F [+ 3])
@@ -194,32 +263,28 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         loss_q = F.mse_loss(q1, backup) + F.mse_loss(q2, backup)
         opt_c.zero_grad()
         loss_q.backward()
-        torch.nn.utils.clip_grad_norm_(critic.parameters(), args.max_grad_norm)
+        torch.nn.utils.clip_grad_norm_(critic_params, args.max_grad_norm, foreach=True)
         opt_c.step()
-        # ---- policy: maximise min Q minus entropy cost (critics frozen) ----
-        critic.requires_grad_(False)
-        y, logp = policy_sample(actor, b, "", edge_index, local)
+        # ---- policy: maximise min Q minus entropy cost (gradients reach the actor only) ----
         loss_pi = (a * logp - torch.min(*critic(x, edge_index, y))).mean()
         opt_a.zero_grad()
-        loss_pi.backward()
-        torch.nn.utils.clip_grad_norm_(actor.parameters(), args.max_grad_norm)
+        loss_pi.backward(inputs=actor_params)  # no critic weight gradients computed
+        torch.nn.utils.clip_grad_norm_(actor_params, args.max_grad_norm, foreach=True)
         opt_a.step()
-        critic.requires_grad_(True)
         if args.auto_entropy:
             loss_alpha = -(log_alpha * (logp.detach() + target_entropy)).mean()
             opt_alpha.zero_grad()
             loss_alpha.backward()
             opt_alpha.step()
-        with torch.no_grad():
-            for p, pt in zip(critic.parameters(), critic_targ.parameters(), strict=True):
-                pt.mul_(args.polyak).add_((1 - args.polyak) * p)
-        return {"loss/q": loss_q.item(), "loss/policy": loss_pi.item(), "alpha": a.item()}
+        with torch.no_grad():  # Polyak averaging: targ <- polyak targ + (1 - polyak) critic
+            torch._foreach_lerp_(targ_params, critic_params, 1 - args.polyak)
+        return {"loss/q": loss_q.detach(), "loss/policy": loss_pi.detach(), "alpha": a}  # read once per episode
 
     with C.interruptible(save):
         while ep < args.episodes:
             # B = rollout.num_envs episodes in lockstep (1: the episode-at-a-time run)
             obs = rollout.reset(train_seed(args.seed, ep)) if rollout.num_envs == 1 else rollout.reset(args.seed, ep)
-            ep_reward, stats = 0.0, {}
+            ep_reward, last = 0.0, {}
             while not rollout.done:
                 with torch.no_grad():
                     if local:
@@ -239,9 +304,10 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                 if buffer.size >= max(args.warmup_steps, args.batch_size):
                     credit += args.updates_per_step * rollout.num_envs
                     while credit >= 1:
-                        stats = update()
+                        last = update()
                         credit -= 1
             ep += rollout.num_envs
+            stats = {k: float(v) for k, v in last.items()}
             stats["train/episode_reward"] = float(np.mean(ep_reward))
             if C.crossed(ep, rollout.num_envs, args.eval_every) or ep >= args.episodes:
                 stats["eval/profit"] = best.validate(actor, city, args)

@@ -67,9 +67,12 @@ class DenseGraph:
         self.n = int(n)
         self._ops: dict[str, torch.Tensor] = {}
 
-    def conv(self, conv: nn.Module, x: torch.Tensor) -> torch.Tensor:
-        """``conv`` (GCNConv or mean SAGEConv) on x (..., N, C) through this graph's operator."""
-        kind = "gcn" if isinstance(conv, GCNConv) else "sage"
+    def operator(self, kind: ConvKind) -> torch.Tensor:
+        """The (N, N) operator of a ``"gcn"`` or ``"sage"`` layer on this graph (built once)."""
         if kind not in self._ops:
             self._ops[kind] = graph_operator(kind, self.edge_index, self.n)
-        return dense_conv(conv, x, self._ops[kind])
+        return self._ops[kind]
+
+    def conv(self, conv: nn.Module, x: torch.Tensor) -> torch.Tensor:
+        """``conv`` (GCNConv or mean SAGEConv) on x (..., N, C) through this graph's operator."""
+        return dense_conv(conv, x, self.operator("gcn" if isinstance(conv, GCNConv) else "sage"))

@@ -7,7 +7,8 @@ the regions relabels the outputs (permutation equivariance).
 Shapes: B graphs in a batch, N regions, F node features, E directed edges, H hidden units.
 Every model takes the graph as ``edge_index`` (torch-geometric's scatter kernels) or as a
 :class:`~marl_amod.models.dense.DenseGraph` (one dense matmul per layer: much cheaper on the
-10-400-region city graphs here, same outputs to float rounding).
+10-400-region city graphs here, same outputs to float rounding). :class:`StackedTwinQ` is
+:class:`TwinQ` for the dense path with both critics in one set of stacked weights.
 """
 
 from __future__ import annotations
@@ -125,3 +126,66 @@ class TwinQ(nn.Module):
 
     def forward(self, x: torch.Tensor, edge_index: Graph, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.q1(x, edge_index, action), self.q2(x, edge_index, action)
+
+
+class StackedLinear(nn.Module):
+    """Two linear layers of one shape as one: weight (2, out, in), bias (2, out) or None.
+
+    x (M, in) shared by both layers, or (2, M, in) one per layer -> (2, M, out): one batched
+    matmul where two ``nn.Linear`` calls would each pay PyTorch's per-op overhead.
+    """
+
+    def __init__(self, weights: tuple[torch.Tensor, torch.Tensor], biases: tuple[torch.Tensor, torch.Tensor] | None) -> None:
+        super().__init__()
+        self.weight = nn.Parameter(torch.stack([w.detach() for w in weights]).clone())
+        self.bias = None if biases is None else nn.Parameter(torch.stack([b.detach() for b in biases]).clone())
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if self.bias is None:
+            return torch.matmul(x, self.weight.mT)
+        if x.dim() == 3:
+            return torch.baddbmm(self.bias.unsqueeze(1), x, self.weight.mT)
+        return torch.matmul(x, self.weight.mT) + self.bias.unsqueeze(1)
+
+
+class StackedTwinQ(nn.Module):
+    """:class:`TwinQ` on the dense path with the two critics' weights stacked on a leading axis.
+
+    Same functions as ``TwinQ`` (built from one, so the same initial weights; outputs equal to
+    float rounding): each layer of both critics is one batched matmul, and the graph operator
+    meets the input (state + action) once for both, since the conv layer is linear
+    (``P (z W) = (P z) W``). On the small city graphs SAC's update is dominated by per-op
+    overhead, which this halves. Takes a :class:`DenseGraph` and batches (B, N, F), (B, N).
+    """
+
+    def __init__(self, twin: TwinQ) -> None:
+        super().__init__()
+        v1, v2 = twin.q1.value, twin.q2.value
+        c1, c2 = v1.trunk.conv, v2.trunk.conv
+        self.kind: ConvKind = "gcn" if isinstance(c1, GCNConv) else "sage"
+        if self.kind == "gcn":  # out = P z W + b
+            self.conv = StackedLinear((c1.lin.weight, c2.lin.weight), (c1.bias, c2.bias))
+            self.root: StackedLinear | None = None
+        else:  # mean SAGE: out = lin_l(P z) + lin_r(z)
+            if c1.aggr != "mean" or c1.project or c1.normalize or not c1.root_weight:
+                raise ValueError("the dense path covers SAGEConv(aggr='mean') without project/normalize, with root weight")
+            self.conv = StackedLinear((c1.lin_l.weight, c2.lin_l.weight), (c1.lin_l.bias, c2.lin_l.bias))
+            self.root = StackedLinear((c1.lin_r.weight, c2.lin_r.weight), None)
+        linears = [(a, b) for a, b in zip(v1.node, v2.node, strict=True) if isinstance(a, nn.Linear)]
+        self.node = nn.ModuleList(StackedLinear((a.weight, b.weight), (a.bias, b.bias)) for a, b in linears)
+        self.out = StackedLinear((v1.out.weight, v2.out.weight), (v1.out.bias, v2.out.bias))
+
+    def forward(self, x: torch.Tensor, graph: DenseGraph, action: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        z = torch.cat([x, action.unsqueeze(-1)], dim=-1)  # (B, N, F)
+        b, n, f = z.shape
+        flat = z.reshape(b * n, f)
+        h = self.conv((graph.operator(self.kind) @ z).reshape(b * n, f))  # (2, B*N, F)
+        if self.root is not None:
+            h = h + self.root(flat)
+        h = F.relu(h) + flat  # residual, as _GraphTrunk
+        first, hidden, last = self.node
+        h = F.relu(hidden(F.relu(first(h))))  # (2, B*N, H)
+        # the last node layer is linear, so it commutes with the sum over regions (as GNNValueCritic)
+        pooled = last(h.view(2, b, n, -1).sum(2)) + (n - 1) * last.bias.unsqueeze(1)  # (2, B, H)
+        q = self.out(F.relu(pooled)).squeeze(-1)  # (2, B)
+        return q[0], q[1]
