@@ -79,7 +79,7 @@ def main() -> None:
     parser.add_argument("--eval-scenario", default="lux")
     parser.add_argument("--eval-episodes", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--runs", default="runs/beta_sweep")
+    parser.add_argument("--runs", default="runs/beta_sweep_batched")
     parser.add_argument("--out", default="docs/studies")
     parser.add_argument("--train-only", action="store_true", help="train every beta, evaluate nothing")
     args = parser.parse_args()
