@@ -2,7 +2,7 @@
 distribution on the same seeds, rebalancing cost, waiting time, utilisation and the equity metrics.
 
     python benchmarks/meso_table.py runs/meso_eval/*.json [--reuse docs/results/lux.json] \
-        [--out docs/meso/lux_meso]
+        [--label "a2c_gnn_lux=Graph-RL trained in meso"] [--out docs/meso/lux_meso]
 
 Inputs are ``marl-amod evaluate --output`` files (one policy each, or several under "results").
 ``--reuse`` adds the rows of a committed results table for policies not measured here (they are
@@ -73,8 +73,10 @@ def main() -> None:
     parser.add_argument("inputs", nargs="+", type=Path)
     parser.add_argument("--reuse", type=Path, default=None, help="a committed table whose other rows are added")
     parser.add_argument("--out", default="docs/meso/lux_meso")
+    parser.add_argument("--label", action="append", default=[], metavar="POLICY=TEXT", help="the row label of a policy (repeatable)")
     args = parser.parse_args()
-    rows = [r for p in args.inputs for r in records(p)]
+    labels = dict(item.split("=", 1) for item in args.label)
+    rows = [dict(r, label=labels[r["policy"]]) if r["policy"] in labels else r for p in args.inputs for r in records(p)]
     if args.reuse:
         measured = {r["policy"] for r in rows}
         rows += [
