@@ -55,3 +55,23 @@ def tiny_city() -> City:
 def small_city() -> City:
     """The default synthetic city (4x4, 20 steps)."""
     return grid_city(4, 4, seed=0)
+
+
+@pytest.fixture(scope="session")
+def tiny_prop_dataset(tmp_path_factory) -> tuple[str, str]:
+    """(scenario yaml, dataset path): a 3x3 grid and 4 episodes of PROP with its card, shared by
+    the offline-learning and fine-tuning tests."""
+    import yaml
+
+    from marl_amod.datasets import collect, write_card
+    from marl_amod.policies import make_policy
+    from marl_amod.scenario import load_city
+
+    root = tmp_path_factory.mktemp("offline")
+    scenario = root / "tiny.yaml"
+    scenario.write_text(yaml.safe_dump({"name": "tiny", "source": "synthetic", "rows": 3, "cols": 3, "horizon": 6, "vehicles_per_region": 5}))
+    city = load_city(str(scenario))
+    data = collect(city, make_policy("prop", city), episodes=4, seed=0)
+    path = data.save(root / "tiny_prop.npz")
+    write_card(path, data, city, make_policy("prop", city), eval_episodes=1, eval_seed=0)
+    return str(scenario), str(path)

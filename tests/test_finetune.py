@@ -6,30 +6,21 @@ import json
 from pathlib import Path
 
 import pytest
-import yaml
 from typer.testing import CliRunner
 
 from marl_amod import finetune
 from marl_amod.algos.registry import ALGOS, args_for
 from marl_amod.cli import app
-from marl_amod.datasets import collect, write_card
 from marl_amod.errors import ConfigError
-from marl_amod.policies import make_policy
-from marl_amod.scenario import load_city
 
 ROOT = Path(__file__).resolve().parent.parent
 
 @pytest.fixture(scope="module")
-def offline_policy(tmp_path_factory) -> str:
+def offline_policy(tmp_path_factory, tiny_prop_dataset) -> str:
     """A BC policy (8 updates) cloned from 4 PROP episodes on the 3x3 grid."""
     root = tmp_path_factory.mktemp("finetune")
-    scenario = root / "tiny.yaml"
-    scenario.write_text(yaml.safe_dump({"name": "tiny", "source": "synthetic", "rows": 3, "cols": 3, "horizon": 6, "vehicles_per_region": 5}))
-    city = load_city(str(scenario))
-    data = collect(city, make_policy("prop", city), episodes=4, seed=0)
-    path = data.save(root / "tiny_prop.npz")
-    write_card(path, data, city, make_policy("prop", city), eval_episodes=1, eval_seed=0)
-    args = {"scenario": str(scenario), "dataset": str(path), "updates": 8, "batch_size": 8, "eval_every": 8, "eval_episodes": 1,
+    scenario, path = tiny_prop_dataset
+    args = {"scenario": scenario, "dataset": path, "updates": 8, "batch_size": 8, "eval_every": 8, "eval_episodes": 1,
             "final_eval_episodes": 1, "hidden": 8, "run_dir": str(root / "bc"), "policy_out": str(root / "bc.pt")}  # fmt: skip
     ALGOS["bc"].train(args_for("bc", args))
     return str(root / "bc.pt")

@@ -14,25 +14,15 @@ from typer.testing import CliRunner
 from marl_amod.algos import offline as O
 from marl_amod.algos.registry import ALGOS, args_for
 from marl_amod.cli import app
-from marl_amod.datasets import collect, write_card
 from marl_amod.errors import ConfigError, DataError
 from marl_amod.evaluation import evaluate
 from marl_amod.models import build_actor
-from marl_amod.policies import make_policy
 from marl_amod.scenario import load_city
 
 
-@pytest.fixture(scope="module")
-def tiny(tmp_path_factory) -> tuple[str, str]:
-    """(scenario yaml, dataset path): the 3x3 grid and 4 episodes of PROP with its card."""
-    root = tmp_path_factory.mktemp("offline")
-    scenario = root / "tiny.yaml"
-    scenario.write_text(yaml.safe_dump({"name": "tiny", "source": "synthetic", "rows": 3, "cols": 3, "horizon": 6, "vehicles_per_region": 5}))
-    city = load_city(str(scenario))
-    data = collect(city, make_policy("prop", city), episodes=4, seed=0)
-    path = data.save(root / "tiny_prop.npz")
-    write_card(path, data, city, make_policy("prop", city), eval_episodes=1, eval_seed=0)
-    return str(scenario), str(path)
+@pytest.fixture
+def tiny(tiny_prop_dataset) -> tuple[str, str]:
+    return tiny_prop_dataset
 
 
 def _args(tmp_path: Path, tiny, **kw) -> dict:
