@@ -115,6 +115,10 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=60_000, help="env steps to train")
     parser.add_argument("--frames-per-batch", type=int, default=608, help="env steps per batch (a multiple of --envs)")
     parser.add_argument("--envs", type=int, default=32, help="episodes stepped together in the batched env")
+    parser.add_argument("--epochs", type=int, default=4, help="on-policy passes over each batch")
+    parser.add_argument("--minibatch", type=int, default=152, help="env steps per on-policy minibatch")
+    parser.add_argument("--lr", type=float, default=3e-4)
+    parser.add_argument("--init-scale", type=float, default=0.3, help="initial std of the TanhNormal actor (before the tanh)")
     parser.add_argument("--eval-episodes", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
@@ -124,11 +128,11 @@ def main() -> None:
     config.max_n_frames = args.frames
     config.on_policy_collected_frames_per_batch = config.off_policy_collected_frames_per_batch = args.frames_per_batch
     config.on_policy_n_envs_per_worker = config.off_policy_n_envs_per_worker = args.envs
-    config.on_policy_minibatch_size = min(config.on_policy_minibatch_size, args.frames_per_batch)
-    config.on_policy_n_minibatch_iters = 10
+    config.on_policy_minibatch_size = min(args.minibatch, args.frames_per_batch)
+    config.on_policy_n_minibatch_iters = args.epochs
     config.off_policy_n_optimizer_steps = 50
     config.off_policy_init_random_frames = 0
-    config.lr = 3e-4
+    config.lr = args.lr
     config.evaluation = False
     config.render = False
     config.loggers = []
@@ -136,6 +140,11 @@ def main() -> None:
     config.checkpoint_at_end = False
     config.save_folder = tempfile.mkdtemp(prefix="benchmarl_")  # BenchMARL writes its run folder here
     algorithm = ALGORITHMS[args.algorithm].get_from_yaml()
+    # Start near equal distribution: every weight about 0.5 with small noise (BenchMARL's default
+    # std of 1 spreads the weights over [0, 1], far worse than ED; only their ratios matter).
+    algorithm.scale_mapping = f"biased_softplus_{args.init_scale}"
+    if hasattr(algorithm, "lmbda"):
+        algorithm.lmbda = 0.95
     experiment = Experiment(
         task=task, algorithm_config=algorithm, model_config=MlpConfig.get_from_yaml(),
         critic_model_config=MlpConfig.get_from_yaml(), seed=args.seed, config=config,

@@ -23,8 +23,8 @@ EXAMPLE_ARGS = {
     "sb3_parameter_sharing.py": ["--steps", str(BUDGET), "--copies", "1", "--eval-episodes", "1"],
     "torchrl_mappo.py": ["--scenario", "synthetic", "--steps", "38", "--envs", "2", "--epochs", "1", "--eval-episodes", "1"],
     "benchmarl_task.py": ["--frames", "38", "--frames-per-batch", "38", "--envs", "2", "--eval-episodes", "1"],
-    "agilerl_ippo.py": ["--steps", "38", "--eval-episodes", "1"],
-    "tianshou_ppo.py": ["--steps", "38", "--eval-episodes", "1"],
+    "agilerl_ippo.py": ["--steps", "38", "--envs", "2", "--eval-episodes", "1"],
+    "tianshou_ppo.py": ["--steps", "38", "--envs", "2", "--eval-episodes", "1"],
 }
 # Examples for libraries outside the [dev] extra (each needs its own environment, see docs/ecosystem.md):
 # they run where their library is installed and are skipped elsewhere.

@@ -1,0 +1,55 @@
+"""The single-agent view (marl_amod.integrations.joint): gymnasium's checker, and the same episodes as the ParallelEnv."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import marl_amod
+from marl_amod.errors import ActionError
+from marl_amod.integrations.joint import JointEnv, joint_env
+
+
+def test_joint_env_passes_gymnasium_env_checker(tiny_city) -> None:
+    env = joint_env(tiny_city)
+    check_env(env, skip_render_check=True)
+    assert env.observation_space.shape == (tiny_city.n_regions, env.parallel.observation_space("region_0").shape[0])
+    assert env.action_space.shape == (tiny_city.n_regions,)
+
+
+@pytest.mark.parametrize("reward_mode", ["team", "local"])
+def test_joint_episode_equals_the_parallel_env_episode(tiny_city, reward_mode: str) -> None:
+    """Same seed and actions: the same observations, and the team reward whatever the reward mode."""
+    joint, parallel = joint_env(tiny_city, reward_mode=reward_mode), marl_amod.parallel_env(tiny_city)
+    obs, info = joint.reset(seed=4)
+    pobs, _ = parallel.reset(seed=4)
+    rng = np.random.default_rng(0)
+    steps, truncated = 0, False
+    while not truncated:
+        assert np.array_equal(obs, np.stack([pobs[a] for a in parallel.possible_agents]))
+        action = rng.random(tiny_city.n_regions, dtype=np.float32)
+        obs, reward, terminated, truncated, info = joint.step(action)
+        pobs, prew, _, ptrunc, pinfo = parallel.step({a: action[i : i + 1] for i, a in enumerate(parallel.possible_agents)})
+        assert reward == pytest.approx(prew["region_0"])  # parallel is team mode: every region gets the team reward
+        assert not terminated and truncated == all(ptrunc.values())
+        steps += 1
+    assert steps == parallel.max_cycles
+    assert info["served"].shape == (tiny_city.n_regions,)
+    assert info["served"].tolist() == [pinfo[a]["served"] for a in parallel.possible_agents]
+    assert info["system_profit"] == pinfo["region_0"]["system_profit"]
+
+
+def test_joint_env_keeps_the_action_rules(tiny_city) -> None:
+    """Finite values outside [0, 1] are clipped (Gaussian policies), NaN and wrong sizes are errors."""
+    env = JointEnv(marl_amod.parallel_env(tiny_city))
+    env.reset(seed=0)
+    clipped = JointEnv(marl_amod.parallel_env(tiny_city))
+    clipped.reset(seed=0)
+    n = tiny_city.n_regions
+    wide = np.linspace(-1.0, 2.0, n)
+    assert env.step(wide)[1] == clipped.step(np.clip(wide, 0.0, 1.0))[1]
+    with pytest.raises(ActionError, match="not finite"):
+        env.step(np.full(n, np.nan))
+    with pytest.raises(ActionError):
+        env.step(np.ones(n + 1))
