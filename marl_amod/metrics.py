@@ -73,6 +73,8 @@ def _masked_gini(values: np.ndarray, keep: np.ndarray) -> np.ndarray:
     through :func:`gini` together: a batch of episodes costs one call per distinct count (usually
     one), and each row's numbers are those of a call on that row alone (same sort, same sums).
     """
+    if values.ndim == 1:  # one episode
+        return np.asarray(gini(values[keep]))
     n = values.shape[-1]
     flat, mask = values.reshape(-1, n), keep.reshape(-1, n)
     if mask.all():

@@ -104,7 +104,9 @@ class Rebalancer:
     Without the triangle inequality the network is the same every call (all N x N arcs), so it is
     built once and only capacities and supplies change between solves: the same network handed
     to the same solver, hence the same flows, without rebuilding it (tested against a fresh build).
-    The OR-Tools object is not picklable; a copy rebuilds it on first use.
+    When every move between distinct regions costs something, an instance where no region is short
+    of its target has one optimum, no move, and is answered without the solver (on both networks,
+    one instance or a batch). The OR-Tools object is not picklable; a copy rebuilds it on first use.
     """
 
     def __init__(self, cost: np.ndarray, metric: bool = False) -> None:
@@ -113,39 +115,36 @@ class Rebalancer:
             raise DataError(f"rebalancing cost must be a square (N, N) matrix, got shape {cost.shape}")
         self.cost = integer_costs(cost)
         self.metric = metric
+        n = cost.shape[0]
+        self._moves_cost = bool((self.cost[~np.eye(n, dtype=bool)] > 0).all())
         self._full: tuple | None = None  # (solver, arc ids, node ids) of the full network
 
     def __call__(self, idle: np.ndarray, target: np.ndarray) -> np.ndarray:
         idle = np.asarray(idle, dtype=np.int64)
         need = np.maximum(np.asarray(target, dtype=np.int64), 0)
         n = idle.shape[0]
-        if need.sum() > idle.sum():
-            raise SolverError(f"rebalancing targets sum to {need.sum()} but only {idle.sum()} vehicles are idle")
-        if self.metric:
-            flows = np.zeros((n, n), dtype=np.int64)
-            senders = np.flatnonzero(idle > need)
-            receivers = np.flatnonzero(need > idle)
-            if receivers.size == 0:
-                return flows
-            supply = idle[senders] - need[senders]
-            demand = need[receivers] - idle[receivers]
-            smcf, arcs, nodes = _network(self.cost[np.ix_(senders, receivers)])
-        else:
-            supply, demand = idle, need
-            if self._full is None:
-                self._full = _network(self.cost)
-            smcf, arcs, nodes = self._full
+        total_need, total_idle = need.sum(), idle.sum()
+        if total_need > total_idle:
+            raise SolverError(f"rebalancing targets sum to {total_need} but only {total_idle} vehicles are idle")
+        if self._moves_cost and not (need > idle).any():
+            return np.zeros((n, n), dtype=np.int64)
+        if not self.metric:
+            supplies = np.empty(2 * n + 1, dtype=np.int64)
+            supplies[:n], supplies[n : 2 * n], supplies[2 * n] = idle, -need, total_need - total_idle
+            return self._solve_full(idle[self._full_network()[3]], supplies)
+        flows = np.zeros((n, n), dtype=np.int64)
+        senders = np.flatnonzero(idle > need)
+        receivers = np.flatnonzero(need > idle)
+        if receivers.size == 0:
+            return flows
+        supply = idle[senders] - need[senders]
+        demand = need[receivers] - idle[receivers]
+        smcf, arcs, nodes = _network(self.cost[np.ix_(senders, receivers)])
         s, r = supply.size, demand.size
         smcf.set_arc_capacities(arcs, np.concatenate([np.repeat(supply, r), supply]))
         smcf.set_nodes_supplies(nodes, np.concatenate([supply, -demand, [demand.sum() - supply.sum()]]))
-        status = smcf.solve()
-        if status != smcf.OPTIMAL:
-            raise SolverError(f"min-cost rebalancing flow failed with OR-Tools status {status}")
-        f = smcf.flows(arcs)[: s * r].reshape(s, r)
-        if self.metric:
-            flows[np.ix_(senders, receivers)] = f
-        else:
-            flows = f.astype(np.int64)
+        _check(smcf.solve(), smcf)
+        flows[np.ix_(senders, receivers)] = smcf.flows(arcs)[: s * r].reshape(s, r)
         flows.flat[:: n + 1] = 0  # a region 'sending' to itself keeps its vehicles
         return flows
 
@@ -156,7 +155,10 @@ class Rebalancer:
         need = np.maximum(np.asarray(target, dtype=np.int64), 0)
         b, n = idle.shape
         flows = np.zeros((b, n, n), dtype=np.int64)
-        short = np.flatnonzero((need > idle).any(axis=-1))  # elsewhere no move is the unique optimum
+        if self._moves_cost:  # elsewhere no move is the unique optimum
+            short = np.flatnonzero((need > idle).any(axis=-1))
+        else:
+            short = np.arange(b)
         if self.metric:
             for k in short:
                 flows[k] = self(idle[k], need[k])
@@ -165,24 +167,41 @@ class Rebalancer:
         if over.any():
             k = short[np.argmax(over)]
             raise SolverError(f"rebalancing targets sum to {need[k].sum()} but only {idle[k].sum()} vehicles are idle")
-        if self._full is None:
-            self._full = _network(self.cost)
-        smcf, arcs, nodes = self._full
         supply, demand = idle[short], need[short]
-        caps = np.concatenate([np.repeat(supply, n, axis=1), supply], axis=1)
+        caps = supply[:, self._full_network()[3]]
         supplies = np.concatenate([supply, -demand, (demand.sum(1) - supply.sum(1))[:, None]], axis=1)
         for row, k in enumerate(short):
-            smcf.set_arc_capacities(arcs, caps[row])
-            smcf.set_nodes_supplies(nodes, supplies[row])
-            status = smcf.solve()
-            if status != smcf.OPTIMAL:
-                raise SolverError(f"min-cost rebalancing flow failed with OR-Tools status {status}")
-            flows[k] = smcf.flows(arcs)[: n * n].reshape(n, n)
-        flows[:, np.arange(n), np.arange(n)] = 0  # a region 'sending' to itself keeps its vehicles
+            flows[k] = self._solve_full(caps[row], supplies[row])
+        return flows
+
+    def _full_network(self) -> tuple:
+        """(solver, arc ids, node ids, capacity index) of the full network, built on first use;
+        ``idle[capacity index]`` are the arc capacities (each arc may carry its sender's vehicles)."""
+        if self._full is None:
+            n = self.cost.shape[0]
+            rows = np.arange(n)
+            self._full = (*_network(self.cost), np.concatenate([np.repeat(rows, n), rows]))
+        return self._full
+
+    def _solve_full(self, capacities: np.ndarray, supplies: np.ndarray) -> np.ndarray:
+        """(N, N) flows of the full network for one instance's arc capacities and node supplies."""
+        smcf, arcs, nodes, _ = self._full_network()
+        n = self.cost.shape[0]
+        smcf.set_arc_capacities(arcs, capacities)
+        smcf.set_nodes_supplies(nodes, supplies)
+        _check(smcf.solve(), smcf)
+        flows = smcf.flows(arcs)[: n * n].reshape(n, n)  # a fresh int64 array: ours to edit
+        flows.flat[:: n + 1] = 0  # a region 'sending' to itself keeps its vehicles
         return flows
 
     def __getstate__(self) -> dict:
         return {**self.__dict__, "_full": None}
+
+
+def _check(status: int, smcf: object) -> None:
+    """Raise unless OR-Tools found the optimum (it always should: the inputs were checked)."""
+    if status != smcf.OPTIMAL:  # type: ignore[attr-defined]
+        raise SolverError(f"min-cost rebalancing flow failed with OR-Tools status {status}")
 
 
 def _network(cost: np.ndarray) -> tuple:
