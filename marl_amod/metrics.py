@@ -50,6 +50,8 @@ def gini(values: np.ndarray | list[float], axis: int = -1) -> np.ndarray | float
         raise ValueError("the Gini coefficient needs non-negative values")
     total = x.sum(axis=-1)
     rank = np.arange(1, n + 1)
+    if x.ndim == 1:  # one row: the same float64 operations on scalars
+        return 2.0 * float((x * rank).sum()) / (n * float(total)) - (n + 1.0) / n if total > 0 else 0.0
     positive = total > 0
     g = 2.0 * (x * rank).sum(axis=-1) / np.where(positive, n * total, 1.0) - (n + 1.0) / max(n, 1)
     g = np.where(positive, g, 0.0)
