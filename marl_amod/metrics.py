@@ -85,7 +85,7 @@ def _masked_gini(values: np.ndarray, keep: np.ndarray) -> np.ndarray:
     out = np.empty(flat.shape[0])
     for count in np.unique(counts):
         rows = counts == count
-        out[rows] = gini(flat[rows][mask[rows]].reshape(-1, count))  # a boolean mask keeps each row's order
+        out[rows] = gini(flat[rows][mask[rows]].reshape(int(rows.sum()), count))  # a boolean mask keeps row order
     return out.reshape(values.shape[:-1])
 
 
