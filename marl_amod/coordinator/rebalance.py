@@ -104,9 +104,9 @@ class Rebalancer:
     Without the triangle inequality the network is the same every call (all N x N arcs), so it is
     built once and only capacities and supplies change between solves: the same network handed
     to the same solver, hence the same flows, without rebuilding it (tested against a fresh build).
-    When every move between distinct regions costs something, an instance where no region is short
-    of its target has one optimum, no move, and is answered without the solver (on both networks,
-    one instance or a batch). The OR-Tools object is not picklable; a copy rebuilds it on first use.
+    When staying is free and every move between distinct regions costs something, an instance
+    where no region is short of its target has one optimum, no move, and is answered without the
+    solver (on both networks, one instance or a batch). The OR-Tools object is not picklable; a copy rebuilds it on first use.
     """
 
     def __init__(self, cost: np.ndarray, metric: bool = False) -> None:
@@ -116,7 +116,8 @@ class Rebalancer:
         self.cost = integer_costs(cost)
         self.metric = metric
         n = cost.shape[0]
-        self._moves_cost = bool((self.cost[~np.eye(n, dtype=bool)] > 0).all())
+        # staying free and every move paid: an instance where no region is short has one optimum, no move
+        self._moves_cost = bool((np.diagonal(self.cost) == 0).all() and (self.cost[~np.eye(n, dtype=bool)] > 0).all())
         self._full: tuple | None = None  # (solver, arc ids, node ids) of the full network
 
     def __call__(self, idle: np.ndarray, target: np.ndarray) -> np.ndarray:
