@@ -221,16 +221,23 @@ def main() -> None:
                 rows.append({"scenario": scenario, "tree": name, **row})
                 lines.append(table_row(scenario, name if args.ref else "this", row))
                 print(lines[-1], flush=True)
-    if args.json:
-        head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
-        dirty = bool(subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True).stdout.strip())
-        result = {
-            "ref": args.ref, "ref_commit": commit, "commit": head, "dirty": dirty, "seconds": args.seconds,
-            "threads": 1, "cpu": cpu_model(), "python": platform.python_version(), "numpy": np.__version__,
-            "load_average_before": load_before, "load_average_after": os.getloadavg(), "rows": rows, "markdown": "\n".join(lines),
-        }
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=2) + "\n")
+            if args.json:  # after every scenario, so an interrupted run keeps what it measured
+                write_json(args, commit, load_before, rows, lines)
+
+
+def write_json(args: argparse.Namespace, commit: str | None, load_before: tuple, rows: list, lines: list[str]) -> None:
+    """Every measurement so far, the table, the machine and its load, written atomically."""
+    head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
+    dirty = bool(subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True).stdout.strip())
+    result = {
+        "ref": args.ref, "ref_commit": commit, "commit": head, "dirty": dirty, "seconds": args.seconds,
+        "threads": 1, "cpu": cpu_model(), "python": platform.python_version(), "numpy": np.__version__,
+        "load_average_before": load_before, "load_average_after": os.getloadavg(), "rows": rows, "markdown": "\n".join(lines),
+    }
+    args.json.parent.mkdir(parents=True, exist_ok=True)
+    part = args.json.with_suffix(".part")
+    part.write_text(json.dumps(result, indent=2) + "\n")
+    os.replace(part, args.json)
 
 
 if __name__ == "__main__":
