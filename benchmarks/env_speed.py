@@ -12,6 +12,10 @@ of one episode, every region acting; a batch of B episodes stepping once counts 
   solve), i.e. the batched machinery without the per-episode min-cost flows;
 * ``step ms``: median milliseconds of one ParallelEnv.step.
 
+Times are this process's CPU time by default (``--clock cpu``): on a shared machine the time other
+jobs hold the core does not count, so the numbers are those of one core; ``--clock wall`` measures
+elapsed time. ``performance_benchmark`` keeps its own wall clock.
+
 With ``--ref <git ref>`` every scenario is measured twice, side by side: once with the ref's
 ``marl_amod`` (``git archive`` into a temporary folder) and once with this tree's, each in a
 fresh subprocess, alternating, so a change of machine load affects both alike. ``--json`` writes
@@ -48,17 +52,19 @@ import numpy as np  # noqa: E402
 BATCHES = (1, 16, 64, 256)
 MEMORY_LIMIT = 2e9  # bytes of drawn demand a batch may hold; larger batches are skipped
 ROOT = Path(__file__).resolve().parents[1]
+CLOCKS = {"cpu": time.process_time, "wall": time.perf_counter}
+clock = CLOCKS["cpu"]  # this process's CPU seconds: on a shared machine, time taken by others does not count
 
 
 def rate(step: Callable[[], int], seconds: float) -> float:
     """Env steps per second of ``step`` (which returns how many env steps it made), after a warm-up."""
-    end = time.perf_counter() + seconds / 4
-    while time.perf_counter() < end:  # warm-up: fills per-step caches, as any run does
+    end = clock() + seconds / 4
+    while clock() < end:  # warm-up: fills per-step caches, as any run does
         step()
-    count, start = 0, time.perf_counter()
-    while time.perf_counter() - start < seconds:
+    count, start = 0, clock()
+    while clock() - start < seconds:
         count += step()
-    return count / (time.perf_counter() - start)
+    return count / (clock() - start)
 
 
 def parallel_loop(scenario: str, seconds: float) -> tuple[float, float]:
@@ -73,9 +79,9 @@ def parallel_loop(scenario: str, seconds: float) -> tuple[float, float]:
         if not env.agents:
             env.reset()
         actions = {a: env.action_space(a).sample() for a in env.agents}
-        t0 = time.perf_counter()
+        t0 = clock()
         env.step(actions)
-        times.append(time.perf_counter() - t0)
+        times.append(clock() - t0)
         return 1
 
     steps = rate(step, seconds)
@@ -153,10 +159,10 @@ def measure(scenario: str, seconds: float) -> dict[str, Any]:
     return row
 
 
-def measure_in(tree: Path, scenario: str, seconds: float) -> dict[str, Any]:
+def measure_in(tree: Path, scenario: str, seconds: float, clock_name: str) -> dict[str, Any]:
     """:func:`measure` in a fresh subprocess that imports ``marl_amod`` from ``tree``."""
     env = {**os.environ, "PYTHONPATH": str(tree)}
-    spec = json.dumps({"scenario": scenario, "seconds": seconds})
+    spec = json.dumps({"scenario": scenario, "seconds": seconds, "clock": clock_name})
     out = subprocess.run(
         [sys.executable, str(Path(__file__).resolve()), "--worker", spec],
         env=env, capture_output=True, text=True, cwd=tree, check=False,
@@ -196,10 +202,13 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=2.0, help="timed seconds per cell")
     parser.add_argument("--ref", default=None, help="git ref to measure side by side with this tree")
     parser.add_argument("--json", type=Path, default=None, help="write the measurements and table here")
+    parser.add_argument("--clock", choices=list(CLOCKS), default="cpu", help="cpu: this process's CPU time (default); wall: elapsed time")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
         spec = json.loads(args.worker)
+        global clock
+        clock = CLOCKS[spec["clock"]]
         print(json.dumps(measure(spec["scenario"], spec["seconds"])))
         return
 
@@ -217,7 +226,7 @@ def main() -> None:
             trees.insert(0, ("ref", Path(tmp) / "tree"))
         for scenario in args.scenarios:
             for name, tree in trees:
-                row = measure_in(tree, scenario, args.seconds)
+                row = measure_in(tree, scenario, args.seconds, args.clock)
                 rows.append({"scenario": scenario, "tree": name, **row})
                 lines.append(table_row(scenario, name if args.ref else "this", row))
                 print(lines[-1], flush=True)
@@ -231,7 +240,7 @@ def write_json(args: argparse.Namespace, commit: str | None, load_before: tuple,
     dirty = bool(subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True).stdout.strip())
     result = {
         "ref": args.ref, "ref_commit": commit, "commit": head, "dirty": dirty, "seconds": args.seconds,
-        "threads": 1, "cpu": cpu_model(), "python": platform.python_version(), "numpy": np.__version__,
+        "clock": args.clock, "threads": 1, "cpu": cpu_model(), "python": platform.python_version(), "numpy": np.__version__,
         "load_average_before": load_before, "load_average_after": os.getloadavg(), "rows": rows, "markdown": "\n".join(lines),
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)
