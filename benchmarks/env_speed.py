@@ -90,8 +90,9 @@ def parallel_loop(scenario: str, seconds: float) -> tuple[float, float]:
 
 def aec_benchmark(scenario: str) -> float:
     """Cycles per second printed by ``pettingzoo.test.performance_benchmark`` on the AEC env."""
-    import marl_amod
     from pettingzoo.test import performance_benchmark
+
+    import marl_amod
 
     env = marl_amod.env(scenario)
     env.reset(seed=0)
