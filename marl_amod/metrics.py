@@ -41,15 +41,20 @@ def gini(values: np.ndarray | list[float], axis: int = -1) -> np.ndarray | float
 
     Sorted form of mean |x_i - x_j| / (2 mean x), O(n log n); all-zero (or empty) rows give 0.
     """
-    x = np.sort(np.moveaxis(np.asarray(values, dtype=float), axis, -1), axis=-1)
-    if np.any(x < 0):
-        raise ValueError("the Gini coefficient needs non-negative values")
+    x = np.asarray(values, dtype=float)
+    if axis not in (-1, x.ndim - 1):
+        x = np.moveaxis(x, axis, -1)
+    x = np.sort(x, axis=-1)
     n = x.shape[-1]
+    if n and (x[..., 0] < 0).any():  # sorted: the first value is each row's smallest
+        raise ValueError("the Gini coefficient needs non-negative values")
     total = x.sum(axis=-1)
     rank = np.arange(1, n + 1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        g = 2.0 * (x * rank).sum(axis=-1) / (n * total) - (n + 1.0) / max(n, 1)
-    g = np.where(total > 0, g, 0.0)
+    if x.ndim == 1:  # one row: the same float64 operations on scalars
+        return 2.0 * float((x * rank).sum()) / (n * float(total)) - (n + 1.0) / n if total > 0 else 0.0
+    positive = total > 0
+    g = 2.0 * (x * rank).sum(axis=-1) / np.where(positive, n * total, 1.0) - (n + 1.0) / max(n, 1)
+    g = np.where(positive, g, 0.0)
     return float(g) if g.ndim == 0 else g
 
 
@@ -64,10 +69,24 @@ def region_service_rate(totals: EpisodeTotals) -> np.ndarray:
 
 
 def _masked_gini(values: np.ndarray, keep: np.ndarray) -> np.ndarray:
-    """Gini of ``values[..., keep]`` per leading index (each episode keeps its own regions)."""
+    """Gini of ``values[..., keep]`` per leading index (each episode keeps its own regions).
+
+    Rows keeping the same number of regions are compacted into one (rows, kept) array and go
+    through :func:`gini` together: a batch of episodes costs one call per distinct count (usually
+    one), and each row's numbers are those of a call on that row alone (same sort, same sums).
+    """
+    if values.ndim == 1:  # one episode
+        return np.asarray(gini(values[keep]))
     n = values.shape[-1]
-    flat = [gini(v[k]) for v, k in zip(values.reshape(-1, n), keep.reshape(-1, n), strict=True)]
-    return np.asarray(flat, dtype=float).reshape(values.shape[:-1])
+    flat, mask = values.reshape(-1, n), keep.reshape(-1, n)
+    if mask.all():
+        return np.asarray(gini(flat), dtype=float).reshape(values.shape[:-1])
+    counts = mask.sum(axis=-1)
+    out = np.empty(flat.shape[0])
+    for count in np.unique(counts):
+        rows = counts == count
+        out[rows] = gini(flat[rows][mask[rows]].reshape(int(rows.sum()), count))  # a boolean mask keeps row order
+    return out.reshape(values.shape[:-1])
 
 
 def episode_metrics(totals: EpisodeTotals, fleet: int, horizon: int) -> dict[str, float]:

@@ -72,7 +72,7 @@ def check_array(
                 k = np.unravel_index(int(np.argmax(frac)), arr.shape) if arr.ndim else ()
                 at = f" at {where(k, lead)}" if arr.ndim else ""
                 raise error(f"{what} must be whole numbers, got {arr[k]}{at}")
-        return arr.astype(np.int64)
+        return arr.astype(np.int64, copy=False)  # int64 input comes back as is, never written to
     return arr
 
 

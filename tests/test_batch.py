@@ -235,3 +235,53 @@ def test_vector_env_reward_scale_and_max_cycles_follow_the_parallel_env() -> Non
         assert not trunc_plain.any() and trunc_scaled.all() == (step == 3)
     with pytest.raises(RuntimeError, match="call reset"):
         scaled.step(actions)
+
+
+def _one_instance_metric_build(idle: np.ndarray, target: np.ndarray, cost: np.ndarray) -> np.ndarray:
+    """The metric network built the literal way, one instance: surplus regions x shortfall regions."""
+    from marl_amod.coordinator.rebalance import _network
+
+    need = np.maximum(target, 0)
+    flows = np.zeros((idle.size, idle.size), dtype=np.int64)
+    senders, receivers = np.flatnonzero(idle > need), np.flatnonzero(need > idle)
+    if receivers.size == 0:
+        return flows
+    supply, demand = idle[senders] - need[senders], need[receivers] - idle[receivers]
+    smcf, arcs, nodes = _network(cost[np.ix_(senders, receivers)])
+    smcf.set_arc_capacities(arcs, np.concatenate([np.repeat(supply, receivers.size), supply]))
+    smcf.set_nodes_supplies(nodes, np.concatenate([supply, -demand, [demand.sum() - supply.sum()]]))
+    assert smcf.solve() == smcf.OPTIMAL
+    flows[np.ix_(senders, receivers)] = smcf.flows(arcs)[: senders.size * receivers.size].reshape(senders.size, -1)
+    return flows
+
+
+def test_batched_metric_networks_are_the_one_instance_networks() -> None:
+    """The batch lays out every instance's surplus x shortfall network at once; each must be the
+    network a one-instance build makes (same nodes, arcs, order), i.e. give the very same flows
+    (tied optima are everywhere with whole-step costs, so any other network shows)."""
+    from marl_amod.coordinator.rebalance import Rebalancer, desired_targets
+    from marl_amod.scenario import grid_city
+
+    city = grid_city(4, 4, seed=5)
+    solver = Rebalancer(city.reb_time, metric=True)
+    rng = np.random.default_rng(11)
+    idles = rng.multinomial(60, np.full(16, 1 / 16), size=50)
+    targets = desired_targets(rng.random((50, 16)) * (rng.random((50, 16)) > 0.4), idles.sum(axis=1))
+    targets[::7] = np.minimum(targets[::7], idles[::7])  # no shortfall: no solve
+    expected = np.stack([_one_instance_metric_build(i, t, solver.cost) for i, t in zip(idles, targets, strict=True)])
+    assert expected.any(axis=(1, 2)).sum() > 30
+    np.testing.assert_array_equal(solver.many(idles, targets), expected)
+    for k in range(0, 50, 9):
+        np.testing.assert_array_equal(solver(idles[k], targets[k]), expected[k])
+
+
+def test_batch_and_single_rebalancing_agree_when_some_move_costs_nothing() -> None:
+    """With a free move 'no region short' no longer has one optimum: the batch must not skip the solve."""
+    from marl_amod.coordinator.rebalance import Rebalancer
+
+    cost = np.array([[0, 0, 3], [2, 0, 1], [4, 1, 0]])
+    solver = Rebalancer(cost)
+    idles = np.array([[4, 4, 1], [4, 3, 3], [2, 2, 2], [0, 6, 0]])
+    targets = np.array([[3, 4, 1], [1, 3, -1], [-1, -1, -1], [0, 2, 0]])  # nobody short of its target
+    assert solver(idles[0], targets[0])[0, 1] > 0  # OR-Tools picks the free move among the optima
+    np.testing.assert_array_equal(solver.many(idles, targets), np.stack([solver(i, t) for i, t in zip(idles, targets, strict=True)]))

@@ -138,3 +138,11 @@ def test_revenue_objective_ignores_trip_cost(small_city):
     c = Coordinator(small_city, objective="revenue")
     assert np.array_equal(c.margin(0), small_city.price[0])
     assert np.all(Coordinator(small_city).margin(0) < small_city.price[0] + 1e-12)
+
+
+def test_rebalancing_with_a_paid_stay_still_solves_when_nobody_is_short() -> None:
+    """Plus-one prices 'a region replaces its own departures' above any move: with such a diagonal
+    no shortfall does not mean no move, so the solver must run (the free-stay shortcut must not)."""
+    cost = np.array([[10, 1], [1, 10]])
+    flows = min_cost_rebalance(np.array([3, 3]), np.array([1, 1]), cost)
+    np.testing.assert_array_equal(flows, [[0, 1], [1, 0]])  # each region is refilled by the other

@@ -149,6 +149,29 @@ def test_out_of_range_actions_are_clipped_into_the_unit_interval() -> None:
     assert np.array_equal(got, [1.0, 0.0, 0.25, 0.0])
 
 
+@pytest.mark.parametrize("odd", [True, np.bool_(False), np.array([True]), [0.5], np.array(["0.5"]), 0.5 + 1j])
+def test_actions_of_any_other_type_take_the_checked_path(odd) -> None:
+    """The one-array shortcut takes plain real numbers only: a bool mixed into float actions
+    would otherwise be read as 1.0/0.0, a one-element list or string as its number."""
+    agents = ["a", "b", "c"]
+    shape = np.shape(odd)  # the others alike, so one array call would accept the mix
+    actions = {"a": np.full(shape, 0.5, dtype=np.float32), "b": np.full(shape, 0.25), "c": odd}
+    if isinstance(odd, list):  # a list of one number is a valid (1,) action on the checked path
+        assert np.array_equal(act.joint_action(actions, agents), [0.5, 0.25, 0.5])
+        return
+    with pytest.raises(ActionError, match="action of c"):
+        act.joint_action(actions, agents)
+
+
+def test_stacked_actions_equal_the_agent_by_agent_reading() -> None:
+    """Every mix of scalar kinds and shapes () / (1,) gives the numbers np.asarray(value, float64) gives."""
+    values = [np.float32(0.1), 0.7, 2, np.int64(0), np.array(0.3), np.array([0.9], dtype=np.float16), np.array([1.5])]
+    agents = [f"r{k}" for k in range(len(values))]
+    got = act.joint_action(dict(zip(agents, values, strict=True)), agents)
+    expect = np.clip([float(np.asarray(v, dtype=np.float64).reshape(())) for v in values], 0.0, 1.0)
+    assert got.dtype == np.float64 and np.array_equal(got, expect)
+
+
 def test_a_gaussian_policy_steps_the_env_like_its_clipped_actions(small_city) -> None:
     """Unclipped Gaussian samples (negative ones included) act exactly as their clipped values."""
     rng = np.random.default_rng(0)

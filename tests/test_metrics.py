@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from marl_amod.evaluation import evaluate
-from marl_amod.metrics import METRICS, episode_metrics, gini, region_metrics
+from marl_amod.metrics import METRICS, episode_metrics, gini, metric_arrays, region_metrics
 from marl_amod.sim.macro import EpisodeTotals
 
 
@@ -67,3 +67,22 @@ def test_evaluation_reports_fairness_with_mean_and_std(tiny_city):
     rate = np.array(res["per_region"]["service_rate"])
     assert rate.shape == (tiny_city.n_regions,) and np.all((rate >= 0) & (rate <= 1))
     assert res["metrics"]["wait_time"]["mean"] > 0  # requests waited, so the wait Gini is about something
+
+
+def test_batch_metrics_equal_each_episode_alone_to_the_last_bit():
+    """A batch's Gini goes through one call per distinct region count; every row must still give
+    exactly the numbers of its own episode (the vector env's infos equal the ParallelEnv's)."""
+    rng = np.random.default_rng(3)
+    b, n = 40, 9
+    totals = EpisodeTotals.zeros(n, (b,))
+    totals.demand[:] = rng.integers(0, 5, (b, n)) * (rng.random((b, n)) < 0.8)
+    totals.served[:] = np.minimum(totals.demand, rng.integers(0, 5, (b, n)))
+    totals.wait_minutes[:] = totals.served * rng.integers(0, 4, (b, n)) * 5.0
+    totals.served[0], totals.demand[0] = 0, 0  # an episode where nobody asked
+    totals.served[1], totals.demand[1] = 1, 1  # every region asked and was served
+    batch = metric_arrays(totals, fleet=30, horizon=10)
+    assert len(set((totals.served > 0).sum(axis=1))) > 3  # the groups are really mixed
+    for k in range(b):
+        alone = EpisodeTotals(**{f: getattr(totals, f)[k].copy() for f in EpisodeTotals.__dataclass_fields__})
+        for key, value in episode_metrics(alone, fleet=30, horizon=10).items():
+            assert batch[key][k] == value, (k, key)

@@ -11,7 +11,7 @@ from typing import Literal
 
 import numpy as np
 
-from marl_amod.coordinator.dispatch import check_dispatch_inputs, greedy_dispatch, margin_order
+from marl_amod.coordinator.dispatch import check_dispatch_counts, check_dispatch_inputs, dispatch_plan, planned_dispatch
 from marl_amod.coordinator.rebalance import (
     Rebalancer,
     check_rebalance_inputs,
@@ -36,7 +36,7 @@ class Coordinator:
         self.city = city
         self.objective = objective
         self.solver = solver
-        self._orders: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # step -> (margin, its order)
+        self._plans: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # step -> dispatch_plan of its margin
         self._metric: bool | None = None
         self._rebalancer: Rebalancer | None = None
 
@@ -59,11 +59,9 @@ class Coordinator:
             from marl_amod.coordinator.reference import lp_dispatch
 
             return lp_dispatch(*check_dispatch_inputs(idle, requests, self.margin(t)))
-        if t not in self._orders:  # margins are tables of the city: sort them once per step
-            margin = self.margin(t)
-            self._orders[t] = (margin, margin_order(margin))
-        margin, order = self._orders[t]
-        return greedy_dispatch(idle, requests, margin, order)  # checks the whole batch once
+        if t not in self._plans:  # margins are tables of the city (checked when it was built): sort once per step
+            self._plans[t] = dispatch_plan(self.margin(t))
+        return planned_dispatch(*check_dispatch_counts(idle, requests), self._plans[t])  # the whole batch checked once
 
     def rebalance(self, idle: np.ndarray, target: np.ndarray) -> np.ndarray:
         """Rebalancing flows y (N, N) of least cost meeting ``target`` (a -1 entry: no target);

@@ -21,6 +21,16 @@ def margin_order(margin: np.ndarray) -> np.ndarray:
     return np.argsort(-margin, axis=-1, kind="stable")
 
 
+def dispatch_plan(margin: np.ndarray, order: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """What :func:`greedy_dispatch` needs of a margin table: (N, N) bool 'worth serving' (margin > 0)
+    and (N, N) flat row-major positions of each origin's entries by decreasing margin. A table of
+    the city per step, so the coordinator computes it once per step."""
+    if order is None:
+        order = margin_order(margin)
+    n = margin.shape[-1]
+    return margin > 0, order + np.arange(0, n * n, n)[:, None]
+
+
 def greedy_dispatch(
     idle: np.ndarray, demand: np.ndarray, margin: np.ndarray, order: np.ndarray | None = None
 ) -> np.ndarray:
@@ -30,12 +40,15 @@ def greedy_dispatch(
     Leading axes are independent instances (a batch of episodes at the same step).
     """
     idle, demand, margin = check_dispatch_inputs(idle, demand, margin)
-    if order is None:
-        order = margin_order(margin)
-    n = margin.shape[-1]
-    flat = order + np.arange(0, n * n, n)[:, None]  # (N, N) positions of the sorted entries in a flat row-major (N, N)
+    return planned_dispatch(idle, demand, dispatch_plan(margin, order))
+
+
+def planned_dispatch(idle: np.ndarray, demand: np.ndarray, plan: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """:func:`greedy_dispatch` on checked int64 counts and a :func:`dispatch_plan` (no checks here)."""
+    positive, flat = plan
+    n = flat.shape[-1]
     lead = demand.shape[:-2]
-    servable = np.where(margin > 0, demand, 0).reshape(*lead, n * n)
+    servable = np.where(positive, demand, 0).reshape(*lead, n * n)
     d_sorted = servable[..., flat]  # (..., N, N), each origin's requests by decreasing margin
     before = np.cumsum(d_sorted, axis=-1) - d_sorted
     x_sorted = np.minimum(np.maximum(idle[..., None] - before, 0), d_sorted)
@@ -44,15 +57,22 @@ def greedy_dispatch(
     return x.reshape(demand.shape)
 
 
-def check_dispatch_inputs(idle: np.ndarray, demand: np.ndarray, margin: np.ndarray) -> tuple[np.ndarray, ...]:
-    """idle (..., N) and demand (..., N, N) as whole non-negative int64 counts, margin (N, N) finite;
-    otherwise a :class:`~marl_amod.errors.DataError` naming the argument and the region. Leading
-    axes are a batch of episodes, checked in one pass."""
+def check_dispatch_counts(idle: np.ndarray, demand: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """idle (..., N) and demand (..., N, N) as whole non-negative int64 counts, otherwise a
+    :class:`~marl_amod.errors.DataError` naming the argument and the region. Leading axes are a
+    batch of episodes, checked in one pass."""
     lead = max(np.ndim(idle) - 1, 0)
     idle = check_array(idle, "idle vehicles", minimum=0, integer=True, lead=lead)
     if idle.ndim < 1:
         raise DataError(f"idle vehicles must be one count per region (N,), got shape {idle.shape}")
     n = idle.shape[-1]
     demand = check_array(demand, "requests", shape=(*idle.shape, n), minimum=0, integer=True, lead=lead)
+    return idle, demand
+
+
+def check_dispatch_inputs(idle: np.ndarray, demand: np.ndarray, margin: np.ndarray) -> tuple[np.ndarray, ...]:
+    """:func:`check_dispatch_counts`, and margin (N, N) finite."""
+    idle, demand = check_dispatch_counts(idle, demand)
+    n = idle.shape[-1]
     margin = check_array(margin, "dispatch margin", shape=(n, n))
     return idle, demand, margin

@@ -104,7 +104,9 @@ class Rebalancer:
     Without the triangle inequality the network is the same every call (all N x N arcs), so it is
     built once and only capacities and supplies change between solves: the same network handed
     to the same solver, hence the same flows, without rebuilding it (tested against a fresh build).
-    The OR-Tools object is not picklable; a copy rebuilds it on first use.
+    When staying is free and every move between distinct regions costs something, an instance
+    where no region is short of its target has one optimum, no move, and is answered without the
+    solver (on both networks, one instance or a batch). The OR-Tools object is not picklable; a copy rebuilds it on first use.
     """
 
     def __init__(self, cost: np.ndarray, metric: bool = False) -> None:
@@ -113,41 +115,25 @@ class Rebalancer:
             raise DataError(f"rebalancing cost must be a square (N, N) matrix, got shape {cost.shape}")
         self.cost = integer_costs(cost)
         self.metric = metric
+        n = cost.shape[0]
+        # staying free and every move paid: an instance where no region is short has one optimum, no move
+        self._moves_cost = bool((np.diagonal(self.cost) == 0).all() and (self.cost[~np.eye(n, dtype=bool)] > 0).all())
         self._full: tuple | None = None  # (solver, arc ids, node ids) of the full network
 
     def __call__(self, idle: np.ndarray, target: np.ndarray) -> np.ndarray:
         idle = np.asarray(idle, dtype=np.int64)
         need = np.maximum(np.asarray(target, dtype=np.int64), 0)
         n = idle.shape[0]
-        if need.sum() > idle.sum():
-            raise SolverError(f"rebalancing targets sum to {need.sum()} but only {idle.sum()} vehicles are idle")
+        total_need, total_idle = need.sum(), idle.sum()
+        if total_need > total_idle:
+            raise SolverError(f"rebalancing targets sum to {total_need} but only {total_idle} vehicles are idle")
+        if self._moves_cost and not (need > idle).any():
+            return np.zeros((n, n), dtype=np.int64)
         if self.metric:
-            flows = np.zeros((n, n), dtype=np.int64)
-            senders = np.flatnonzero(idle > need)
-            receivers = np.flatnonzero(need > idle)
-            if receivers.size == 0:
-                return flows
-            supply = idle[senders] - need[senders]
-            demand = need[receivers] - idle[receivers]
-            smcf, arcs, nodes = _network(self.cost[np.ix_(senders, receivers)])
-        else:
-            supply, demand = idle, need
-            if self._full is None:
-                self._full = _network(self.cost)
-            smcf, arcs, nodes = self._full
-        s, r = supply.size, demand.size
-        smcf.set_arc_capacities(arcs, np.concatenate([np.repeat(supply, r), supply]))
-        smcf.set_nodes_supplies(nodes, np.concatenate([supply, -demand, [demand.sum() - supply.sum()]]))
-        status = smcf.solve()
-        if status != smcf.OPTIMAL:
-            raise SolverError(f"min-cost rebalancing flow failed with OR-Tools status {status}")
-        f = smcf.flows(arcs)[: s * r].reshape(s, r)
-        if self.metric:
-            flows[np.ix_(senders, receivers)] = f
-        else:
-            flows = f.astype(np.int64)
-        flows.flat[:: n + 1] = 0  # a region 'sending' to itself keeps its vehicles
-        return flows
+            return self._solve_reduced(idle[None], need[None])[0]
+        supplies = np.empty(2 * n + 1, dtype=np.int64)
+        supplies[:n], supplies[n : 2 * n], supplies[2 * n] = idle, -need, total_need - total_idle
+        return self._solve_full(idle[self._full_network()[3]], supplies)
 
     def many(self, idle: np.ndarray, target: np.ndarray) -> np.ndarray:
         """Flows (B, N, N) for B independent instances idle (B, N), target (B, N): each solved alone
@@ -156,33 +142,108 @@ class Rebalancer:
         need = np.maximum(np.asarray(target, dtype=np.int64), 0)
         b, n = idle.shape
         flows = np.zeros((b, n, n), dtype=np.int64)
-        short = np.flatnonzero((need > idle).any(axis=-1))  # elsewhere no move is the unique optimum
-        if self.metric:
-            for k in short:
-                flows[k] = self(idle[k], need[k])
-            return flows
+        if self._moves_cost:  # elsewhere no move is the unique optimum
+            short = np.flatnonzero((need > idle).any(axis=-1))
+        else:
+            short = np.arange(b)
         over = need[short].sum(axis=-1) > idle[short].sum(axis=-1)
         if over.any():
             k = short[np.argmax(over)]
             raise SolverError(f"rebalancing targets sum to {need[k].sum()} but only {idle[k].sum()} vehicles are idle")
-        if self._full is None:
-            self._full = _network(self.cost)
-        smcf, arcs, nodes = self._full
+        if self.metric:
+            flows[short] = self._solve_reduced(idle[short], need[short])
+            return flows
         supply, demand = idle[short], need[short]
-        caps = np.concatenate([np.repeat(supply, n, axis=1), supply], axis=1)
+        smcf, arcs, nodes, capacity_index = self._full_network()
+        caps = supply[:, capacity_index]
         supplies = np.concatenate([supply, -demand, (demand.sum(1) - supply.sum(1))[:, None]], axis=1)
-        for row, k in enumerate(short):
+        pairs = arcs[: n * n]
+        out = flows.reshape(b, n * n)
+        for row, k in enumerate(short.tolist()):  # _solve_full, inlined: B calls per step
             smcf.set_arc_capacities(arcs, caps[row])
             smcf.set_nodes_supplies(nodes, supplies[row])
-            status = smcf.solve()
-            if status != smcf.OPTIMAL:
-                raise SolverError(f"min-cost rebalancing flow failed with OR-Tools status {status}")
-            flows[k] = smcf.flows(arcs)[: n * n].reshape(n, n)
+            _check(smcf.solve(), smcf)
+            out[k] = smcf.flows(pairs)
         flows[:, np.arange(n), np.arange(n)] = 0  # a region 'sending' to itself keeps its vehicles
+        return flows
+
+    def _full_network(self) -> tuple:
+        """(solver, arc ids, node ids, capacity index) of the full network, built on first use;
+        ``idle[capacity index]`` are the arc capacities (each arc may carry its sender's vehicles)."""
+        if self._full is None:
+            n = self.cost.shape[0]
+            rows = np.arange(n)
+            self._full = (*_network(self.cost), np.concatenate([np.repeat(rows, n), rows]))
+        return self._full
+
+    def _solve_full(self, capacities: np.ndarray, supplies: np.ndarray) -> np.ndarray:
+        """(N, N) flows of the full network for one instance's arc capacities and node supplies."""
+        smcf, arcs, nodes, _ = self._full_network()
+        n = self.cost.shape[0]
+        smcf.set_arc_capacities(arcs, capacities)
+        smcf.set_nodes_supplies(nodes, supplies)
+        _check(smcf.solve(), smcf)
+        flows = smcf.flows(arcs)[: n * n].reshape(n, n)  # a fresh int64 array: ours to edit
+        flows.flat[:: n + 1] = 0  # a region 'sending' to itself keeps its vehicles
+        return flows
+
+    def _solve_reduced(self, idle: np.ndarray, need: np.ndarray) -> np.ndarray:
+        """(K, N, N) flows of K instances (K, N) on the metric network: surplus regions (ascending)
+        send to shortfall regions (ascending) or to the sink, one OR-Tools network per instance.
+
+        Every instance's arcs, capacities, costs and supplies are laid out for the whole batch in a
+        few array operations; the loop only hands each instance's slices to its own solver, so the
+        networks are those a one-instance build makes (same nodes, arcs and order), hence the same flows.
+        """
+        from ortools.graph.python import min_cost_flow
+
+        k, n = idle.shape
+        surplus = idle - need
+        send, recv = surplus > 0, surplus < 0
+        s, r = send.sum(axis=1), recv.sum(axis=1)
+        s_rank, r_rank = np.cumsum(send, axis=1) - 1, np.cumsum(recv, axis=1) - 1
+        n_arcs, n_nodes = s * r + s, s + r + 1
+        arc_start = np.concatenate([[0], np.cumsum(n_arcs)])
+        node_start = np.concatenate([[0], np.cumsum(n_nodes)])
+        tail, head = np.empty(arc_start[-1], dtype=np.int64), np.empty(arc_start[-1], dtype=np.int64)
+        cap, unit = np.empty_like(tail), np.zeros_like(tail)
+        # sender x receiver arcs first, senders then receivers ascending (np.nonzero's order)
+        pe, pi, pj = np.nonzero(send[:, :, None] & recv[:, None, :])
+        first_pair = np.concatenate([[0], np.cumsum(s * r)])[:-1]
+        at = arc_start[pe] + np.arange(pe.size) - first_pair[pe]
+        tail[at], head[at], cap[at], unit[at] = s_rank[pe, pi], s[pe] + r_rank[pe, pj], surplus[pe, pi], self.cost[pi, pj]
+        pair_at = at
+        # then each sender's arc to the sink (cost 0)
+        se, si = np.nonzero(send)
+        first_send = np.concatenate([[0], np.cumsum(s)])[:-1]
+        at = arc_start[se] + s[se] * r[se] + np.arange(se.size) - first_send[se]
+        tail[at], head[at], cap[at] = s_rank[se, si], s[se] + r[se], surplus[se, si]
+        supplies = np.empty(node_start[-1], dtype=np.int64)
+        supplies[node_start[se] + s_rank[se, si]] = surplus[se, si]
+        re, ri = np.nonzero(recv)
+        supplies[node_start[re] + s[re] + r_rank[re, ri]] = surplus[re, ri]  # -(shortfall)
+        supplies[node_start[1:] - 1] = -surplus.sum(axis=1)  # the sink absorbs the rest
+        nodes = np.arange(n_nodes.max(initial=0))
+        moved = np.zeros(arc_start[-1], dtype=np.int64)
+        for e in np.flatnonzero(r > 0).tolist():
+            a, b = arc_start[e], arc_start[e + 1]
+            smcf = min_cost_flow.SimpleMinCostFlow()
+            arcs = smcf.add_arcs_with_capacity_and_unit_cost(tail[a:b], head[a:b], cap[a:b], unit[a:b])
+            smcf.set_nodes_supplies(nodes[: n_nodes[e]], supplies[node_start[e] : node_start[e + 1]])
+            _check(smcf.solve(), smcf)
+            moved[a:b] = smcf.flows(arcs)
+        flows = np.zeros((k, n, n), dtype=np.int64)
+        flows[pe, pi, pj] = moved[pair_at]  # senders and receivers differ: nothing on the diagonal
         return flows
 
     def __getstate__(self) -> dict:
         return {**self.__dict__, "_full": None}
+
+
+def _check(status: int, smcf: object) -> None:
+    """Raise unless OR-Tools found the optimum (it always should: the inputs were checked)."""
+    if status != smcf.OPTIMAL:  # type: ignore[attr-defined]
+        raise SolverError(f"min-cost rebalancing flow failed with OR-Tools status {status}")
 
 
 def _network(cost: np.ndarray) -> tuple:

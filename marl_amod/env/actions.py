@@ -39,6 +39,10 @@ def joint_action(actions: Mapping[str, Any], agents: Sequence[str], *, strict: b
     """
     if not isinstance(actions, Mapping):
         raise ActionError(f"actions must be a dict {{agent: action}}, got {type(actions).__name__}")
+    stacked = _stacked(actions, agents)
+    if stacked is not None and np.isfinite(stacked).all() and not (strict and ((stacked < 0.0) | (stacked > 1.0)).any()):
+        return np.clip(stacked, 0.0, 1.0)
+    # otherwise agent by agent, so an error names the agent and what is wrong with its action
     missing = [a for a in agents if a not in actions]
     if missing:
         shown = ", ".join(missing[:5]) + (" ..." if len(missing) > 5 else "")
@@ -76,6 +80,34 @@ def targets(
 ) -> np.ndarray:
     """(N,) coordinator targets of a joint action: the env's step and policies written for it share this path."""
     return system.targets_from_weights(weights(joint_action(actions, agents, strict=strict), mode))
+
+
+_SCALARS = frozenset({float, int, np.float64, np.float32, np.float16, np.int64, np.int32, np.int16, np.int8, np.uint8})
+
+
+def _stacked(actions: Mapping[str, Any], agents: Sequence[str]) -> np.ndarray | None:
+    """(N,) float64 actions in one array call when every live agent acted with a real number or
+    a numeric array of shape () or (1,), and nobody else did; None otherwise (the checked path
+    then finds the problem). Bools, strings and complex values never take this path."""
+    if len(actions) != len(agents):
+        return None
+    try:
+        values = [actions[a] for a in agents]
+    except KeyError:
+        return None
+    for v in values:
+        kind = type(v)
+        if kind is np.ndarray:
+            if v.dtype.kind not in "iuf":
+                return None
+        elif kind not in _SCALARS:
+            return None
+    try:
+        stacked = np.array(values, dtype=np.float64)
+    except ValueError:  # mixed shapes
+        return None
+    n = len(agents)
+    return stacked.reshape(n) if stacked.shape in ((n,), (n, 1)) else None
 
 
 def _numeric(value: Any) -> bool:

@@ -13,6 +13,7 @@ Steps past the tabulated horizon count as zero (:func:`~marl_amod.scenario.types
 
 from __future__ import annotations
 
+import functools
 import weakref
 
 import numpy as np
@@ -47,15 +48,25 @@ def state_features(
     The leading axes are a batch of episodes in lockstep (:mod:`marl_amod.sim.batch`); the single
     env passes none, so both paths run this one function.
     """
-    steps = np.arange(t + 1, t + lookahead + 1)
-    inside = (steps < arrivals.shape[-2])[:, None]  # nothing arrives past the buffer (step_rows)
-    arriving = arrivals[..., np.minimum(steps, arrivals.shape[-2] - 1), :] * inside  # (..., T, N)
+    rows, inside = _arrival_rows(t, arrivals.shape[-2], lookahead)
+    arriving = arrivals[..., rows, :] * inside  # (..., T, N)
     feats = np.empty((*idle.shape, 1 + 2 * lookahead))  # (..., N, 1 + 2T), float64 until scaled
     feats[..., 0] = idle
     feats[..., 1 : 1 + lookahead] = np.swapaxes(idle[..., None, :] + arriving, -1, -2)  # supply
     feats[..., 1 + lookahead :] = _value_table(city, lookahead)[t].T  # value, the same in every episode
     feats *= scale
     return feats.astype(np.float32)
+
+
+@functools.lru_cache(maxsize=4096)
+def _arrival_rows(t: int, length: int, lookahead: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rows t+1..t+T of an arrivals buffer of ``length`` rows (clamped), and (T, 1) 'inside the
+    buffer' (nothing arrives past it, as in step_rows); the same small arrays every episode."""
+    steps = np.arange(t + 1, t + lookahead + 1)
+    rows, inside = np.minimum(steps, length - 1), (steps < length)[:, None]
+    rows.setflags(write=False)
+    inside.setflags(write=False)
+    return rows, inside
 
 
 _VALUES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()

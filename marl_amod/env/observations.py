@@ -29,6 +29,7 @@ the same code.
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
@@ -78,9 +79,15 @@ def neighbour_table(city: City, max_degree: int | None = None) -> tuple[np.ndarr
 
 def time_features(city: City, t: int) -> np.ndarray:
     """(3,) float32: sin and cos of the clock time of step t, and t / horizon."""
-    hour = city.start_hour + t * city.tstep / 60.0
+    return _time_features(city.start_hour, city.tstep, city.horizon, t).copy()
+
+
+@functools.lru_cache(maxsize=4096)
+def _time_features(start_hour: float, tstep: float, horizon: int, t: int) -> np.ndarray:
+    """:func:`time_features` by value, computed once per step of a clock (every episode asks again)."""
+    hour = start_hour + t * tstep / 60.0
     angle = 2.0 * np.pi * hour / 24.0
-    return np.array([np.sin(angle), np.cos(angle), t / city.horizon], dtype=np.float32)
+    return np.array([np.sin(angle), np.cos(angle), t / horizon], dtype=np.float32)
 
 
 def local_observations(

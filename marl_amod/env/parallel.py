@@ -186,7 +186,7 @@ class AmodParallelEnv(ParallelEnv):
         r = rewards(self.reward_mode, outcome) * self.reward_scale
         agents = self.agents
         obs = self._observations()
-        rew = {a: float(r[i]) for i, a in enumerate(agents)}
+        rew = dict(zip(agents, np.asarray(r, dtype=float).tolist(), strict=True))
         infos = self._infos(outcome)
         done = self.system.done or self._steps >= self.max_cycles
         terminations = {a: False for a in agents}
@@ -230,7 +230,7 @@ class AmodParallelEnv(ParallelEnv):
     # ------------------------------------------------------------------ helpers
     def _observations(self) -> dict[str, np.ndarray]:
         obs = ob.local_observations(self.system, self.lookahead, table=self._table)
-        return {a: obs[i] for i, a in enumerate(self.possible_agents)}
+        return dict(zip(self.possible_agents, obs, strict=True))  # row views, as obs[i]
 
     def _render_args(self) -> tuple[np.ndarray, float | None]:
         n = self.system.city.n_regions
@@ -240,20 +240,16 @@ class AmodParallelEnv(ParallelEnv):
 
     def _infos(self, outcome: StepOutcome) -> dict[str, dict]:
         sim, city = self.system.sim, self.system.city
-        served = outcome.dispatch.sum(axis=1)
-        reb_cost = outcome.region_rebalancing_cost
-        new = sim.demand[sim.t].sum(axis=1)
+        # whole arrays to Python numbers at once (tolist), the same values as int()/float() per region
+        served = outcome.dispatch.sum(axis=1).astype(np.int64).tolist()
+        reb_cost = outcome.region_rebalancing_cost.astype(float).tolist()
+        new = sim.demand[sim.t].sum(axis=1).astype(np.int64).tolist()
+        idle = np.asarray(sim.idle).astype(np.int64).tolist()
         metrics = episode_metrics(sim.totals, city.fleet_size, city.horizon)
         system = {f"system_{k}": v for k, v in metrics.items() if k != "revenue"}
         return {
-            a: {
-                "served": int(served[i]),
-                "demand": int(new[i]),
-                "rebalancing_cost": float(reb_cost[i]),
-                "idle": int(sim.idle[i]),
-                **system,
-            }
-            for i, a in enumerate(self.possible_agents)
+            a: {"served": s, "demand": d, "rebalancing_cost": c, "idle": i, **system}
+            for a, s, d, c, i in zip(self.possible_agents, served, new, reb_cost, idle, strict=True)
         }
 
     def __getstate__(self) -> dict:

@@ -92,9 +92,9 @@ class City:
     def n_steps(self) -> int:
         return self.demand_rate.shape[0]
 
-    @property
+    @cached_property
     def fleet_size(self) -> int:
-        return int(self.initial_vehicles.sum())
+        return int(self.initial_vehicles.sum())  # initial_vehicles is read-only: computed once
 
     @cached_property
     def trip_cost(self) -> np.ndarray:

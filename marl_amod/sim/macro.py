@@ -147,17 +147,19 @@ class MacroSim:
         x = as_flows(x, c.n_regions, "dispatch", self._lead)
         check_dispatch(x, self.requests(), self.idle)
         self._depart(x, c.trip_time[t])
-        # serve the oldest requests first: they are the closest to leaving
-        remaining = x.copy()
-        wait = np.zeros((*self._lead, c.n_regions))
-        for age in range(self.max_wait, -1, -1):
-            take = np.minimum(remaining, self.backlog[..., age, :, :])
-            self.backlog[..., age, :, :] -= take
-            remaining -= take
-            wait += age * c.tstep * take.sum(axis=-1)
         tot = self.totals
+        if self.max_wait == 0:  # one age: every served request is new and waited 0 minutes
+            self.backlog[..., 0, :, :] -= x
+        else:  # serve the oldest requests first: they are the closest to leaving
+            remaining = x.copy()
+            wait = np.zeros((*self._lead, c.n_regions))
+            for age in range(self.max_wait, -1, -1):
+                take = np.minimum(remaining, self.backlog[..., age, :, :])
+                self.backlog[..., age, :, :] -= take
+                remaining -= take
+                wait += age * c.tstep * take.sum(axis=-1)
+            tot.wait_minutes += wait
         tot.served += x.sum(axis=-1)
-        tot.wait_minutes += wait
         self.last_dispatch = x
         return np.asarray(tot.book_trips(x, c, t))
 
