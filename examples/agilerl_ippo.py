@@ -118,11 +118,8 @@ def main() -> None:
         mean = actor.head_net.wrapped(actor.extract_features(x)).numpy()
         return {a: mean[i] for i, a in enumerate(agents)}
 
-    def equal_distribution(o: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        return {a: np.ones(1, dtype=np.float32) for a in o}
-
     ours = marl_amod.evaluate(ippo, args.scenario, episodes=args.eval_episodes, seed=0)["metrics"]["profit"]
-    ed = marl_amod.evaluate(equal_distribution, args.scenario, episodes=args.eval_episodes, seed=0)["metrics"]["profit"]
+    ed = marl_amod.evaluate("equal-distribution", args.scenario, episodes=args.eval_episodes, seed=0)["metrics"]["profit"]
     print(
         f"{args.scenario}: AgileRL IPPO {ours['mean']:,.0f} ± {ours['std']:,.0f}  equal distribution {ed['mean']:,.0f} ± {ed['std']:,.0f}"
         f"  ({100 * (ours['mean'] / ed['mean'] - 1):+.1f}%), {done_steps * args.envs:,} env steps in {wall / 60:.1f} min"

@@ -165,11 +165,8 @@ def main() -> None:
             action = policy(td)["agents", "action"].numpy()
         return {a: action[i] for i, a in enumerate(agents)}
 
-    def equal_distribution(obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        return {a: np.ones(1, dtype=np.float32) for a in obs}
-
     ours = marl_amod.evaluate(learned, args.scenario, episodes=args.eval_episodes, seed=0)["metrics"]["profit"]
-    ed = marl_amod.evaluate(equal_distribution, args.scenario, episodes=args.eval_episodes, seed=0)["metrics"]["profit"]
+    ed = marl_amod.evaluate("equal-distribution", args.scenario, episodes=args.eval_episodes, seed=0)["metrics"]["profit"]
     print(
         f"{args.scenario}: BenchMARL {args.algorithm.upper()} {ours['mean']:,.0f} ± {ours['std']:,.0f}  "
         f"equal distribution {ed['mean']:,.0f} ± {ed['std']:,.0f}  ({100 * (ours['mean'] / ed['mean'] - 1):+.1f}%), "

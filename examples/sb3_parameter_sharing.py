@@ -46,12 +46,9 @@ def main() -> None:
     def ppo(obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         return {a: model.predict(o, deterministic=True)[0] for a, o in obs.items()}
 
-    def equal_distribution(obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        return {a: np.ones(1, dtype=np.float32) for a in obs}
-
     # the README's seeds (episode k draws demand from (0, k)); training resets drew other streams
     learned = marl_amod.evaluate(ppo, args.scenario, episodes=args.eval_episodes, seed=0)["metrics"]["profit"]["mean"]
-    ed = marl_amod.evaluate(equal_distribution, args.scenario, episodes=args.eval_episodes, seed=0)["metrics"]["profit"]["mean"]
+    ed = marl_amod.evaluate("equal-distribution", args.scenario, episodes=args.eval_episodes, seed=0)["metrics"]["profit"]["mean"]
     print(f"PPO (shared) {learned:,.0f}  equal distribution {ed:,.0f}  ({100 * (learned / ed - 1):+.1f}%)")
 
 if __name__ == "__main__":

@@ -113,11 +113,8 @@ def main() -> None:
         mean = actor(np.stack([obs[a] for a in probe.agents])[None])[0][0][0].numpy()
         return {a: mean[i : i + 1] for i, a in enumerate(probe.agents)}
 
-    def equal_distribution(obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        return {a: np.ones(1, dtype=np.float32) for a in obs}
-
     ours = marl_amod.evaluate(shared_actor, args.scenario, episodes=args.eval_episodes, seed=0)["metrics"]["profit"]
-    ed = marl_amod.evaluate(equal_distribution, args.scenario, episodes=args.eval_episodes, seed=0)["metrics"]["profit"]
+    ed = marl_amod.evaluate("equal-distribution", args.scenario, episodes=args.eval_episodes, seed=0)["metrics"]["profit"]
     print(
         f"{args.scenario}: tianshou PPO (joint view, shared actor) {ours['mean']:,.0f} ± {ours['std']:,.0f}  equal distribution "
         f"{ed['mean']:,.0f} ± {ed['std']:,.0f}  ({100 * (ours['mean'] / ed['mean'] - 1):+.1f}%), {done_steps:,} env steps in {wall / 60:.1f} min"

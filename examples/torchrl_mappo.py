@@ -126,11 +126,8 @@ def main() -> None:
             action = actor(td)[GROUP, "action"].numpy()
         return {a: action[i] for i, a in enumerate(agents)}
 
-    def equal_distribution(obs: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-        return {a: np.ones(1, dtype=np.float32) for a in obs}
-
     learned = marl_amod.evaluate(mappo, args.scenario, episodes=args.eval_episodes, seed=0)["metrics"]["profit"]
-    ed = marl_amod.evaluate(equal_distribution, args.scenario, episodes=args.eval_episodes, seed=0)["metrics"]["profit"]
+    ed = marl_amod.evaluate("equal-distribution", args.scenario, episodes=args.eval_episodes, seed=0)["metrics"]["profit"]
     name = "IPPO" if args.ippo else "MAPPO"
     print(
         f"{args.scenario}: {name} {learned['mean']:,.0f} ± {learned['std']:,.0f}  equal distribution {ed['mean']:,.0f} ± {ed['std']:,.0f}"
