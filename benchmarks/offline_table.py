@@ -17,15 +17,12 @@ import argparse
 import json
 from pathlib import Path
 
+from marl_amod.datasets import normalised_score
+
 ROOT = Path(__file__).resolve().parent.parent
 DATASETS = ["inf", "dtv", "prop", "mpc_forecast", "prop_noise"]
 ALGOS = ["bc", "iql", "cql"]
 ONLINE = "sac_gnn_{city}_fast"
-
-
-def normalised(profit: float, refs: dict) -> float:
-    low, high = refs["equal-distribution"]["mean"], refs["mpc-oracle"]["mean"]
-    return 100.0 * (profit - low) / (high - low)
 
 
 def score(card_path: Path, evaluate: bool) -> dict | None:
@@ -51,13 +48,13 @@ def build(city: str, cards: Path, policies: Path, evaluate: bool) -> dict:
         dcard = json.loads(path.read_text())
         refs, beh = dcard["reference_scores"], dcard["behaviour_score"]
         row = {"dataset": ds, "behaviour_policy": dcard["policy"], "episodes": dcard["episodes"], "transitions": dcard["transitions"],
-               "behaviour": {"mean": beh["mean"], "std": beh["std"], "normalised": normalised(beh["mean"], refs)}}
+               "behaviour": {"mean": beh["mean"], "std": beh["std"], "normalised": normalised_score(beh["mean"], refs)}}
         if online:
-            row["sac_online"] = {"mean": online["mean"], "std": online["std"], "normalised": normalised(online["mean"], refs)}
+            row["sac_online"] = {"mean": online["mean"], "std": online["std"], "normalised": normalised_score(online["mean"], refs)}
         for algo in ALGOS:
             s = score(policies / f"{algo}_gnn_{city}_{ds}.json", evaluate)
             if s is not None:
-                row[algo] = {"mean": s["mean"], "std": s["std"], "normalised": normalised(s["mean"], refs),
+                row[algo] = {"mean": s["mean"], "std": s["std"], "normalised": normalised_score(s["mean"], refs),
                              "vs_behaviour_pct": 100.0 * (s["mean"] / beh["mean"] - 1.0),
                              "training_wall_s": s["card"].get("training_wall_s"), "updates": s["card"].get("updates")}
         rows.append(row)
