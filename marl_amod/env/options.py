@@ -1,8 +1,9 @@
 """The env options both faces share (the ParallelEnv and the batched vector env), checked once.
 
 Both envs take the same keywords and must read them identically, or a policy trained on one
-would meet different rewards or episode lengths on the other; so the checks and the values
-derived from them (the episode's step count, the reward multiplier) live here.
+would meet different rewards or episode lengths on the other; so the checks, the values derived
+from them (the episode's step count, the reward multiplier) and the attributes the envs expose
+them as (:class:`HasEnvOptions`) live here.
 """
 
 from __future__ import annotations
@@ -70,3 +71,36 @@ def env_options(
         max_cycles=city.horizon - 1 if max_cycles is None else min(int(max_cycles), city.horizon - 1),
         reward_scale=1.0 / typical_step_revenue(city) if reward_scale == "auto" else float(reward_scale),
     )
+
+
+class HasEnvOptions:
+    """The checked options as read-only attributes of an env that holds them in ``options``; both
+    envs inherit this, so neither keeps its own copy of the fields."""
+
+    options: EnvOptions
+
+    @property
+    def reward_mode(self) -> RewardMode:
+        return self.options.reward_mode
+
+    @property
+    def action_mode(self) -> act.ActionMode:
+        return self.options.action_mode
+
+    @property
+    def lookahead(self) -> int:
+        return self.options.lookahead
+
+    @property
+    def strict_actions(self) -> bool:
+        return self.options.strict_actions
+
+    @property
+    def max_cycles(self) -> int:
+        """Control steps per episode: min(horizon - 1, max_cycles)."""
+        return self.options.max_cycles
+
+    @property
+    def reward_scale(self) -> float:
+        """Multiplies every reward (``"auto"`` resolved to 1 / the city's expected fares per step)."""
+        return self.options.reward_scale

@@ -82,7 +82,7 @@ from marl_amod.env import ENV_ID, ENV_VERSION
 from marl_amod.env import actions as act
 from marl_amod.env import observations as ob
 from marl_amod.env.features import feature_high as feature_bounds
-from marl_amod.env.options import env_options
+from marl_amod.env.options import HasEnvOptions, env_options
 from marl_amod.env.rewards import RewardMode, rewards
 from marl_amod.errors import ConfigError
 from marl_amod.metrics import episode_metrics
@@ -93,7 +93,7 @@ from marl_amod.validation import as_seed
 RENDER_MODES = ["human", "rgb_array"]
 
 
-class AmodParallelEnv(ParallelEnv):
+class AmodParallelEnv(HasEnvOptions, ParallelEnv):
     """Every region an agent; a thin adapter over :class:`~marl_amod.system.FleetSystem` (see module doc)."""
 
     metadata = {"name": ENV_VERSION, "render_modes": RENDER_MODES, "is_parallelizable": True, "render_fps": 4}
@@ -120,8 +120,7 @@ class AmodParallelEnv(ParallelEnv):
             strict_actions=strict_actions, max_cycles=max_cycles, scenario_overrides=scenario_overrides,
         )
         city = opts.city
-        self.reward_mode, self.action_mode, self.lookahead = opts.reward_mode, opts.action_mode, opts.lookahead
-        self.strict_actions, self.max_cycles, self.reward_scale = opts.strict_actions, opts.max_cycles, opts.reward_scale
+        self.options = opts
         self.render_mode = render_mode
         self.system = FleetSystem(city, max_wait=max_wait, objective=objective)
 

@@ -37,14 +37,14 @@ from marl_amod.coordinator.coordinator import Objective
 from marl_amod.env import actions as act
 from marl_amod.env import observations as ob
 from marl_amod.env.features import feature_high, state_features
-from marl_amod.env.options import env_options
+from marl_amod.env.options import HasEnvOptions, env_options
 from marl_amod.env.rewards import RewardMode
 from marl_amod.errors import ActionError, ConfigError
 from marl_amod.metrics import metric_arrays
 from marl_amod.scenario import City
 
 
-class AmodVectorEnv:
+class AmodVectorEnv(HasEnvOptions):
     """B lockstep episodes of one city with array observations, actions and rewards (see module doc)."""
 
     metadata = {"name": "amod_vector_v0"}
@@ -71,8 +71,7 @@ class AmodVectorEnv:
             strict_actions=strict_actions, max_cycles=max_cycles, scenario_overrides=scenario_overrides,
         )
         city = opts.city
-        self.reward_mode, self.action_mode, self.lookahead = opts.reward_mode, opts.action_mode, opts.lookahead
-        self.strict_actions, self.max_cycles, self.reward_scale = opts.strict_actions, opts.max_cycles, opts.reward_scale
+        self.options = opts
         self.num_envs = int(num_envs)
         self._steps = 0
         self.system = BatchFleetSystem(city, self.num_envs, max_wait=max_wait, objective=objective)
