@@ -58,7 +58,7 @@ def evaluate(
 
     ``policy``: a name (``marl-amod evaluate --help``), a checkpoint path (``.pt``), or any
     callable from the env's observations dict to its actions dict (PettingZoo convention; an SB3
-    or TorchRL policy wrapped in a function). Options: ``max_wait``, ``objective``, ``solver``,
+    or TorchRL policy wrapped in a function). Options: ``max_wait``, ``objective``, ``solver``, ``validate``,
     and the policy's own (a callable's ``lookahead`` and ``action_mode``, MPC's ``horizon``).
     Returns exactly the JSON that ``marl-amod evaluate --output`` writes.
     """

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from marl_amod.coordinator.coordinator import Coordinator, Objective
+from marl_amod.coordinator.rebalance import check_target
 from marl_amod.errors import ConfigError
 from marl_amod.scenario.types import City
 from marl_amod.sim.batch import BatchMacroSim
@@ -51,10 +52,13 @@ class BatchOutcome:
 class BatchFleetSystem:
     """B macro episodes of one city plus the exact coordinator; the engine of the vector env."""
 
-    def __init__(self, city: City, num_envs: int, *, max_wait: int = 0, objective: Objective = "profit") -> None:
+    def __init__(
+        self, city: City, num_envs: int, *, max_wait: int = 0, objective: Objective = "profit", validate: bool = False
+    ) -> None:
         if city.simulator.kind != "macro":
             raise ConfigError(f"{city.name} runs in its own simulator; the batched path is macro only")
         self.city = city
+        self.validate = bool(validate)  # as FleetSystem's: re-check the coordinator's inputs and flows
         self.num_envs = int(num_envs)
         self.sim = BatchMacroSim(city, num_envs, max_wait=max_wait)
         self.coordinator = Coordinator(city, objective=objective)  # the fast exact path; cvxpy checks it in tests
@@ -76,9 +80,10 @@ class BatchFleetSystem:
 
     def step(self, target: np.ndarray) -> BatchOutcome:
         """Rebalance toward ``target`` (B, N) idle vehicles per region (-1: no wish), then move on."""
-        target = np.asarray(target)
         before = self._booked()
-        self.sim.apply_rebalance(self.coordinator.rebalance(self.sim.idle, target))
+        idle = self.sim.idle
+        target = check_target(target, idle.shape)  # the caller's: always checked
+        self.sim.apply_rebalance(self.coordinator.rebalance(idle, target, check=self.validate), check=self.validate)
         applied = self.sim.last_rebalance
         self.sim.advance()
         self._dispatch()
@@ -91,7 +96,8 @@ class BatchFleetSystem:
         return self.coordinator.targets(weights, self.sim.idle)
 
     def _dispatch(self) -> None:
-        self.sim.apply_dispatch(self.coordinator.dispatch(self.sim.idle, self.sim.requests(), self.sim.t))
+        x = self.coordinator.dispatch(self.sim.idle, self.sim.requests(), self.sim.t, check=self.validate)
+        self.sim.apply_dispatch(x, check=self.validate)
 
     def _booked(self) -> tuple[np.ndarray, np.ndarray]:
         totals = self.sim.totals

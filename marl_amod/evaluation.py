@@ -21,7 +21,7 @@ from marl_amod.scenario import City, load_city
 from marl_amod.system import FleetSystem
 from marl_amod.validation import as_count, as_seed
 
-SYSTEM_OPTIONS = ("max_wait", "objective", "solver")  # FleetSystem's; every other option is the policy's
+SYSTEM_OPTIONS = ("max_wait", "objective", "solver", "validate")  # FleetSystem's; every other option is the policy's
 
 
 def episode_seeds(seed: int, episode: int) -> tuple[np.random.SeedSequence, np.random.Generator]:

@@ -7,6 +7,10 @@ target, rebalancing and bookkeeping identically:
     reset(seed):  draw demand -> dispatch step 0
     step(target): rebalance toward target -> advance -> dispatch the next step
                   (a simulator with dispatch_rounds > 1 also dispatches inside the step)
+
+The caller's target is checked every step; the coordinator's flows are feasible by construction,
+so the simulator takes them unchecked unless ``validate=True`` (a debug mode: the coordinator
+re-checks the simulator's state and the simulator every flow, as the tests run it).
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from marl_amod.coordinator.coordinator import Backend, Coordinator, Objective
+from marl_amod.coordinator.rebalance import check_target
 from marl_amod.scenario.types import City
 from marl_amod.sim.base import Simulator, make_simulator
 
@@ -65,8 +70,10 @@ class FleetSystem:
         objective: Objective = "profit",
         solver: Backend = "fast",
         sim: Simulator | None = None,
+        validate: bool = False,
     ) -> None:
         self.city = city
+        self.validate = bool(validate)  # re-check the coordinator's inputs and flows every step (debugging)
         # the city's own simulator (macro unless the scenario says otherwise), or one passed in
         self.sim = sim if sim is not None else make_simulator(city, max_wait)
         self.coordinator = Coordinator(city, objective=objective, solver=solver)
@@ -91,8 +98,10 @@ class FleetSystem:
     def step(self, target: np.ndarray) -> StepOutcome:
         """Rebalance toward ``target`` (N,) idle vehicles per region (-1: no wish), then move on."""
         before = self._booked()
-        flows = self.coordinator.rebalance(self.sim.idle, np.asarray(target))
-        self.sim.apply_rebalance(flows)
+        idle = self.sim.idle
+        target = check_target(target, idle.shape)  # the caller's: always checked
+        flows = self.coordinator.rebalance(idle, target, check=self.validate)
+        self.sim.apply_rebalance(flows, check=self.validate)
         applied = self.sim.last_rebalance
         for _ in range(self.sim.dispatch_rounds - 1):  # matching more often than rebalancing
             self.sim.advance_round()
@@ -120,8 +129,8 @@ class FleetSystem:
             self.coordinator = Coordinator(self.city, objective=self.coordinator.objective, solver=self.coordinator.solver)
 
     def _dispatch(self) -> None:
-        x = self.coordinator.dispatch(self.sim.idle, self.sim.requests(), self.sim.t)
-        self.sim.apply_dispatch(x)
+        x = self.coordinator.dispatch(self.sim.idle, self.sim.requests(), self.sim.t, check=self.validate)
+        self.sim.apply_dispatch(x, check=self.validate)
 
     def _booked(self) -> tuple[np.ndarray, np.ndarray]:
         """Copies of the simulator's per-region money totals (dispatch profit, rebalancing cost)."""

@@ -51,26 +51,37 @@ class Coordinator:
             self._metric = satisfies_triangle_inequality(self.city.reb_time)
         return self._metric
 
-    def dispatch(self, idle: np.ndarray, requests: np.ndarray, t: int) -> np.ndarray:
-        """Passenger flows x (N, N) for step t; idle (B, N) and requests (B, N, N) give (B, N, N)."""
+    def dispatch(self, idle: np.ndarray, requests: np.ndarray, t: int, *, check: bool = True) -> np.ndarray:
+        """Passenger flows x (N, N) for step t; idle (B, N) and requests (B, N, N) give (B, N, N).
+
+        ``check=False`` skips checking idle and requests: for a caller passing a simulator's own
+        integer state (:class:`~marl_amod.system.FleetSystem` unless ``validate``), which the
+        checks would only confirm every step."""
         if isinstance(t, bool) or not isinstance(t, (int, np.integer)) or not 0 <= t < self.city.n_steps:
             raise DataError(f"dispatch step t must be an integer in [0, {self.city.n_steps}), got {t!r}")
         if self.solver == "cvxpy":
             from marl_amod.coordinator.reference import lp_dispatch
 
             return lp_dispatch(*check_dispatch_inputs(idle, requests, self.margin(t)))
-        if t not in self._plans:  # margins are tables of the city (checked when it was built): sort once per step
-            self._plans[t] = dispatch_plan(self.margin(t))
-        return planned_dispatch(*check_dispatch_counts(idle, requests), self._plans[t])  # the whole batch checked once
+        plan = self._plans.get(t)
+        if plan is None:  # margins are tables of the city (checked when it was built): sort once per step
+            plan = self._plans[t] = dispatch_plan(self.margin(t))
+        if check:
+            idle, requests = check_dispatch_counts(idle, requests)  # the whole batch checked once
+        return planned_dispatch(idle, requests, plan)
 
-    def rebalance(self, idle: np.ndarray, target: np.ndarray) -> np.ndarray:
+    def rebalance(self, idle: np.ndarray, target: np.ndarray, *, check: bool = True) -> np.ndarray:
         """Rebalancing flows y (N, N) of least cost meeting ``target`` (a -1 entry: no target);
-        idle and target (B, N) give (B, N, N), each episode solved alone."""
+        idle and target (B, N) give (B, N, N), each episode solved alone.
+
+        ``check=False`` skips the input checks: for int64 arrays of the right shape that were
+        checked already (a simulator's idle counts and a target through :func:`check_target`)."""
         if self.solver == "cvxpy":
             from marl_amod.coordinator.reference import lp_rebalance
 
             return lp_rebalance(*check_rebalance_inputs(idle, target, self.city.n_regions), self.city.reb_cost)
-        idle, target = check_rebalance_inputs(idle, target, self.city.n_regions)  # the whole batch, once
+        if check:
+            idle, target = check_rebalance_inputs(idle, target, self.city.n_regions)  # the whole batch, once
         if self._rebalancer is None:
             self._rebalancer = Rebalancer(self.city.reb_time, metric=self.metric)
         if idle.ndim == 2:  # a batch of episodes (B, N): each solved alone

@@ -65,8 +65,13 @@ def check_rebalance_inputs(idle: np.ndarray, target: np.ndarray, n: int | None =
     if idle.ndim < 1 or (n is not None and idle.shape[-1] != n):
         want = "(N,)" if n is None else f"({n},)"
         raise DataError(f"idle vehicles must have shape {want} (one count per region, leading batch axes allowed), got {idle.shape}")
-    target = check_array(target, "rebalancing target", shape=idle.shape, minimum=-1, integer=True, error=ActionError, lead=lead)
-    return idle, target
+    return idle, check_target(target, idle.shape)
+
+
+def check_target(target: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """A target of ``shape`` (..., N) as int64: whole and >= -1 (-1: no wish), else an ActionError
+    naming the region (and the episode, for leading batch axes)."""
+    return check_array(target, "rebalancing target", shape=shape, minimum=-1, integer=True, error=ActionError, lead=len(shape) - 1)
 
 
 # costs scaled to integers with this resolution when they are not whole numbers already

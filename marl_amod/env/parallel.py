@@ -54,7 +54,9 @@ scenario such as ``sumo_grid`` or ``lux`` runs the same env in SUMO's mesoscopic
 ``objective`` (dispatch objective, ``"profit"`` or ``"revenue"``), ``reward_scale``,
 ``strict_actions``, ``max_cycles`` (PettingZoo's cap on the number of steps; the episode is
 truncated after ``min(horizon - 1, max_cycles)`` steps), ``render_mode`` (``"human"`` or
-``"rgb_array"``), and scenario overrides (e.g. ``horizon=10``; unknown keys raise).
+``"rgb_array"``), ``validate`` (False; True re-checks every flow the coordinator hands the
+simulator, a debug mode: :class:`~marl_amod.system.FleetSystem`), and scenario overrides (e.g.
+``horizon=10``; unknown keys raise).
 
 Seeding: ``reset(seed=s)`` draws demand exactly as ``FleetSystem.reset(s)``; a later
 ``reset()`` without a seed draws the next episode from a seed sequence started by the last
@@ -111,6 +113,7 @@ class AmodParallelEnv(HasEnvOptions, ParallelEnv):
         strict_actions: bool = False,
         max_cycles: int | None = None,
         render_mode: str | None = None,
+        validate: bool = False,
         **scenario_overrides: Any,
     ) -> None:
         if render_mode is not None and render_mode not in RENDER_MODES:
@@ -122,7 +125,7 @@ class AmodParallelEnv(HasEnvOptions, ParallelEnv):
         city = opts.city
         self.options = opts
         self.render_mode = render_mode
-        self.system = FleetSystem(city, max_wait=max_wait, objective=objective)
+        self.system = FleetSystem(city, max_wait=max_wait, objective=objective, validate=validate)
 
         n = city.n_regions
         self.possible_agents = ob.agent_names(n)

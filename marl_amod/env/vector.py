@@ -2,7 +2,7 @@
 
 ``marl_amod.vector_env(scenario, num_envs=B, ...)`` takes the ParallelEnv's options
 (:mod:`marl_amod.env.parallel`: reward and action modes, look-ahead, max_wait, objective,
-``reward_scale``, ``strict_actions``, ``max_cycles``, scenario overrides) and gives the same
+``reward_scale``, ``strict_actions``, ``max_cycles``, ``validate``, scenario overrides) and gives the same
 episodes, stacked:
 
 ==================  ===================================================================================
@@ -62,6 +62,7 @@ class AmodVectorEnv(HasEnvOptions):
         reward_scale: float | Literal["auto"] = 1.0,
         strict_actions: bool = False,
         max_cycles: int | None = None,
+        validate: bool = False,
         **scenario_overrides: Any,
     ) -> None:
         if not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
@@ -74,7 +75,7 @@ class AmodVectorEnv(HasEnvOptions):
         self.options = opts
         self.num_envs = int(num_envs)
         self._steps = 0
-        self.system = BatchFleetSystem(city, self.num_envs, max_wait=max_wait, objective=objective)
+        self.system = BatchFleetSystem(city, self.num_envs, max_wait=max_wait, objective=objective, validate=validate)
         n = city.n_regions
         self.num_agents = n
         self.possible_agents = ob.agent_names(n)

@@ -46,10 +46,10 @@ class BatchMacroSim(MacroSim):
         """(B,) idle plus in-transit vehicles per episode; constant over an episode (conservation)."""
         return self._vehicles()
 
-    def apply_dispatch(self, x: np.ndarray) -> np.ndarray:  # type: ignore[override]
+    def apply_dispatch(self, x: np.ndarray, *, check: bool = True) -> np.ndarray:  # type: ignore[override]
         """Serve requests with passenger flows x (B, N, N); returns (B,) dispatch profits."""
-        return self._apply_dispatch(x)
+        return self._apply_dispatch(x, check)
 
-    def apply_rebalance(self, y: np.ndarray) -> np.ndarray:  # type: ignore[override]
+    def apply_rebalance(self, y: np.ndarray, *, check: bool = True) -> np.ndarray:  # type: ignore[override]
         """Move idle vehicles with flows y (B, N, N); returns (B,) rebalancing costs."""
-        return self._apply_rebalance(y)
+        return self._apply_rebalance(y, check)

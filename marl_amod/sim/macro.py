@@ -138,14 +138,18 @@ class MacroSim:
         return self.idle.sum(axis=-1) + self.arrivals[..., self.t :, :].sum(axis=(-2, -1))
 
     # ------------------------------------------------------------------ transitions
-    def apply_dispatch(self, x: np.ndarray) -> float:
-        """Serve requests with passenger flows x (N, N); returns the step's dispatch profit."""
-        return float(self._apply_dispatch(x))
+    def apply_dispatch(self, x: np.ndarray, *, check: bool = True) -> float:
+        """Serve requests with passenger flows x (N, N); returns the step's dispatch profit.
 
-    def _apply_dispatch(self, x: np.ndarray) -> np.ndarray:
+        ``check=False`` trusts x to be feasible int64 flows that the simulator may keep (the
+        coordinator's fresh output): :class:`~marl_amod.system.FleetSystem` unless ``validate``."""
+        return float(self._apply_dispatch(x, check))
+
+    def _apply_dispatch(self, x: np.ndarray, check: bool = True) -> np.ndarray:
         c, t = self.city, self.t
-        x = as_flows(x, c.n_regions, "dispatch", self._lead)
-        check_dispatch(x, self.requests(), self.idle)
+        if check:
+            x = as_flows(x, c.n_regions, "dispatch", self._lead)
+            check_dispatch(x, self.requests(), self.idle)
         self._depart(x, c.trip_time[t])
         tot = self.totals
         if self.max_wait == 0:  # one age: every served request is new and waited 0 minutes
@@ -163,13 +167,15 @@ class MacroSim:
         self.last_dispatch = x
         return np.asarray(tot.book_trips(x, c, t))
 
-    def apply_rebalance(self, y: np.ndarray) -> float:
-        """Move idle vehicles with flows y (N, N); returns the step's rebalancing cost."""
-        return float(self._apply_rebalance(y))
+    def apply_rebalance(self, y: np.ndarray, *, check: bool = True) -> float:
+        """Move idle vehicles with flows y (N, N); returns the step's rebalancing cost
+        (``check`` as in :meth:`apply_dispatch`)."""
+        return float(self._apply_rebalance(y, check))
 
-    def _apply_rebalance(self, y: np.ndarray) -> np.ndarray:
-        y = as_flows(y, self.city.n_regions, "rebalancing", self._lead)
-        check_rebalance(y, self.idle)
+    def _apply_rebalance(self, y: np.ndarray, check: bool = True) -> np.ndarray:
+        if check:
+            y = as_flows(y, self.city.n_regions, "rebalancing", self._lead)
+            check_rebalance(y, self.idle)
         self._depart(y, self.city.reb_time)
         cost = (y * self.city.reb_cost).sum(axis=-1)
         self.totals.rebalancing_cost += cost

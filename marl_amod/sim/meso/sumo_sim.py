@@ -188,11 +188,13 @@ class MesoSim:
         return sum(vid.startswith(FLEET_PREFIX) for vid in held)
 
     # ------------------------------------------------------------------ transitions
-    def apply_dispatch(self, x: np.ndarray) -> float:
-        """Serve open requests with passenger flows x (N, N); returns the step's dispatch profit."""
+    def apply_dispatch(self, x: np.ndarray, *, check: bool = True) -> float:
+        """Serve open requests with passenger flows x (N, N); returns the step's dispatch profit
+        (``check=False``: x is the coordinator's feasible int64 output, as in MacroSim)."""
         c, t, req = self.city, self.t, self.ride_requests
-        x = as_flows(x, c.n_regions, "dispatch")
-        check_dispatch(x, self.requests(), self.idle)
+        if check:
+            x = as_flows(x, c.n_regions, "dispatch")
+            check_dispatch(x, self.requests(), self.idle)
         now = self.now
         k, v = bk.match_dispatch(self.fleet, req, x, self.net.midpoint)
         bk.assign(self.fleet, req, k, v, now, now + self.step_s * c.trip_time[t, req.origin[k], req.dest[k]])
@@ -202,11 +204,13 @@ class MesoSim:
         self.last_dispatch = self.last_dispatch + x  # summed over the step's dispatch rounds
         return self.totals.book_trips(x, c, t)
 
-    def apply_rebalance(self, y: np.ndarray) -> float:
-        """Send idle vehicles y (N, N) to random edges of their target regions; returns the cost."""
+    def apply_rebalance(self, y: np.ndarray, *, check: bool = True) -> float:
+        """Send idle vehicles y (N, N) to random edges of their target regions; returns the cost
+        (``check`` as in :meth:`apply_dispatch`)."""
         c = self.city
-        y = as_flows(y, c.n_regions, "rebalancing")
-        check_rebalance(y, self.idle)
+        if check:
+            y = as_flows(y, c.n_regions, "rebalancing")
+            check_rebalance(y, self.idle)
         now = self.now
         v, dest, edges = bk.match_rebalancing(self.fleet, y, self.net.midpoint, self.region_center, self.members, self._rng)
         eta = now + self.step_s * c.reb_time[self.fleet.region[v], dest]
