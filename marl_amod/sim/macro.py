@@ -90,7 +90,10 @@ class MacroSim:
         self._arrival_len = city.n_steps + longest + 2
         self.t = 0
         self.idle = np.broadcast_to(city.initial_vehicles.astype(np.int64), (*lead, n)).copy()  # (..., N)
-        self.arrivals = np.zeros((*lead, self._arrival_len, n), dtype=np.int64)  # (..., L, N)
+        self.arrivals = np.zeros((*lead, self._arrival_len, n), dtype=np.int64)  # (..., L, N), C order (see _depart)
+        # where region j's row 0 and episode b's block start in arrivals.reshape(-1): (N,) and (..., 1, 1)
+        self._column = np.arange(n)
+        self._episode_start = (np.arange(int(np.prod(lead))) * (self._arrival_len * n)).reshape(*lead, 1, 1)
         self.demand = np.zeros((*lead, city.n_steps, n, n), dtype=np.int64)  # (..., S, N, N)
         self.backlog = np.zeros((*lead, max_wait + 1, n, n), dtype=np.int64)  # (..., W + 1, N, N) by age
         self.totals = EpisodeTotals.zeros(n, lead)
@@ -189,12 +192,13 @@ class MacroSim:
             raise RuntimeError("the episode is over; call reset()")
         self.idle += self.arrivals[..., self.t, :]
         self.totals.lost += self.backlog[..., self.max_wait, :, :].sum(axis=-1)
-        self.backlog[..., 1:, :, :] = self.backlog[..., :-1, :, :].copy()
+        if self.max_wait:  # requests age by one step (with max_wait 0 the only age is replaced below)
+            self.backlog[..., 1:, :, :] = self.backlog[..., :-1, :, :].copy()
         self.t += 1
         self.backlog[..., 0, :, :] = self.demand[..., self.t, :, :]
         self.totals.demand += self.demand[..., self.t, :, :].sum(axis=-1)
-        self.last_dispatch = np.zeros_like(self.last_dispatch)
-        self.last_rebalance = np.zeros_like(self.last_rebalance)
+        self.last_dispatch = np.zeros(self.last_dispatch.shape, dtype=np.int64)
+        self.last_rebalance = np.zeros(self.last_rebalance.shape, dtype=np.int64)
 
     def finish(self) -> None:
         """Count requests still open when the episode ends as lost (call after the last dispatch)."""
@@ -208,10 +212,12 @@ class MacroSim:
     def _depart(self, flows: np.ndarray, duration: np.ndarray) -> None:
         """Vehicles leave now and arrive after ``duration`` (N, N) steps (per pair, every episode)."""
         self.idle -= flows.sum(axis=-1)
-        *episode, i, j = np.nonzero(flows)  # episode: () for one episode, (e,) for a batch
-        if i.size == 0:
-            return
-        np.add.at(self.arrivals, (*episode, self.t + duration[i, j], j), flows[(*episode, i, j)])
+        # arrivals[..., t + duration[i, j], j] += flows[..., i, j] for every pair: one unbuffered add
+        # into the flat view of the C-ordered buffer (pairs arriving at one region in one step add
+        # up; the zero flows add nothing), far cheaper than picking the non-zero pairs first
+        n = self._column.size
+        at = self._episode_start + duration * n + (self.t * n + self._column)  # (..., N, N) flat positions
+        np.add.at(self.arrivals.reshape(-1), at.reshape(-1), flows.reshape(-1))
         steps_left = self.city.horizon - self.t
         # integer vehicle-steps: summing per origin first gives the same float totals as adding one by one
         self.totals.busy_vehicle_steps += (flows * np.minimum(duration, steps_left)).sum(axis=-1)
