@@ -91,9 +91,10 @@ class BatchFleetSystem:
             self.sim.finish()
         return self._outcome(before, applied)
 
-    def targets_from_weights(self, weights: np.ndarray) -> np.ndarray:
-        """(B, N) targets floor(w_i / sum(w) * M) per episode from non-negative weights (B, N)."""
-        return self.coordinator.targets(weights, self.sim.idle)
+    def targets_from_weights(self, weights: np.ndarray, *, check: bool = True) -> np.ndarray:
+        """(B, N) targets floor(w_i / sum(w) * M) per episode from non-negative weights (B, N)
+        (``check`` as in :meth:`~marl_amod.system.FleetSystem.targets_from_weights`)."""
+        return self.coordinator.targets(weights, self.sim.idle, check=check)
 
     def _dispatch(self) -> None:
         x = self.coordinator.dispatch(self.sim.idle, self.sim.requests(), self.sim.t, check=self.validate)

@@ -117,9 +117,10 @@ class FleetSystem:
         """Release what the simulator started (a SUMO run and its process); reset starts anew."""
         self.sim.close()
 
-    def targets_from_weights(self, weights: np.ndarray) -> np.ndarray:
-        """The paper's target floor(w_i / sum(w) * M) from non-negative per-region weights."""
-        return self.coordinator.targets(weights, self.sim.idle)
+    def targets_from_weights(self, weights: np.ndarray, *, check: bool = True) -> np.ndarray:
+        """The paper's target floor(w_i / sum(w) * M) from non-negative per-region weights
+        (``check=False``: weights already known finite and >= 0, as the env's clipped actions)."""
+        return self.coordinator.targets(weights, self.sim.idle, check=check)
 
     def _follow_city(self) -> None:
         """Adopt the simulator's region view when it changed (SUMO travel times follow congestion),

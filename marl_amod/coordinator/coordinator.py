@@ -16,6 +16,7 @@ from marl_amod.coordinator.rebalance import (
     Rebalancer,
     check_rebalance_inputs,
     desired_targets,
+    floor_targets,
     satisfies_triangle_inequality,
 )
 from marl_amod.errors import ActionError, ConfigError, DataError
@@ -88,10 +89,13 @@ class Coordinator:
             return self._rebalancer.many(idle, target)
         return self._rebalancer(idle, target)
 
-    def targets(self, weights: np.ndarray, idle: np.ndarray) -> np.ndarray:
+    def targets(self, weights: np.ndarray, idle: np.ndarray, *, check: bool = True) -> np.ndarray:
         """Global target u = floor(w / sum(w) * M) from per-region non-negative weights; a NaN,
         infinite or negative weight, or one per region missing, is an ActionError naming the region.
-        Weights (B, N) and idle (B, N) give (B, N) targets."""
+        Weights (B, N) and idle (B, N) give (B, N) targets. ``check=False``: float weights of the
+        right shape already known finite and >= 0 (the env's clipped actions), idle an array."""
+        if not check:
+            return floor_targets(weights, idle.sum(axis=-1))
         if np.ndim(weights) < 1 or np.shape(weights)[-1] != self.city.n_regions:
             raise ActionError(
                 f"rebalancing weights must have shape ({self.city.n_regions},) (leading batch axes allowed), got {np.shape(weights)}"

@@ -45,6 +45,19 @@ def desired_targets(weights: np.ndarray, total_idle: int | np.ndarray) -> np.nda
     weights = check_array(weights, "rebalancing weights", minimum=0, error=ActionError, lead=max(np.ndim(weights) - 1, 0))
     if weights.ndim < 1:
         raise ActionError(f"rebalancing weights must be one number per region (N,), got shape {weights.shape}")
+    return floor_targets(weights, total_idle)
+
+
+def floor_targets(weights: np.ndarray, total_idle: int | np.ndarray) -> np.ndarray:
+    """:func:`desired_targets` of weights (..., N) already known to be finite and >= 0 (the env's
+    clipped actions): the arithmetic alone. One episode's weights (N,) take one sum and the same
+    float64 operations on a scalar sum, not a (1,) array: the same numbers in fewer numpy calls."""
+    if weights.ndim == 1:
+        s = weights.sum()
+        if np.isfinite(s):
+            if s > 0:
+                return np.floor(weights / s * total_idle + 1e-9).astype(np.int64)
+            return np.full(weights.shape, -1, dtype=np.int64)
     s = weights.sum(axis=-1, keepdims=True)
     big = ~np.isfinite(s)
     if big.any():  # weights near the float maximum overflow their sum: rescale those rows

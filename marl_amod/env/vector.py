@@ -118,7 +118,7 @@ class AmodVectorEnv(HasEnvOptions):
         if not self._running:
             raise RuntimeError("the episodes are over (or never started); call reset()")
         joint = self._joint(actions)
-        target = self.system.targets_from_weights(act.weights(joint, self.action_mode))
+        target = self.system.targets_from_weights(act.weights(joint, self.action_mode), check=False)  # finite, in [0, 1]
         outcome = self.last_outcome = self.system.step(target)
         if self.reward_mode == "team":  # the same selections as env/rewards.py, per episode
             rew = np.repeat(outcome.reward[:, None], self.num_agents, axis=1)
