@@ -43,10 +43,11 @@ class Rollout:
 
     def __init__(self, city: City, mode: Mode = "centralised", lookahead: int = 6) -> None:
         from marl_amod import parallel_env
-        from marl_amod.env.observations import neighbour_table
+        from marl_amod.env.features import n_features
+        from marl_amod.env.observations import LocalLayout, neighbour_table
 
         self.city, self.mode, self.lookahead = city, mode, lookahead
-        self.table = neighbour_table(city)
+        self.layout = LocalLayout(neighbour_table(city), n_features(lookahead))
         if mode == "decentralised":  # agents act on their own PettingZoo observations
             self.env = parallel_env(city, reward_mode="team", action_mode="weight", lookahead=lookahead)
             self.system = self.env.system
@@ -65,7 +66,7 @@ class Rollout:
         ctx = torch.as_tensor(time_features(self.city, self.system.t))
         if self.mode == "centralised":
             return Obs(x, ctx=ctx)
-        own, _ctx, nbrs, mask = split_local(torch.as_tensor(local_observations(self.system, self.lookahead, table=self.table)), x.shape[1])
+        own, _ctx, nbrs, mask = split_local(torch.as_tensor(local_observations(self.system, self.lookahead, layout=self.layout)), x.shape[1])
         return Obs(x, own, nbrs, mask, ctx)
 
     def _obs_from_env(self, obs: dict[str, np.ndarray]) -> Obs:

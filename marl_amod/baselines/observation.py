@@ -16,6 +16,7 @@ import numpy as np
 from marl_amod.baselines.base import Policy
 from marl_amod.env import actions as act
 from marl_amod.env import observations as ob
+from marl_amod.env.features import n_features
 from marl_amod.errors import ConfigError
 from marl_amod.system import FleetSystem
 
@@ -44,9 +45,9 @@ class ObservationPolicy(Policy):
     def reset(self, system: FleetSystem, rng: np.random.Generator) -> None:
         super().reset(system, rng)
         self.agents = ob.agent_names(system.city.n_regions)
-        self._table = ob.neighbour_table(system.city)
+        self._layout = ob.LocalLayout(ob.neighbour_table(system.city), n_features(self.lookahead))
 
     def target(self, system: FleetSystem) -> np.ndarray:
-        obs = ob.local_observations(system, self.lookahead, table=self._table)
+        obs = ob.local_observations(system, self.lookahead, layout=self._layout)
         actions = self.fn({a: obs[i] for i, a in enumerate(self.agents)})
         return act.targets(system, actions, self.agents, self.action_mode)

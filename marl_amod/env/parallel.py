@@ -84,6 +84,7 @@ from marl_amod.env import ENV_ID, ENV_VERSION
 from marl_amod.env import actions as act
 from marl_amod.env import observations as ob
 from marl_amod.env.features import feature_high as feature_bounds
+from marl_amod.env.features import n_features
 from marl_amod.env.options import HasEnvOptions, env_options
 from marl_amod.env.rewards import RewardMode, rewards
 from marl_amod.errors import ConfigError
@@ -131,7 +132,7 @@ class AmodParallelEnv(HasEnvOptions, ParallelEnv):
         self.possible_agents = ob.agent_names(n)
         self.agents: list[str] = []
         self.max_degree = ob.max_in_degree(city)
-        self._table = ob.neighbour_table(city, self.max_degree)
+        self._layout = ob.LocalLayout(ob.neighbour_table(city, self.max_degree), n_features(self.lookahead))
         feature_high = feature_bounds(city, self.lookahead)
         self._observation_space = spaces.Box(*ob.local_bounds(feature_high, self.max_degree), dtype=np.float32)
         self._action_space = spaces.Box(0.0, 1.0, shape=(1,), dtype=np.float32)
@@ -231,7 +232,7 @@ class AmodParallelEnv(HasEnvOptions, ParallelEnv):
 
     # ------------------------------------------------------------------ helpers
     def _observations(self) -> dict[str, np.ndarray]:
-        obs = ob.local_observations(self.system, self.lookahead, table=self._table)
+        obs = ob.local_observations(self.system, self.lookahead, layout=self._layout)
         return dict(zip(self.possible_agents, obs, strict=True))  # row views, as obs[i]
 
     def _render_args(self) -> tuple[np.ndarray, float | None]:

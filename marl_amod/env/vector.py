@@ -36,7 +36,7 @@ from marl_amod.batch_system import BatchFleetSystem, BatchOutcome, Seed
 from marl_amod.coordinator.coordinator import Objective
 from marl_amod.env import actions as act
 from marl_amod.env import observations as ob
-from marl_amod.env.features import feature_high, state_features
+from marl_amod.env.features import feature_high, n_features, state_features
 from marl_amod.env.options import HasEnvOptions, env_options
 from marl_amod.env.rewards import RewardMode
 from marl_amod.errors import ActionError, ConfigError
@@ -80,7 +80,7 @@ class AmodVectorEnv(HasEnvOptions):
         self.num_agents = n
         self.possible_agents = ob.agent_names(n)
         self.max_degree = ob.max_in_degree(city)
-        self._table = ob.neighbour_table(city, self.max_degree)
+        self._layout = ob.LocalLayout(ob.neighbour_table(city, self.max_degree), n_features(self.lookahead))
         high = feature_high(city, self.lookahead)
         self.observation_space = spaces.Box(*ob.local_bounds(high, self.max_degree), dtype=np.float32)  # one agent
         self.action_space = spaces.Box(0.0, 1.0, shape=(1,), dtype=np.float32)  # one agent
@@ -150,7 +150,7 @@ class AmodVectorEnv(HasEnvOptions):
 
     # ------------------------------------------------------------------ helpers
     def _observations(self) -> np.ndarray:
-        return ob.local_from_features(self.node_features(), ob.time_features(self.city, self.system.t), self._table)
+        return self._layout(self.node_features(), ob.time_features(self.city, self.system.t))
 
     def _joint(self, actions: Any) -> np.ndarray:
         """(B, N) float64 actions clipped into [0, 1]; the ParallelEnv's rules, checked in one pass."""
