@@ -46,12 +46,15 @@ def gini(values: np.ndarray | list[float], axis: int = -1) -> np.ndarray | float
         x = np.moveaxis(x, axis, -1)
     x = np.sort(x, axis=-1)
     n = x.shape[-1]
+    if x.ndim == 1:  # one row (the env asks every step): the same float64 operations on scalars
+        if n and x[0] < 0:  # sorted: the first value is the smallest
+            raise ValueError("the Gini coefficient needs non-negative values")
+        total = float(x.sum())
+        return 2.0 * float((x * np.arange(1, n + 1)).sum()) / (n * total) - (n + 1.0) / n if total > 0 else 0.0
     if n and (x[..., 0] < 0).any():  # sorted: the first value is each row's smallest
         raise ValueError("the Gini coefficient needs non-negative values")
     total = x.sum(axis=-1)
     rank = np.arange(1, n + 1)
-    if x.ndim == 1:  # one row: the same float64 operations on scalars
-        return 2.0 * float((x * rank).sum()) / (n * float(total)) - (n + 1.0) / n if total > 0 else 0.0
     positive = total > 0
     g = 2.0 * (x * rank).sum(axis=-1) / np.where(positive, n * total, 1.0) - (n + 1.0) / max(n, 1)
     g = np.where(positive, g, 0.0)
@@ -107,8 +110,9 @@ def metric_arrays(totals: EpisodeTotals, fleet: int, horizon: int) -> dict[str, 
         "rebalancing_cost": totals.rebalancing_cost.sum(axis=-1),
         "wait_time": np.where(served > 0, wait / np.maximum(served, 1e-300), 0.0),
         "utilization": totals.busy_vehicle_steps.sum(axis=-1) / max(fleet * horizon, 1),
-        # regions where the quantity is undefined (nobody served / nobody asked) are left out
-        "wait_time_gini": _masked_gini(region_wait_time(totals), totals.served > 0),
+        # regions where the quantity is undefined (nobody served / nobody asked) are left out; when
+        # nobody has waited (always with max_wait 0) every region's mean wait is 0, whose Gini is 0
+        "wait_time_gini": _masked_gini(region_wait_time(totals), totals.served > 0) if totals.wait_minutes.any() else np.zeros(served.shape),
         "service_rate_gini": _masked_gini(region_service_rate(totals), totals.demand > 0),
     }
 
