@@ -46,16 +46,21 @@ def state_features(
     """(..., N, 1 + 2T) float32 features from idle (..., N) and arrivals (..., L, N) at step t.
 
     The leading axes are a batch of episodes in lockstep (:mod:`marl_amod.sim.batch`); the single
-    env passes none, so both paths run this one function.
+    env passes none, so both paths run this one function. Every value is the float64 count or
+    value times ``scale``, rounded once to float32 (the multiplications write float32 directly).
     """
-    rows, inside = _arrival_rows(t, arrivals.shape[-2], lookahead)
-    arriving = arrivals[..., rows, :] * inside  # (..., T, N)
-    feats = np.empty((*idle.shape, 1 + 2 * lookahead))  # (..., N, 1 + 2T), float64 until scaled
-    feats[..., 0] = idle
-    feats[..., 1 : 1 + lookahead] = np.swapaxes(idle[..., None, :] + arriving, -1, -2)  # supply
-    feats[..., 1 + lookahead :] = _value_table(city, lookahead)[t].T  # value, the same in every episode
-    feats *= scale
-    return feats.astype(np.float32)
+    length = arrivals.shape[-2]
+    if t + lookahead < length:  # rows t+1..t+T all inside the buffer: a view
+        arriving = arrivals[..., t + 1 : t + 1 + lookahead, :]  # (..., T, N)
+    else:  # nothing arrives past the buffer, as in step_rows
+        rows, inside = _arrival_rows(t, length, lookahead)
+        arriving = arrivals[..., rows, :] * inside
+    feats = np.empty((*idle.shape, 1 + 2 * lookahead), dtype=np.float32)  # (..., N, 1 + 2T)
+    np.multiply(idle, scale, out=feats[..., 0])
+    supply = idle[..., None, :] + arriving  # (..., T, N) idle now plus arrivals in t+1..t+T
+    np.multiply(supply, scale, out=np.swapaxes(feats[..., 1 : 1 + lookahead], -1, -2))
+    feats[..., 1 + lookahead :] = _value_table(city, lookahead, scale)[t]  # value, the same in every episode
+    return feats
 
 
 @functools.lru_cache(maxsize=4096)
@@ -72,19 +77,21 @@ def _arrival_rows(t: int, length: int, lookahead: int) -> tuple[np.ndarray, np.n
 _VALUES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
-def _value_table(city: City, lookahead: int) -> np.ndarray:
-    """(S, T, N) expected request value out of each region in steps t+1..t+T (zero past the table).
+def _value_table(city: City, lookahead: int, scale: float) -> np.ndarray:
+    """(S, N, T) float32 expected request value out of each region in steps t+1..t+T (zero past
+    the table), times ``scale``.
 
-    Depends on the city's tables alone, so it is computed once per city and look-ahead instead of
-    every step (the same products and sums as before, so the same numbers).
+    Depends on the city's tables alone, so it is computed once per city, look-ahead and scale
+    instead of every step (the same products and sums as before, so the same numbers).
     """
     per_city = _VALUES.setdefault(city, {})
-    if lookahead not in per_city:
+    if (lookahead, scale) not in per_city:
         steps = np.arange(city.n_steps)[:, None] + np.arange(1, lookahead + 1)[None, :]  # (S, T)
-        table = step_rows(city.expected_fares, steps)
+        value = step_rows(city.expected_fares, steps)  # (S, T, N) float64
+        table = (np.swapaxes(value, -1, -2) * scale).astype(np.float32)
         table.setflags(write=False)
-        per_city[lookahead] = table
-    return per_city[lookahead]
+        per_city[(lookahead, scale)] = table
+    return per_city[(lookahead, scale)]
 
 
 def feature_high(city: City, lookahead: int = 6, scale: float = FEATURE_SCALE) -> np.ndarray:
