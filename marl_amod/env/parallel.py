@@ -86,14 +86,15 @@ from marl_amod.env import observations as ob
 from marl_amod.env.features import feature_high as feature_bounds
 from marl_amod.env.features import n_features
 from marl_amod.env.options import HasEnvOptions, env_options
-from marl_amod.env.rewards import RewardMode, rewards
+from marl_amod.env.rewards import RewardMode, agent_rewards
 from marl_amod.errors import ConfigError
-from marl_amod.metrics import episode_metrics
+from marl_amod.metrics import METRICS, episode_metrics
 from marl_amod.scenario import City
 from marl_amod.system import FleetSystem, StepOutcome
 from marl_amod.validation import as_seed
 
 RENDER_MODES = ["human", "rgb_array"]
+_SYSTEM_INFOS = {name: f"system_{name}" for name in METRICS if name != "revenue"}  # episode metric -> info key
 
 
 class AmodParallelEnv(HasEnvOptions, ParallelEnv):
@@ -186,14 +187,13 @@ class AmodParallelEnv(HasEnvOptions, ParallelEnv):
         target = act.targets(self.system, actions, self.agents, self.action_mode, strict=self.strict_actions)
         outcome = self._last_outcome = self.system.step(target)
         self._steps += 1
-        r = rewards(self.reward_mode, outcome) * self.reward_scale
         agents = self.agents
         obs = self._observations()
-        rew = dict(zip(agents, np.asarray(r, dtype=float).tolist(), strict=True))
+        rew = agent_rewards(self.reward_mode, outcome, agents, self.reward_scale)
         infos = self._infos(outcome)
         done = self.system.done or self._steps >= self.max_cycles
-        terminations = {a: False for a in agents}
-        truncations = {a: done for a in agents}
+        terminations = dict.fromkeys(agents, False)
+        truncations = dict.fromkeys(agents, done)
         if done:
             self.agents = []
         if self.render_mode == "human":
@@ -244,12 +244,12 @@ class AmodParallelEnv(HasEnvOptions, ParallelEnv):
     def _infos(self, outcome: StepOutcome) -> dict[str, dict]:
         sim, city = self.system.sim, self.system.city
         # whole arrays to Python numbers at once (tolist), the same values as int()/float() per region
-        served = outcome.dispatch.sum(axis=1).astype(np.int64).tolist()
-        reb_cost = outcome.region_rebalancing_cost.astype(float).tolist()
-        new = sim.demand[sim.t].sum(axis=1).astype(np.int64).tolist()
-        idle = np.asarray(sim.idle).astype(np.int64).tolist()
+        served = outcome.dispatch.sum(axis=1).astype(np.int64, copy=False).tolist()
+        reb_cost = outcome.region_rebalancing_cost.astype(float, copy=False).tolist()
+        new = sim.demand[sim.t].sum(axis=1).astype(np.int64, copy=False).tolist()
+        idle = np.asarray(sim.idle).astype(np.int64, copy=False).tolist()
         metrics = episode_metrics(sim.totals, city.fleet_size, city.horizon)
-        system = {f"system_{k}": v for k, v in metrics.items() if k != "revenue"}
+        system = {key: metrics[name] for name, key in _SYSTEM_INFOS.items()}
         return {
             a: {"served": s, "demand": d, "rebalancing_cost": c, "idle": i, **system}
             for a, s, d, c, i in zip(self.possible_agents, served, new, reb_cost, idle, strict=True)

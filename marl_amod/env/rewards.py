@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Literal
 
 import numpy as np
@@ -26,6 +27,15 @@ def rewards(mode: RewardMode, outcome: StepOutcome) -> np.ndarray:
     if mode == "team":
         return np.full(outcome.region_profit.shape, outcome.reward)
     return outcome.region_reward
+
+
+def agent_rewards(mode: RewardMode, outcome: StepOutcome, agents: Sequence[str], scale: float = 1.0) -> dict[str, float]:
+    """{agent: reward} of one step for ``agents`` in region order, times ``scale``: the ParallelEnv's
+    rewards. A team reward is one Python float for every agent: the same number as
+    ``rewards(mode, outcome) * scale`` per region, without building the (N,) array."""
+    if mode == "team":
+        return dict.fromkeys(agents, outcome.reward * scale)
+    return dict(zip(agents, (outcome.region_reward * scale).tolist(), strict=True))
 
 
 def typical_step_revenue(city: City) -> float:
