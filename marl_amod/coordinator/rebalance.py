@@ -201,9 +201,9 @@ class Rebalancer:
         smcf.set_arc_capacities(arcs, capacities)
         smcf.set_nodes_supplies(nodes, supplies)
         _check(smcf.solve(), smcf)
-        flows = smcf.flows(arcs)[: n * n].reshape(n, n)  # a fresh int64 array: ours to edit
-        flows.flat[:: n + 1] = 0  # a region 'sending' to itself keeps its vehicles
-        return flows
+        flows = smcf.flows(arcs)  # a fresh int64 array: ours to edit
+        flows[: n * n : n + 1] = 0  # a region 'sending' to itself keeps its vehicles
+        return flows[: n * n].reshape(n, n)
 
     def _solve_reduced(self, idle: np.ndarray, need: np.ndarray) -> np.ndarray:
         """(K, N, N) flows of K instances (K, N) on the metric network: surplus regions (ascending)

@@ -37,11 +37,11 @@ def joint_action(actions: Mapping[str, Any], agents: Sequence[str], *, strict: b
 
     Finite values outside [0, 1] are clipped, or raise when ``strict``.
     """
-    if not isinstance(actions, Mapping):
+    if not isinstance(actions, (dict, Mapping)):  # a dict answers without the ABC machinery
         raise ActionError(f"actions must be a dict {{agent: action}}, got {type(actions).__name__}")
     stacked = _stacked(actions, agents)
     if stacked is not None and np.isfinite(stacked).all() and not (strict and ((stacked < 0.0) | (stacked > 1.0)).any()):
-        return np.clip(stacked, 0.0, 1.0)
+        return stacked.clip(0.0, 1.0)  # np.clip's own ufunc, without np.clip's dispatch layer
     # otherwise agent by agent, so an error names the agent and what is wrong with its action
     missing = [a for a in agents if a not in actions]
     if missing:

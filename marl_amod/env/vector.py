@@ -172,7 +172,7 @@ class AmodVectorEnv(HasEnvOptions):
             raise ActionError(
                 f"action of region_{i} in episode {e} is {a[e, i]}, outside the action space [0, 1] (strict_actions=True)"
             )
-        return np.clip(a, 0.0, 1.0)
+        return a.clip(0.0, 1.0)
 
     def _infos(self, outcome: BatchOutcome) -> dict[str, np.ndarray]:
         sim, city = self.system.sim, self.city

@@ -63,7 +63,7 @@ class EpisodeTotals:
         self.revenue += revenue
         self.trip_cost += cost
         profit = revenue.sum(axis=-1) - cost.sum(axis=-1)
-        return float(profit) if np.ndim(profit) == 0 else profit
+        return float(profit) if profit.ndim == 0 else profit
 
 
 def check_max_wait(max_wait: int, city: City) -> int:
