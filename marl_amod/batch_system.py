@@ -105,5 +105,5 @@ class BatchFleetSystem:
         return totals.revenue - totals.trip_cost, totals.rebalancing_cost.copy()
 
     def _outcome(self, before: tuple[np.ndarray, np.ndarray], rebalancing: np.ndarray) -> BatchOutcome:
-        profit, cost = self._booked()
-        return BatchOutcome(profit - before[0], cost - before[1], self.sim.last_dispatch, rebalancing)
+        totals = self.sim.totals
+        return BatchOutcome(totals.revenue - totals.trip_cost - before[0], totals.rebalancing_cost - before[1], self.sim.last_dispatch, rebalancing)

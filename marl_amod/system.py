@@ -139,5 +139,5 @@ class FleetSystem:
         return totals.dispatch_profit, totals.rebalancing_cost.copy()
 
     def _outcome(self, before: tuple[np.ndarray, np.ndarray], rebalancing: np.ndarray) -> StepOutcome:
-        profit, cost = self._booked()
-        return StepOutcome(profit - before[0], cost - before[1], self.sim.last_dispatch, rebalancing)
+        totals = self.sim.totals
+        return StepOutcome(totals.dispatch_profit - before[0], totals.rebalancing_cost - before[1], self.sim.last_dispatch, rebalancing)

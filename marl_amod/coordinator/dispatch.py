@@ -50,8 +50,11 @@ def planned_dispatch(idle: np.ndarray, demand: np.ndarray, plan: tuple[np.ndarra
     lead = demand.shape[:-2]
     servable = np.where(positive, demand, 0).reshape(*lead, n * n)
     d_sorted = servable[..., flat]  # (..., N, N), each origin's requests by decreasing margin
-    before = np.cumsum(d_sorted, axis=-1) - d_sorted
-    x_sorted = np.minimum(np.maximum(idle[..., None] - before, 0), d_sorted)
+    # served so far along each sorted row: the cumulative requests, capped by the idle vehicles;
+    # its increments are the flows (min(d_k, max(idle - before_k, 0)) in integers, exactly; numpy
+    # reads the overlapping operand as it was before the subtraction)
+    x_sorted = np.minimum(np.cumsum(d_sorted, axis=-1), idle[..., None])
+    x_sorted[..., 1:] -= x_sorted[..., :-1]
     x = np.empty_like(servable)
     x[..., flat] = x_sorted
     return x.reshape(demand.shape)

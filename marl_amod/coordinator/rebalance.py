@@ -84,6 +84,8 @@ def check_rebalance_inputs(idle: np.ndarray, target: np.ndarray, n: int | None =
 def check_target(target: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     """A target of ``shape`` (..., N) as int64: whole and >= -1 (-1: no wish), else an ActionError
     naming the region (and the episode, for leading batch axes)."""
+    if type(target) is np.ndarray and target.dtype == np.int64 and target.shape == shape and not (target < -1).any():
+        return target  # the usual case (a coordinator's own targets), in one comparison
     return check_array(target, "rebalancing target", shape=shape, minimum=-1, integer=True, error=ActionError, lead=len(shape) - 1)
 
 
