@@ -25,6 +25,9 @@ from marl_amod.sim.flows import as_flows, check_dispatch, check_rebalance
 from marl_amod.validation import as_count
 
 _TOL = 1e-9
+# cities up to this many regions keep each step's leg tables (4 small N x N arrays per step): for
+# them the per-step numpy calls, not the arithmetic, are the cost; bigger cities recompute
+LEG_TABLE_REGIONS = 64
 
 
 @dataclass
@@ -94,6 +97,8 @@ class MacroSim:
         # where region j's row 0 and episode b's block start in arrivals.reshape(-1): (N,) and (..., 1, 1)
         self._column = np.arange(n)
         self._episode_start = (np.arange(int(np.prod(lead))) * (self._arrival_len * n)).reshape(*lead, 1, 1)
+        self._leg_tables: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = {}  # see _legs
+        self._leg_city = city
         self.demand = np.zeros((*lead, city.n_steps, n, n), dtype=np.int64)  # (..., S, N, N)
         self.backlog = np.zeros((*lead, max_wait + 1, n, n), dtype=np.int64)  # (..., W + 1, N, N) by age
         self.totals = EpisodeTotals.zeros(n, lead)
@@ -153,7 +158,8 @@ class MacroSim:
         if check:
             x = as_flows(x, c.n_regions, "dispatch", self._lead)
             check_dispatch(x, self.requests(), self.idle)
-        self._depart(x, c.trip_time[t])
+        sent = x.sum(axis=-1)
+        self._depart(x, sent, "trip")
         tot = self.totals
         if self.max_wait == 0:  # one age: every served request is new and waited 0 minutes
             self.backlog[..., 0, :, :] -= x
@@ -166,7 +172,7 @@ class MacroSim:
                 remaining -= take
                 wait += age * c.tstep * take.sum(axis=-1)
             tot.wait_minutes += wait
-        tot.served += x.sum(axis=-1)
+        tot.served += sent
         self.last_dispatch = x
         return np.asarray(tot.book_trips(x, c, t))
 
@@ -179,10 +185,11 @@ class MacroSim:
         if check:
             y = as_flows(y, self.city.n_regions, "rebalancing", self._lead)
             check_rebalance(y, self.idle)
-        self._depart(y, self.city.reb_time)
+        sent = y.sum(axis=-1)
+        self._depart(y, sent, "move")
         cost = (y * self.city.reb_cost).sum(axis=-1)
         self.totals.rebalancing_cost += cost
-        self.totals.rebalanced += y.sum(axis=-1)
+        self.totals.rebalanced += sent
         self.last_rebalance = y
         return cost.sum(axis=-1)
 
@@ -209,15 +216,35 @@ class MacroSim:
         """Nothing to release: the macro model holds arrays only."""
 
     # ------------------------------------------------------------------ helpers
-    def _depart(self, flows: np.ndarray, duration: np.ndarray) -> None:
-        """Vehicles leave now and arrive after ``duration`` (N, N) steps (per pair, every episode)."""
-        self.idle -= flows.sum(axis=-1)
+    def _depart(self, flows: np.ndarray, sent: np.ndarray, kind: str) -> None:
+        """Vehicles ``flows`` (..., N, N), ``sent`` (..., N) of them per origin, leave now on trips
+        ("trip": ``city.trip_time[t]``) or rebalancing moves ("move": ``city.reb_time``) and
+        arrive after their duration."""
+        self.idle -= sent
+        at, steps = self._legs(kind)
+        if self._lead:
+            at = self._episode_start + at
         # arrivals[..., t + duration[i, j], j] += flows[..., i, j] for every pair: one unbuffered add
         # into the flat view of the C-ordered buffer (pairs arriving at one region in one step add
         # up; the zero flows add nothing), far cheaper than picking the non-zero pairs first
-        n = self._column.size
-        at = self._episode_start + duration * n + (self.t * n + self._column)  # (..., N, N) flat positions
         np.add.at(self.arrivals.reshape(-1), at.reshape(-1), flows.reshape(-1))
-        steps_left = self.city.horizon - self.t
         # integer vehicle-steps: summing per origin first gives the same float totals as adding one by one
-        self.totals.busy_vehicle_steps += (flows * np.minimum(duration, steps_left)).sum(axis=-1)
+        self.totals.busy_vehicle_steps += (flows * steps).sum(axis=-1)
+
+    def _legs(self, kind: str) -> tuple[np.ndarray, np.ndarray]:
+        """For legs of ``kind`` leaving now: (N, N) positions in an episode's flat arrivals block
+        where each pair's vehicles arrive, and (N, N) vehicle-steps each leg drives within the
+        episode. Tables of the city and the step, kept for small cities (``LEG_TABLE_REGIONS``)."""
+        if self._leg_city is not self.city:  # a new region view: new tables
+            self._leg_tables, self._leg_city = {}, self.city
+        key = (kind, self.t)
+        legs = self._leg_tables.get(key)
+        if legs is None:
+            duration = self.city.trip_time[self.t] if kind == "trip" else self.city.reb_time
+            n = self._column.size
+            legs = (duration * n + (self.t * n + self._column), np.minimum(duration, self.city.horizon - self.t))
+            for table in legs:
+                table.setflags(write=False)
+            if n <= LEG_TABLE_REGIONS:
+                self._leg_tables[key] = legs
+        return legs
