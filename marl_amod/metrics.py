@@ -63,12 +63,17 @@ def gini(values: np.ndarray | list[float], axis: int = -1) -> np.ndarray | float
 
 def region_wait_time(totals: EpisodeTotals) -> np.ndarray:
     """(N,) mean wait in minutes of the passengers served from each region (0 where none was)."""
-    return np.where(totals.served > 0, totals.wait_minutes / np.maximum(totals.served, 1e-12), 0.0)
+    return _region_ratio(totals.wait_minutes, totals.served)
 
 
 def region_service_rate(totals: EpisodeTotals) -> np.ndarray:
     """(N,) served / requested per region (0 where nobody requested a trip)."""
-    return np.where(totals.demand > 0, totals.served / np.maximum(totals.demand, 1e-12), 0.0)
+    return _region_ratio(totals.served, totals.demand)
+
+
+def _region_ratio(part: np.ndarray, whole: np.ndarray) -> np.ndarray:
+    """part / whole per region, 0 where whole is 0."""
+    return np.where(whole > 0, part / np.maximum(whole, 1e-12), 0.0)
 
 
 def _masked_gini(values: np.ndarray, keep: np.ndarray) -> np.ndarray:
@@ -92,6 +97,15 @@ def _masked_gini(values: np.ndarray, keep: np.ndarray) -> np.ndarray:
     return out.reshape(values.shape[:-1])
 
 
+def _ratio_gini(part: np.ndarray, whole: np.ndarray) -> np.ndarray:
+    """Gini of :func:`_region_ratio` (..., N) over the regions where whole > 0, per leading index:
+    of :func:`region_wait_time` (wait / served) and :func:`region_service_rate` (served / demand)."""
+    keep = whole > 0
+    if keep.ndim == 1 and keep.all():  # one episode, every region counted (the usual case): no mask
+        return np.asarray(gini(part / np.maximum(whole, 1e-12)))  # the ratio's every entry, as _region_ratio
+    return _masked_gini(_region_ratio(part, whole), keep)
+
+
 def episode_metrics(totals: EpisodeTotals, fleet: int, horizon: int) -> dict[str, float]:
     """Scalar metrics of one finished episode."""
     return {key: float(value) for key, value in metric_arrays(totals, fleet, horizon).items()}
@@ -112,8 +126,8 @@ def metric_arrays(totals: EpisodeTotals, fleet: int, horizon: int) -> dict[str, 
         "utilization": totals.busy_vehicle_steps.sum(axis=-1) / max(fleet * horizon, 1),
         # regions where the quantity is undefined (nobody served / nobody asked) are left out; when
         # nobody has waited (always with max_wait 0) every region's mean wait is 0, whose Gini is 0
-        "wait_time_gini": _masked_gini(region_wait_time(totals), totals.served > 0) if totals.wait_minutes.any() else np.zeros(served.shape),
-        "service_rate_gini": _masked_gini(region_service_rate(totals), totals.demand > 0),
+        "wait_time_gini": _ratio_gini(totals.wait_minutes, totals.served) if totals.wait_minutes.any() else np.zeros(served.shape),
+        "service_rate_gini": _ratio_gini(totals.served, totals.demand),
     }
 
 
