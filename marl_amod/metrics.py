@@ -9,6 +9,7 @@ everything.
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
@@ -50,7 +51,7 @@ def gini(values: np.ndarray | list[float], axis: int = -1) -> np.ndarray | float
         if n and x[0] < 0:  # sorted: the first value is the smallest
             raise ValueError("the Gini coefficient needs non-negative values")
         total = float(x.sum())
-        return 2.0 * float((x * np.arange(1, n + 1)).sum()) / (n * total) - (n + 1.0) / n if total > 0 else 0.0
+        return 2.0 * float((x * _ranks(n)).sum()) / (n * total) - (n + 1.0) / n if total > 0 else 0.0
     if n and (x[..., 0] < 0).any():  # sorted: the first value is each row's smallest
         raise ValueError("the Gini coefficient needs non-negative values")
     total = x.sum(axis=-1)
@@ -59,6 +60,14 @@ def gini(values: np.ndarray | list[float], axis: int = -1) -> np.ndarray | float
     g = 2.0 * (x * rank).sum(axis=-1) / np.where(positive, n * total, 1.0) - (n + 1.0) / max(n, 1)
     g = np.where(positive, g, 0.0)
     return float(g) if g.ndim == 0 else g
+
+
+@functools.lru_cache(maxsize=64)
+def _ranks(n: int) -> np.ndarray:
+    """1..n, read-only: the weights of the sorted form of the Gini coefficient."""
+    rank = np.arange(1, n + 1)
+    rank.setflags(write=False)
+    return rank
 
 
 def region_wait_time(totals: EpisodeTotals) -> np.ndarray:
@@ -101,9 +110,10 @@ def _ratio_gini(part: np.ndarray, whole: np.ndarray) -> np.ndarray:
     """Gini of :func:`_region_ratio` (..., N) over the regions where whole > 0, per leading index:
     of :func:`region_wait_time` (wait / served) and :func:`region_service_rate` (served / demand)."""
     keep = whole > 0
-    if keep.ndim == 1 and keep.all():  # one episode, every region counted (the usual case): no mask
-        return np.asarray(gini(part / np.maximum(whole, 1e-12)))  # the ratio's every entry, as _region_ratio
-    return _masked_gini(_region_ratio(part, whole), keep)
+    ratio = part / np.maximum(whole, 1e-12)
+    if ratio.ndim == 1:  # one episode: the kept entries of _region_ratio, selected directly
+        return np.asarray(gini(ratio[keep]))
+    return _masked_gini(np.where(keep, ratio, 0.0), keep)
 
 
 def episode_metrics(totals: EpisodeTotals, fleet: int, horizon: int) -> dict[str, float]:

@@ -12,6 +12,8 @@ shortfall regions need to receive, which shrinks the network from N^2 arcs to |s
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from marl_amod.errors import ActionError, DataError, SolverError
@@ -54,7 +56,7 @@ def floor_targets(weights: np.ndarray, total_idle: int | np.ndarray) -> np.ndarr
     float64 operations on a scalar sum, not a (1,) array: the same numbers in fewer numpy calls."""
     if weights.ndim == 1:
         s = weights.sum()
-        if np.isfinite(s):
+        if math.isfinite(s):
             if s > 0:
                 return np.floor(weights / s * total_idle + 1e-9).astype(np.int64)
             return np.full(weights.shape, -1, dtype=np.int64)

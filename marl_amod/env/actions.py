@@ -19,6 +19,7 @@ gives the weights (so an all-zero joint action asks for a uniform distribution, 
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from typing import Any, Literal
 
@@ -40,7 +41,8 @@ def joint_action(actions: Mapping[str, Any], agents: Sequence[str], *, strict: b
     if not isinstance(actions, (dict, Mapping)):  # a dict answers without the ABC machinery
         raise ActionError(f"actions must be a dict {{agent: action}}, got {type(actions).__name__}")
     stacked = _stacked(actions, agents)
-    if stacked is not None and np.isfinite(stacked).all() and not (strict and ((stacked < 0.0) | (stacked > 1.0)).any()):
+    # a finite sum means finite values (a sum that overflows merely takes the checked path below)
+    if stacked is not None and math.isfinite(stacked.sum()) and not (strict and ((stacked < 0.0) | (stacked > 1.0)).any()):
         return stacked.clip(0.0, 1.0)  # np.clip's own ufunc, without np.clip's dispatch layer
     # otherwise agent by agent, so an error names the agent and what is wrong with its action
     missing = [a for a in agents if a not in actions]

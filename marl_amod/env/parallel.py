@@ -88,7 +88,7 @@ from marl_amod.env.features import n_features
 from marl_amod.env.options import HasEnvOptions, env_options
 from marl_amod.env.rewards import RewardMode, agent_rewards
 from marl_amod.errors import ConfigError
-from marl_amod.metrics import METRICS, episode_metrics
+from marl_amod.metrics import METRICS, metric_arrays
 from marl_amod.scenario import City
 from marl_amod.system import FleetSystem, StepOutcome
 from marl_amod.validation import as_seed
@@ -248,8 +248,8 @@ class AmodParallelEnv(HasEnvOptions, ParallelEnv):
         reb_cost = outcome.region_rebalancing_cost.astype(float, copy=False).tolist()
         new = sim.demand[sim.t].sum(axis=1).astype(np.int64, copy=False).tolist()
         idle = np.asarray(sim.idle).astype(np.int64, copy=False).tolist()
-        metrics = episode_metrics(sim.totals, city.fleet_size, city.horizon)
-        system = {key: metrics[name] for name, key in _SYSTEM_INFOS.items()}
+        metrics = metric_arrays(sim.totals, city.fleet_size, city.horizon)  # as episode_metrics, as floats below
+        system = {key: float(metrics[name]) for name, key in _SYSTEM_INFOS.items()}
         return {
             a: {"served": s, "demand": d, "rebalancing_cost": c, "idle": i, **system}
             for a, s, d, c, i in zip(self.possible_agents, served, new, reb_cost, idle, strict=True)
