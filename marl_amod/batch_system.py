@@ -106,4 +106,5 @@ class BatchFleetSystem:
 
     def _outcome(self, before: tuple[np.ndarray, np.ndarray], rebalancing: np.ndarray) -> BatchOutcome:
         totals = self.sim.totals
-        return BatchOutcome(totals.revenue - totals.trip_cost - before[0], totals.rebalancing_cost - before[1], self.sim.last_dispatch, rebalancing)
+        profit = totals.revenue - totals.trip_cost
+        return BatchOutcome(profit - before[0], totals.rebalancing_cost - before[1], self.sim.last_dispatch, rebalancing)

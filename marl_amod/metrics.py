@@ -123,20 +123,29 @@ def episode_metrics(totals: EpisodeTotals, fleet: int, horizon: int) -> dict[str
 
 def metric_arrays(totals: EpisodeTotals, fleet: int, horizon: int) -> dict[str, np.ndarray]:
     """The metrics of :func:`episode_metrics` as arrays over the leading axes of (..., N) totals
-    (a batch of episodes, :mod:`marl_amod.sim.batch`); summed over regions."""
-    served = totals.served.sum(axis=-1)
-    wait = totals.wait_minutes.sum(axis=-1)
+    (a batch of episodes, :mod:`marl_amod.sim.batch`); summed over regions.
+
+    The env asks every step, so the seven sums over regions are one reduction of the stacked totals:
+    each row of a C-ordered stack sums in the same pairwise order as that array alone.
+    """
+    stacked = np.array((
+        totals.profit, totals.revenue, totals.served, totals.demand, totals.rebalancing_cost, totals.wait_minutes,
+        totals.busy_vehicle_steps,
+    ))
+    profit, revenue, served, demand, rebalancing_cost, wait, busy = stacked.sum(axis=-1)
     return {
-        "profit": totals.profit.sum(axis=-1),
-        "revenue": totals.revenue.sum(axis=-1),
+        "profit": profit,
+        "revenue": revenue,
         "served_demand": served,
-        "demand": totals.demand.sum(axis=-1),
-        "rebalancing_cost": totals.rebalancing_cost.sum(axis=-1),
+        "demand": demand,
+        "rebalancing_cost": rebalancing_cost,
         "wait_time": np.where(served > 0, wait / np.maximum(served, 1e-300), 0.0),
-        "utilization": totals.busy_vehicle_steps.sum(axis=-1) / max(fleet * horizon, 1),
+        "utilization": busy / max(fleet * horizon, 1),
         # regions where the quantity is undefined (nobody served / nobody asked) are left out; when
         # nobody has waited (always with max_wait 0) every region's mean wait is 0, whose Gini is 0
-        "wait_time_gini": _ratio_gini(totals.wait_minutes, totals.served) if totals.wait_minutes.any() else np.zeros(served.shape),
+        "wait_time_gini": (
+            _ratio_gini(totals.wait_minutes, totals.served) if totals.wait_minutes.any() else np.zeros(served.shape)
+        ),
         "service_rate_gini": _ratio_gini(totals.served, totals.demand),
     }
 

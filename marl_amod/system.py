@@ -140,4 +140,5 @@ class FleetSystem:
 
     def _outcome(self, before: tuple[np.ndarray, np.ndarray], rebalancing: np.ndarray) -> StepOutcome:
         totals = self.sim.totals
-        return StepOutcome(totals.dispatch_profit - before[0], totals.rebalancing_cost - before[1], self.sim.last_dispatch, rebalancing)
+        profit, cost = totals.dispatch_profit - before[0], totals.rebalancing_cost - before[1]
+        return StepOutcome(profit, cost, self.sim.last_dispatch, rebalancing)

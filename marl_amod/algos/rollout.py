@@ -66,7 +66,8 @@ class Rollout:
         ctx = torch.as_tensor(time_features(self.city, self.system.t))
         if self.mode == "centralised":
             return Obs(x, ctx=ctx)
-        own, _ctx, nbrs, mask = split_local(torch.as_tensor(local_observations(self.system, self.lookahead, layout=self.layout)), x.shape[1])
+        local = local_observations(self.system, self.lookahead, layout=self.layout)
+        own, _ctx, nbrs, mask = split_local(torch.as_tensor(local), x.shape[1])
         return Obs(x, own, nbrs, mask, ctx)
 
     def _obs_from_env(self, obs: dict[str, np.ndarray]) -> Obs:

@@ -88,7 +88,8 @@ def check_target(target: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     naming the region (and the episode, for leading batch axes)."""
     if type(target) is np.ndarray and target.dtype == np.int64 and target.shape == shape and not (target < -1).any():
         return target  # the usual case (a coordinator's own targets), in one comparison
-    return check_array(target, "rebalancing target", shape=shape, minimum=-1, integer=True, error=ActionError, lead=len(shape) - 1)
+    lead = len(shape) - 1
+    return check_array(target, "rebalancing target", shape=shape, minimum=-1, integer=True, error=ActionError, lead=lead)
 
 
 # costs scaled to integers with this resolution when they are not whole numbers already

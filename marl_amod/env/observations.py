@@ -105,7 +105,8 @@ def local_observations(
     """
     if layout is None:
         layout = LocalLayout(table if table is not None else neighbour_table(system.city, max_degree), n_features(lookahead))
-    return layout(node_features(system, lookahead), _time_features(system.city.start_hour, system.city.tstep, system.city.horizon, system.t))
+    city = system.city
+    return layout(node_features(system, lookahead), _time_features(city.start_hour, city.tstep, city.horizon, system.t))
 
 
 def local_from_features(feats: np.ndarray, context: np.ndarray, table: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
