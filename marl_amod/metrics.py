@@ -139,7 +139,7 @@ def metric_arrays(totals: EpisodeTotals, fleet: int, horizon: int) -> dict[str, 
         "served_demand": served,
         "demand": demand,
         "rebalancing_cost": rebalancing_cost,
-        "wait_time": np.where(served > 0, wait / np.maximum(served, 1e-300), 0.0),
+        "wait_time": _mean_wait(wait, served),
         "utilization": busy / max(fleet * horizon, 1),
         # regions where the quantity is undefined (nobody served / nobody asked) are left out; when
         # nobody has waited (always with max_wait 0) every region's mean wait is 0, whose Gini is 0
@@ -148,6 +148,14 @@ def metric_arrays(totals: EpisodeTotals, fleet: int, horizon: int) -> dict[str, 
         ),
         "service_rate_gini": _ratio_gini(totals.served, totals.demand),
     }
+
+
+def _mean_wait(wait: np.ndarray, served: np.ndarray) -> np.ndarray:
+    """wait / served, 0 where nobody was served; one episode's scalars in Python arithmetic (the
+    same float64 operations, without numpy's per-call cost on 0-d values)."""
+    if np.ndim(served) == 0:
+        return np.float64(float(wait) / max(float(served), 1e-300) if served > 0 else 0.0)
+    return np.where(served > 0, wait / np.maximum(served, 1e-300), 0.0)
 
 
 def region_metrics(totals: EpisodeTotals) -> dict[str, list[float]]:

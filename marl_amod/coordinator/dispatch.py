@@ -46,16 +46,13 @@ def greedy_dispatch(
 def planned_dispatch(idle: np.ndarray, demand: np.ndarray, plan: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
     """:func:`greedy_dispatch` on checked int64 counts and a :func:`dispatch_plan` (no checks here)."""
     positive, flat = plan
-    n = flat.shape[-1]
-    lead = demand.shape[:-2]
-    servable = np.where(positive, demand, 0).reshape(*lead, n * n)
-    d_sorted = servable[..., flat]  # (..., N, N), each origin's requests by decreasing margin
-    # served so far along each sorted row: the cumulative requests, capped by the idle vehicles;
-    # its increments are the flows (min(d_k, max(idle - before_k, 0)) in integers, exactly; numpy
-    # reads the overlapping operand as it was before the subtraction)
-    x_sorted = np.minimum(np.cumsum(d_sorted, axis=-1), idle[..., None])
+    servable = np.where(positive, demand, 0).reshape(*demand.shape[:-2], -1)  # (..., N * N)
+    # served so far along each origin's requests by decreasing margin: the cumulative requests,
+    # capped by the idle vehicles; its increments are the flows (min(d_k, max(idle - before_k, 0))
+    # in integers, exactly; numpy reads the overlapping operand as it was before the subtraction)
+    x_sorted = np.minimum(servable[..., flat].cumsum(axis=-1), idle[..., None])
     x_sorted[..., 1:] -= x_sorted[..., :-1]
-    x = np.empty_like(servable)
+    x = np.empty(servable.shape, servable.dtype)
     x[..., flat] = x_sorted
     return x.reshape(demand.shape)
 
