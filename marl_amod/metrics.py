@@ -42,10 +42,10 @@ def gini(values: np.ndarray | list[float], axis: int = -1) -> np.ndarray | float
 
     Sorted form of mean |x_i - x_j| / (2 mean x), O(n log n); all-zero (or empty) rows give 0.
     """
-    x = np.asarray(values, dtype=float)
+    x = np.array(values, dtype=float)  # a copy, sorted in place below
     if axis not in (-1, x.ndim - 1):
         x = np.moveaxis(x, axis, -1)
-    x = np.sort(x, axis=-1)
+    x.sort(axis=-1)
     n = x.shape[-1]
     if x.ndim == 1:  # one row (the env asks every step): the same float64 operations on scalars
         if n and x[0] < 0:  # sorted: the first value is the smallest
@@ -153,7 +153,7 @@ def metric_arrays(totals: EpisodeTotals, fleet: int, horizon: int) -> dict[str, 
 def _mean_wait(wait: np.ndarray, served: np.ndarray) -> np.ndarray:
     """wait / served, 0 where nobody was served; one episode's scalars in Python arithmetic (the
     same float64 operations, without numpy's per-call cost on 0-d values)."""
-    if np.ndim(served) == 0:
+    if served.ndim == 0:
         return np.float64(float(wait) / max(float(served), 1e-300) if served > 0 else 0.0)
     return np.where(served > 0, wait / np.maximum(served, 1e-300), 0.0)
 

@@ -58,7 +58,7 @@ def state_features(
     feats = np.empty((*idle.shape, 1 + 2 * lookahead), dtype=np.float32)  # (..., N, 1 + 2T)
     np.multiply(idle, scale, out=feats[..., 0])
     supply = idle[..., None, :] + arriving  # (..., T, N) idle now plus arrivals in t+1..t+T
-    np.multiply(supply, scale, out=np.swapaxes(feats[..., 1 : 1 + lookahead], -1, -2))
+    np.multiply(supply, scale, out=feats[..., 1 : 1 + lookahead].swapaxes(-1, -2))
     feats[..., 1 + lookahead :] = _value_table(city, lookahead, scale)[t]  # value, the same in every episode
     return feats
 
