@@ -16,13 +16,15 @@ Times are this process's CPU time by default (``--clock cpu``): on a shared mach
 jobs hold the core does not count, so the numbers are those of one core; ``--clock wall`` measures
 elapsed time. ``performance_benchmark`` keeps its own wall clock.
 
-With ``--ref <git ref>`` every scenario is measured twice, side by side: once with the ref's
-``marl_amod`` (``git archive`` into a temporary folder) and once with this tree's, each in a
-fresh subprocess, alternating, so a change of machine load affects both alike. ``--json`` writes
-every number, the table, the load average before and after, and the CPU model.
+With ``--ref <git ref> [<git ref> ...]`` every scenario is measured side by side: with each ref's
+``marl_amod`` (``git archive`` into a temporary folder) and with this tree's, each in a fresh
+subprocess, one after another, so a change of machine load affects all alike; a second table gives
+this tree's numbers as ratios to each ref's (steps/s: new / ref, higher is faster; step ms:
+new / ref, lower is faster), the comparison that holds on a loaded machine. ``--json`` writes
+every number, the tables, the load average before and after, and the CPU model.
 
 Run on one core:  python benchmarks/env_speed.py [--seconds 2] [--scenarios nyc_brooklyn synthetic]
-    [--ref main] [--json docs/results/env_speed.json]
+    [--ref 2c22f5a main] [--json docs/results/env_speed.json]
 (sets OMP/MKL/OpenBLAS threads and torch threads to 1 before numpy loads).
 """
 
@@ -201,7 +203,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenarios", nargs="+", default=["nyc_brooklyn", "synthetic", "synthetic_large"])
     parser.add_argument("--seconds", type=float, default=2.0, help="timed seconds per cell")
-    parser.add_argument("--ref", default=None, help="git ref to measure side by side with this tree")
+    parser.add_argument("--ref", nargs="+", default=[], help="git refs to measure side by side with this tree")
     parser.add_argument("--json", type=Path, default=None, help="write the measurements and table here")
     parser.add_argument("--clock", choices=list(CLOCKS), default="cpu", help="cpu: this process's CPU time (default); wall: elapsed time")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
@@ -217,32 +219,67 @@ def main() -> None:
     lines, rows = [header()], []
     print(lines[0], flush=True)
     with tempfile.TemporaryDirectory() as tmp:
-        trees: list[tuple[str, Path]] = [("new", ROOT)]
-        commit = None
+        trees: list[tuple[str, Path]] = []
+        commits: dict[str, str] = {}
         if args.ref:
             sys.path.insert(0, str(ROOT / "benchmarks"))
             from train_speed import export_ref
 
-            commit = export_ref(args.ref, Path(tmp))
-            trees.insert(0, ("ref", Path(tmp) / "tree"))
+            for k, ref in enumerate(args.ref):
+                (Path(tmp) / str(k)).mkdir()
+                commits[ref] = export_ref(ref, Path(tmp) / str(k))
+                trees.append((ref, Path(tmp) / str(k) / "tree"))
+        trees.append(("new" if args.ref else "this", ROOT))
         for scenario in args.scenarios:
             for name, tree in trees:
                 row = measure_in(tree, scenario, args.seconds, args.clock)
                 rows.append({"scenario": scenario, "tree": name, **row})
-                lines.append(table_row(scenario, name if args.ref else "this", row))
+                lines.append(table_row(scenario, name, row))
                 print(lines[-1], flush=True)
             if args.json:  # after every scenario, so an interrupted run keeps what it measured
-                write_json(args, commit, load_before, rows, lines)
+                write_json(args, commits, load_before, rows, lines)
+    if args.ref:
+        print("\n" + ratio_table(rows, args.ref), flush=True)
 
 
-def write_json(args: argparse.Namespace, commit: str | None, load_before: tuple, rows: list, lines: list[str]) -> None:
+RATIO_COLUMNS = ("parallel", "aec", "system", "stay", "step_ms")
+
+
+def ratio_table(rows: list[dict[str, Any]], refs: list[str]) -> str:
+    """This tree's numbers divided by each ref's, per scenario (step ms: below 1 is faster)."""
+    batch_cols = " | ".join(f"batch {b}" for b in BATCHES)
+    lines = [
+        f"| scenario | new / ref | parallel | aec | system | {batch_cols} | no rebalancing | step ms |",
+        "|---|---|" + "---:|" * (len(RATIO_COLUMNS) + len(BATCHES)),
+    ]
+    by = {(r["scenario"], r["tree"]): r for r in rows}
+    for scenario in dict.fromkeys(r["scenario"] for r in rows):
+        new = by.get((scenario, "new"))
+        for ref in refs:
+            old = by.get((scenario, ref))
+            if new is None or old is None:
+                continue
+            ratio = {key: new[key] / old[key] for key in RATIO_COLUMNS}
+            batches = " | ".join(
+                "–" if old["batch"][str(b)] is None or new["batch"][str(b)] is None
+                else f"{new['batch'][str(b)] / old['batch'][str(b)]:.2f}" for b in BATCHES
+            )
+            lines.append(
+                f"| {scenario} | new / {ref} | {ratio['parallel']:.2f} | {ratio['aec']:.2f} | {ratio['system']:.2f} | {batches} "
+                f"| {ratio['stay']:.2f} | {ratio['step_ms']:.2f} |"
+            )
+    return "\n".join(lines)
+
+
+def write_json(args: argparse.Namespace, commits: dict[str, str], load_before: tuple, rows: list, lines: list[str]) -> None:
     """Every measurement so far, the table, the machine and its load, written atomically."""
     head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
     dirty = bool(subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True).stdout.strip())
     result = {
-        "ref": args.ref, "ref_commit": commit, "commit": head, "dirty": dirty, "seconds": args.seconds,
+        "refs": commits, "commit": head, "dirty": dirty, "seconds": args.seconds,
         "clock": args.clock, "threads": 1, "cpu": cpu_model(), "python": platform.python_version(), "numpy": np.__version__,
         "load_average_before": load_before, "load_average_after": os.getloadavg(), "rows": rows, "markdown": "\n".join(lines),
+        "ratios_markdown": ratio_table(rows, args.ref) if args.ref else None,
     }
     args.json.parent.mkdir(parents=True, exist_ok=True)
     part = args.json.with_suffix(".part")
