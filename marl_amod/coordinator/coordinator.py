@@ -58,7 +58,8 @@ class Coordinator:
         ``check=False`` skips checking idle and requests: for a caller passing a simulator's own
         integer state (:class:`~marl_amod.system.FleetSystem` unless ``validate``), which the
         checks would only confirm every step."""
-        if (type(t) is not int and (isinstance(t, bool) or not isinstance(t, np.integer))) or not 0 <= t < self.city.n_steps:
+        plain = type(t) is int  # the usual case, without the isinstance checks
+        if not plain and (isinstance(t, bool) or not isinstance(t, (int, np.integer))) or not 0 <= t < self.city.n_steps:
             raise DataError(f"dispatch step t must be an integer in [0, {self.city.n_steps}), got {t!r}")
         if self.solver == "cvxpy":
             from marl_amod.coordinator.reference import lp_dispatch
