@@ -274,7 +274,8 @@ def ratio_table(rows: list[dict[str, Any]], refs: list[str]) -> str:
 def write_json(args: argparse.Namespace, commits: dict[str, str], load_before: tuple, rows: list, lines: list[str]) -> None:
     """Every measurement so far, the table, the machine and its load, written atomically."""
     head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "HEAD"], capture_output=True, text=True).stdout.strip()
-    dirty = bool(subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no"], capture_output=True, text=True).stdout.strip())
+    status = ["git", "-C", str(ROOT), "status", "--porcelain", "--untracked-files=no", "--", ".", f":(exclude){args.json.resolve()}"]
+    dirty = bool(subprocess.run(status, capture_output=True, text=True).stdout.strip())  # the output file itself does not count
     result = {
         "refs": commits, "commit": head, "dirty": dirty, "seconds": args.seconds,
         "clock": args.clock, "threads": 1, "cpu": cpu_model(), "python": platform.python_version(), "numpy": np.__version__,
