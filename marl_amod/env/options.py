@@ -74,33 +74,20 @@ def env_options(
 
 
 class HasEnvOptions:
-    """The checked options as read-only attributes of an env that holds them in ``options``; both
-    envs inherit this, so neither keeps its own copy of the fields."""
+    """The checked options as plain attributes of an env (settable: PettingZoo's API test sets
+    ``max_cycles``); both envs take them from :meth:`adopt_options`, so neither copies the fields."""
 
-    options: EnvOptions
+    reward_mode: RewardMode
+    action_mode: act.ActionMode
+    lookahead: int
+    strict_actions: bool
+    max_cycles: int  # control steps per episode: min(horizon - 1, max_cycles)
+    reward_scale: float  # multiplies every reward ("auto": 1 / the city's expected fares per step)
 
-    @property
-    def reward_mode(self) -> RewardMode:
-        return self.options.reward_mode
+    def adopt_options(self, options: EnvOptions) -> None:
+        """Every option but the city as an attribute of the same name."""
+        for name in ENV_ATTRIBUTES:
+            setattr(self, name, getattr(options, name))
 
-    @property
-    def action_mode(self) -> act.ActionMode:
-        return self.options.action_mode
 
-    @property
-    def lookahead(self) -> int:
-        return self.options.lookahead
-
-    @property
-    def strict_actions(self) -> bool:
-        return self.options.strict_actions
-
-    @property
-    def max_cycles(self) -> int:
-        """Control steps per episode: min(horizon - 1, max_cycles)."""
-        return self.options.max_cycles
-
-    @property
-    def reward_scale(self) -> float:
-        """Multiplies every reward (``"auto"`` resolved to 1 / the city's expected fares per step)."""
-        return self.options.reward_scale
+ENV_ATTRIBUTES = tuple(name for name in EnvOptions.__dataclass_fields__ if name != "city")

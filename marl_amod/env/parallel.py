@@ -125,7 +125,7 @@ class AmodParallelEnv(HasEnvOptions, ParallelEnv):
             strict_actions=strict_actions, max_cycles=max_cycles, scenario_overrides=scenario_overrides,
         )
         city = opts.city
-        self.options = opts
+        self.adopt_options(opts)
         self.render_mode = render_mode
         self.system = FleetSystem(city, max_wait=max_wait, objective=objective, validate=validate)
 

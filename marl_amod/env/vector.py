@@ -72,7 +72,7 @@ class AmodVectorEnv(HasEnvOptions):
             strict_actions=strict_actions, max_cycles=max_cycles, scenario_overrides=scenario_overrides,
         )
         city = opts.city
-        self.options = opts
+        self.adopt_options(opts)
         self.num_envs = int(num_envs)
         self._steps = 0
         self.system = BatchFleetSystem(city, self.num_envs, max_wait=max_wait, objective=objective, validate=validate)
