@@ -133,6 +133,9 @@ def run_strategy(
         k = card["args"]["trial_episodes"] - 1 if adapt_episodes is None else adapt_episodes
         pol = adapt(model, city, k, card["lookahead"], seed=seed)
         used.update(source=meta_policy, source_city="10 training cities", source_episodes=card.get("episodes_trained"), target_episodes=k)
+        demos = (card.get("warm_start") or {}).get("demonstrations") or card.get("demonstrations")
+        if demos:  # trained from an imitation of MPC-Forecast on the same cities
+            used["demonstrations"] = demos["episodes_per_city"] * len(demos["cities"])
     result = evaluate(pol, city, episodes, seed)
     result["transfer"] = used
     return result
@@ -193,6 +196,8 @@ def study_markdown(payload: dict[str, Any]) -> str:
             source = used.get("source_city", "-")
             if used.get("source_episodes") is not None:
                 source = f"{source} ({used['source_episodes']:,})"
+            if used.get("demonstrations"):
+                source += f" + {used['demonstrations']:,} MPC-F demos"
             in_target = f"{used.get('target_episodes', 0) or 0:,}"
             if used.get("validation_episodes"):
                 in_target += f" + {used['validation_episodes']} val."

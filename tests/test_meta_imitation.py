@@ -94,7 +94,15 @@ def test_imitation_ships_a_meta_policy_that_warm_starts_rl2(tasks, tmp_path):
     rl = meta.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, episodes=8, trial_episodes=2, num_envs=2,
                    cities_per_update=2, init_actor=str(tmp_path / "bc.pt"), bc_coef=1.0, demos=str(tmp_path / "demos"),
                    eval_every=8, eval_episodes=2, final_eval_episodes=1, run_dir=str(tmp_path / "rl"), policy_out=str(tmp_path / "rl.pt"))  # fmt: skip
-    assert ALGOS["meta"].train(rl)["card"]["episodes_trained"] == 8
+    card = ALGOS["meta"].train(rl)["card"]
+    assert card["episodes_trained"] == 8 and card["warm_start"]["demonstrations"]["episodes_per_city"] == 2
+    # the transfer table names the demonstrations the meta-policy's training used
+    from marl_amod.transfer import run_strategy, study_markdown
+
+    rec = run_strategy("meta-rl", "synthetic", episodes=1, meta_policy=str(tmp_path / "rl.pt"), adapt_episodes=1)
+    assert rec["transfer"]["demonstrations"] == 4
+    rec["normalised_score"] = 0.0
+    assert "10 training cities (8) + 4 MPC-F demos" in study_markdown({"targets": {"synthetic": {"meta-rl": rec}}})
     log = (tmp_path / "rl" / "log.csv").read_text()
     assert "eval/scaled_return" in log
     with pytest.raises(DataError, match="hidden 8"):

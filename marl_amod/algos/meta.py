@@ -298,9 +298,13 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     rng = np.random.default_rng([args.seed, 17])  # which city (and shock) each draw gets
 
     start_ep, prior_wall, best = 0, 0.0, C.BestActor.of(model)
-    if args.init_actor and not resume:  # a warm start (MPC-F imitation): validated first, kept unless beaten
-        model.load_state_dict(load_meta(args.init_actor, like=model)[0].state_dict())
-        best = C.BestActor(validate(model, args, cities), copy.deepcopy(model.state_dict()))
+    warm: dict[str, Any] = {}
+    if args.init_actor:  # a warm start (MPC-F imitation): validated first, kept unless beaten
+        start, card = load_meta(args.init_actor, like=model)
+        warm = {"warm_start": {k: card.get(k) for k in ("algorithm", "updates", "training_wall_s", "demonstrations")} | {"policy": args.init_actor}}
+        if not resume:
+            model.load_state_dict(start.state_dict())
+            best = C.BestActor(validate(model, args, cities), copy.deepcopy(model.state_dict()))
     imitation = None
     if args.bc_coef > 0:
         from marl_amod.algos.meta_imitation import draw_trials, imitation_losses, load_all
@@ -371,7 +375,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
 
     log.close()
     model.load_state_dict(best.state)
-    return finish(args, model, timer(), ep, config_path)
+    return finish(args, model, timer(), ep, config_path, extra=warm)
 
 
 def finish(
