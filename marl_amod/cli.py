@@ -403,7 +403,7 @@ def wait_map(
 def transfer(
     strategy: Annotated[str, typer.Option(help="zero-shot, fine-tune, meta-rl, single-city, mpc-forecast or mpc-oracle")],
     scenario: Annotated[str, typer.Option(help="the new city: san_francisco, nyc_brooklyn, shenzhen_downtown_west, nyc_brooklyn_event")],
-    policy: Annotated[str | None, typer.Option(help="starting policy .pt (default: the study's, see marl_amod.transfer)")] = None,
+    policy: Annotated[str | None, typer.Option(help="starting policy .pt, or the meta-policy (default: the study's, see marl_amod.transfer)")] = None,
     adapt_episodes: Annotated[int | None, typer.Option(min=0, help="K online episodes in the new city (fine-tune, meta-rl)")] = None,
     episodes: Annotated[int, typer.Option(min=1)] = 10,
     seed: Annotated[int, typer.Option(min=0)] = 0,

@@ -98,7 +98,8 @@ def run_strategy(
 ) -> dict[str, Any]:
     """Evaluate ``strategy`` on ``scenario``; the result record plus what the strategy used.
 
-    ``policy`` overrides the strategy's starting policy (zero-shot, fine-tune, single-city);
+    ``policy`` overrides the strategy's starting policy (zero-shot, fine-tune, single-city) or the
+    meta-policy (meta-rl);
     ``adapt_episodes`` overrides K (fine-tune, meta-rl).
     """
     if strategy not in STRATEGIES:
@@ -129,6 +130,7 @@ def run_strategy(
     else:
         from marl_amod.algos.meta import adapt, load_meta
 
+        meta_policy = policy or meta_policy
         model, card = load_meta(meta_policy)
         k = card["args"]["trial_episodes"] - 1 if adapt_episodes is None else adapt_episodes
         pol = adapt(model, city, k, card["lookahead"], seed=seed)

@@ -228,6 +228,8 @@ class Args(C.RunArgs):
     """memory and hidden units of the recurrent GNN"""
     conv: Literal["gcn", "sage"] = "sage"
     """message passing between regions' memories"""
+    stay_prior: bool = False
+    """the actor outputs log-ratios to the idle vehicles' distribution (:class:`RecurrentGNN`): untrained, it keeps vehicles where they are"""
     episodes: int = Field(20000, ge=1)
     """training episodes in all (updates x cities_per_update x num_envs x trial_episodes)"""
     trial_episodes: int = Field(6, ge=2, le=11)
@@ -293,7 +295,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     C.seed_everything(args.seed)
     cities = {name: load_city(name) for name in dict.fromkeys([*args.cities, *args.val_cities])}
     systems = {name: BatchFleetSystem(cities[name], args.num_envs) for name in args.cities}  # reused: the coordinator caches per city
-    model = RecurrentGNN(n_task_features(args.lookahead), args.hidden, args.conv)
+    model = RecurrentGNN(n_task_features(args.lookahead), args.hidden, args.conv, args.stay_prior)
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     rng = np.random.default_rng([args.seed, 17])  # which city (and shock) each draw gets
 
@@ -463,15 +465,15 @@ def load_meta(path: str | Path, like: RecurrentGNN | None = None) -> tuple[Recur
     if card["algorithm"] not in META_ALGOS:
         raise DataError(f"{path} is a {card['algorithm']} policy, not a meta-RL one")
 
-    model = RecurrentGNN(card["n_features"], card["hidden"], card["conv"])
+    model = RecurrentGNN(card["n_features"], card["hidden"], card["conv"], card["args"].get("stay_prior", False))
     try:
         model.load_state_dict(blob["state_dict"])
     except RuntimeError as exc:
         raise DataError(f"{path}: weights do not fit its card: {str(exc).splitlines()[0]}") from None
     theirs, ours = model.state_dict(), (like.state_dict() if like is not None else None)
-    if ours is not None and (set(theirs) != set(ours) or any(theirs[k].shape != ours[k].shape for k in ours)):
+    if ours is not None and (set(theirs) != set(ours) or any(theirs[k].shape != ours[k].shape for k in ours) or model.stay_prior != like.stay_prior):
         raise DataError(f"{path} is a recurrent GNN with {card['n_features']} features, hidden {card['hidden']}, {card['conv']}; "
-                        "this run's differs (set lookahead, hidden and conv to match)")  # fmt: skip
+                        "this run's differs (set lookahead, hidden, conv and stay_prior to match)")  # fmt: skip
     model.eval()
     return model, card
 

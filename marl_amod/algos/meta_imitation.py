@@ -196,7 +196,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     walls = collect_demos(args.demos, args.cities, args.demo_episodes, args.seed, args.lookahead)
     cities = {name: load_city(name) for name in dict.fromkeys([*args.cities, *args.val_cities])}
     data = load_all(args, cities)
-    model = RecurrentGNN(meta.n_task_features(args.lookahead), args.hidden, args.conv)
+    model = RecurrentGNN(meta.n_task_features(args.lookahead), args.hidden, args.conv, args.stay_prior)
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     rng = np.random.default_rng([args.seed, 23])
     step, prior_wall, best = 0, 0.0, C.BestActor.of(model)
