@@ -263,7 +263,13 @@ def train(
         )
         raise typer.Exit(130) from None
     card = summary["card"]
-    trained = f"{card['updates']} updates on {card['dataset']['transitions']} logged transitions" if "updates" in card else f"{card['episodes_trained']} episodes"
+    if "dataset" in card:
+        trained = f"{card['updates']} updates on {card['dataset']['transitions']} logged transitions"
+    elif "demonstrations" in card:
+        demos = card["demonstrations"]
+        trained = f"{card['updates']} updates on {demos['episodes_per_city'] * len(demos['cities'])} MPC-Forecast demonstration episodes"
+    else:
+        trained = f"{card['episodes_trained']} episodes"
     console.print(
         f"{card['scenario']}: profit {card['profit_mean']:,.1f} ± {card['profit_std']:,.1f} over {card['eval_episodes']} episodes "
         f"(seed {card['eval_seed']}), trained {trained} in {card['training_wall_s'] / 60:.1f} min"
