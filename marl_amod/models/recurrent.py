@@ -29,7 +29,7 @@ from marl_amod.models.gnn import ConvKind, Graph, batch_edge_index, concentratio
 
 N_FEEDBACK = 3  # previous action share, previous region reward, previous team reward
 STAY_FLOOR = 0.1  # x 1/N: what a region without idle vehicles gets in the stay prior
-STAY_CONCENTRATION = 10.0  # total concentration of the untrained stay policy
+STAY_CONCENTRATION = 20.0  # x N: total concentration of the untrained stay policy (samples near the mean)
 
 
 class RecurrentGNN(nn.Module):
@@ -39,7 +39,9 @@ class RecurrentGNN(nn.Module):
     of a state depends on what the memory has inferred about the city as much as the action does.
 
     ``stay_prior``: the actor's output is a log-ratio to the distribution of the idle vehicles now
-    (feature column 0, mixed with ``STAY_FLOOR`` / N of uniform): alpha_i = c (idle share_i) exp(a_i).
+    (feature column 0, mixed with ``STAY_FLOOR`` / N of uniform): alpha_i = c N (idle share_i) exp(a_i),
+    c = ``STAY_CONCENTRATION``: concentrated enough that sampled actions (adaptation episodes, RL²)
+    stay near the mean an imitation fitted (the cross-entropy fits the mean, not the spread).
     The untrained policy then asks for what is there (no move, no cost) instead of a random
     distribution, and a demonstrator that mostly keeps vehicles where they are and moves a few
     (MPC-Forecast) differs from it by small log-ratios instead of an exact copy of the idle counts.
@@ -79,7 +81,7 @@ class RecurrentGNN(nn.Module):
             idle = x[..., 0].clamp_min(0)  # (..., N) idle vehicles per region, in per-city units
             share = idle / idle.sum(-1, keepdim=True).clamp_min(1e-9)
             stay = (1 - STAY_FLOOR) * share + STAY_FLOOR / n
-            alpha = STAY_CONCENTRATION * stay * torch.exp(self.actor(z).squeeze(-1).clamp(-10, 10))  # (..., N)
+            alpha = STAY_CONCENTRATION * n * stay * torch.exp(self.actor(z).squeeze(-1).clamp(-10, 10))  # (..., N)
         else:
             alpha = concentration(self.actor(z).squeeze(-1))  # (..., N)
         value = self.critic(z).squeeze(-1).mean(-1)  # (...) mean over regions: rewards are per-city scaled, so N-free
