@@ -440,18 +440,20 @@ def transfer_table(
     strategy: Annotated[
         list[str] | None, typer.Option(help="rerun only these rows (repeat); the others come from <out>/<study>.json")
     ] = None,
+    meta_policy: Annotated[str | None, typer.Option(help="the meta-policy of the meta-rl row (default: policies/meta_rl_cities.pt)")] = None,
     data_dir: DataDir = None,
 ) -> None:
     """Every transfer strategy on a study's cities: the tables of docs/meta (markdown + JSON)."""
     from marl_amod.data import read_json
-    from marl_amod.transfer import STRATEGIES, run_study, study_markdown
+    from marl_amod.transfer import META_POLICY, STRATEGIES, run_study, study_markdown
 
     _use_data_dir(data_dir)
     out.mkdir(parents=True, exist_ok=True)
     previous = read_json(out / f"{study}.json") if strategy and (out / f"{study}.json").is_file() else None
     payload = run_study(study, episodes=episodes, seed=seed, strategies=tuple(strategy or STRATEGIES), previous=previous,
-                        progress=lambda city, name, p: console.print(f"{city}: {name} {p:,.0f}"))  # fmt: skip
-    text = f"<!-- marl-amod transfer-table --study {study} --episodes {episodes} --seed {seed} -->\n" + study_markdown(payload)
+                        meta_policy=meta_policy or META_POLICY, progress=lambda city, name, p: console.print(f"{city}: {name} {p:,.0f}"))  # fmt: skip
+    command = f"marl-amod transfer-table --study {study} --episodes {episodes} --seed {seed}" + (f" --meta-policy {meta_policy}" if meta_policy else "")
+    text = f"<!-- {command} -->\n" + study_markdown(payload)
     write_json(out / f"{study}.json", payload)
     (out / f"{study}.md").write_text(text)
     console.print(text)
