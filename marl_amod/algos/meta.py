@@ -36,6 +36,10 @@ dense graph per step, the memory a (B, N, H) tensor. The A2C update treats each 
 sequence (discount ``gamma``, GAE ``gae_lambda``; back-propagation through the whole trial), so
 the memory learns to infer the city from what happened in earlier episodes.
 
+Warm start. RL² from scratch stays near equal distribution; ``init_actor`` starts it from the
+recurrent GNN imitating MPC-Forecast on the training cities (:mod:`.meta_imitation`, validated
+first and kept unless RL² beats it), and ``bc_coef`` adds that imitation loss to every update.
+
 Adaptation. In a new city the policy runs ``trial_episodes - 1`` episodes (stochastic actions,
 their own demand streams, never the report streams), and each evaluation episode starts from
 the memory those left: a handful of episodes and no gradient step.
