@@ -296,7 +296,7 @@ def load_policy(path: str | Path, city: City | str | None = None) -> WeightPolic
         from marl_amod.scenario import load_city
 
         city = load_city(city if city is not None else card.scenario)
-    if card.algorithm == "meta":  # a recurrent meta-policy: adapt to the city first (no gradient step)
+    if card.algorithm in ("meta", "meta-bc"):  # a recurrent meta-policy: adapt to the city first (no gradient step)
         from marl_amod.algos import meta
 
         return meta.load_policy(path, city)

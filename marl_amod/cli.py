@@ -263,7 +263,13 @@ def train(
         )
         raise typer.Exit(130) from None
     card = summary["card"]
-    trained = f"{card['updates']} updates on {card['dataset']['transitions']} logged transitions" if "updates" in card else f"{card['episodes_trained']} episodes"
+    if "dataset" in card:
+        trained = f"{card['updates']} updates on {card['dataset']['transitions']} logged transitions"
+    elif "demonstrations" in card:
+        demos = card["demonstrations"]
+        trained = f"{card['updates']} updates on {demos['episodes_per_city'] * len(demos['cities'])} MPC-Forecast demonstration episodes"
+    else:
+        trained = f"{card['episodes_trained']} episodes"
     console.print(
         f"{card['scenario']}: profit {card['profit_mean']:,.1f} ± {card['profit_std']:,.1f} over {card['eval_episodes']} episodes "
         f"(seed {card['eval_seed']}), trained {trained} in {card['training_wall_s'] / 60:.1f} min"
@@ -403,7 +409,7 @@ def wait_map(
 def transfer(
     strategy: Annotated[str, typer.Option(help="zero-shot, fine-tune, meta-rl, single-city, mpc-forecast or mpc-oracle")],
     scenario: Annotated[str, typer.Option(help="the new city: san_francisco, nyc_brooklyn, shenzhen_downtown_west, nyc_brooklyn_event")],
-    policy: Annotated[str | None, typer.Option(help="starting policy .pt (default: the study's, see marl_amod.transfer)")] = None,
+    policy: Annotated[str | None, typer.Option(help="starting policy .pt, or the meta-policy (default: the study's, see marl_amod.transfer)")] = None,
     adapt_episodes: Annotated[int | None, typer.Option(min=0, help="K online episodes in the new city (fine-tune, meta-rl)")] = None,
     episodes: Annotated[int, typer.Option(min=1)] = 10,
     seed: Annotated[int, typer.Option(min=0)] = 0,
@@ -434,18 +440,20 @@ def transfer_table(
     strategy: Annotated[
         list[str] | None, typer.Option(help="rerun only these rows (repeat); the others come from <out>/<study>.json")
     ] = None,
+    meta_policy: Annotated[str | None, typer.Option(help="the meta-policy of the meta-rl row (default: policies/meta_rl_cities.pt)")] = None,
     data_dir: DataDir = None,
 ) -> None:
     """Every transfer strategy on a study's cities: the tables of docs/meta (markdown + JSON)."""
     from marl_amod.data import read_json
-    from marl_amod.transfer import STRATEGIES, run_study, study_markdown
+    from marl_amod.transfer import META_POLICY, STRATEGIES, run_study, study_markdown
 
     _use_data_dir(data_dir)
     out.mkdir(parents=True, exist_ok=True)
     previous = read_json(out / f"{study}.json") if strategy and (out / f"{study}.json").is_file() else None
     payload = run_study(study, episodes=episodes, seed=seed, strategies=tuple(strategy or STRATEGIES), previous=previous,
-                        progress=lambda city, name, p: console.print(f"{city}: {name} {p:,.0f}"))  # fmt: skip
-    text = f"<!-- marl-amod transfer-table --study {study} --episodes {episodes} --seed {seed} -->\n" + study_markdown(payload)
+                        meta_policy=meta_policy or META_POLICY, progress=lambda city, name, p: console.print(f"{city}: {name} {p:,.0f}"))  # fmt: skip
+    command = f"marl-amod transfer-table --study {study} --episodes {episodes} --seed {seed}" + (f" --meta-policy {meta_policy}" if meta_policy else "")
+    text = f"<!-- {command} -->\n" + study_markdown(payload)
     write_json(out / f"{study}.json", payload)
     (out / f"{study}.md").write_text(text)
     console.print(text)

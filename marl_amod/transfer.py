@@ -98,7 +98,8 @@ def run_strategy(
 ) -> dict[str, Any]:
     """Evaluate ``strategy`` on ``scenario``; the result record plus what the strategy used.
 
-    ``policy`` overrides the strategy's starting policy (zero-shot, fine-tune, single-city);
+    ``policy`` overrides the strategy's starting policy (zero-shot, fine-tune, single-city) or the
+    meta-policy (meta-rl);
     ``adapt_episodes`` overrides K (fine-tune, meta-rl).
     """
     if strategy not in STRATEGIES:
@@ -129,10 +130,14 @@ def run_strategy(
     else:
         from marl_amod.algos.meta import adapt, load_meta
 
+        meta_policy = policy or meta_policy
         model, card = load_meta(meta_policy)
         k = card["args"]["trial_episodes"] - 1 if adapt_episodes is None else adapt_episodes
         pol = adapt(model, city, k, card["lookahead"], seed=seed)
         used.update(source=meta_policy, source_city="10 training cities", source_episodes=card.get("episodes_trained"), target_episodes=k)
+        demos = (card.get("warm_start") or {}).get("demonstrations") or card.get("demonstrations")
+        if demos:  # trained from an imitation of MPC-Forecast on the same cities
+            used["demonstrations"] = demos["episodes_per_city"] * len(demos["cities"])
     result = evaluate(pol, city, episodes, seed)
     result["transfer"] = used
     return result
@@ -193,6 +198,8 @@ def study_markdown(payload: dict[str, Any]) -> str:
             source = used.get("source_city", "-")
             if used.get("source_episodes") is not None:
                 source = f"{source} ({used['source_episodes']:,})"
+            if used.get("demonstrations"):
+                source += f" + {used['demonstrations']:,} MPC-F demos"
             in_target = f"{used.get('target_episodes', 0) or 0:,}"
             if used.get("validation_episodes"):
                 in_target += f" + {used['validation_episodes']} val."

@@ -95,7 +95,7 @@ def test_extends_cycle_and_missing_base_are_clear(tmp_path):
 
 
 def test_unknown_algorithm_and_top_level_key(tmp_path):
-    with pytest.raises(ConfigError, match=r"algo: unknown algorithm 'ppo2'; known: a2c, bc, cql, iql, meta, sac"):
+    with pytest.raises(ConfigError, match=r"algo: unknown algorithm 'ppo2'; known: a2c, bc, cql, iql, meta, meta-bc, sac"):
         load_train_config(_write(tmp_path, "x.yaml", {"algo": "ppo2"}))
     with pytest.raises(ConfigError, match=r"x\.yaml: argz: unknown key"):
         load_train_config(_write(tmp_path, "x.yaml", {"algo": "a2c", "argz": {}}))

@@ -70,6 +70,25 @@ def test_recurrent_gnn_is_size_agnostic_batched_and_its_memory_changes_the_actio
         assert not torch.allclose(alpha, again)
 
 
+def test_the_stay_prior_starts_from_the_idle_vehicles_distribution():
+    """With a zero actor output the stay-prior policy's mean is the idle share (mixed with the floor):
+    played on a city, it asks for (nearly) what is there; the actor then scales it per region."""
+    from marl_amod.models.recurrent import STAY_FLOOR
+
+    city = grid_city(rows=2, cols=3)
+    model = RecurrentGNN(meta.n_task_features(6), hidden=8, stay_prior=True)
+    torch.nn.init.zeros_(model.actor[-1].weight), torch.nn.init.zeros_(model.actor[-1].bias)
+    system = FleetSystem(city)
+    system.reset(0)
+    agent = meta.MetaAgent(model, city, 6)
+    w = agent.act(system, sample=False)[0][0]
+    idle = system.sim.idle
+    np.testing.assert_allclose(w, (1 - STAY_FLOOR) * idle / idle.sum() + STAY_FLOOR / city.n_regions, rtol=1e-5)
+    assert np.abs(system.targets_from_weights(w) - idle).sum() <= 0.25 * idle.sum()
+    torch.nn.init.constant_(model.actor[-1].bias, 1.0)  # the same log-ratio everywhere: the same mean
+    np.testing.assert_allclose(agent.act(system, sample=False)[0][0], w, rtol=1e-5)
+
+
 def test_each_regions_reward_reaches_the_memory():
     """The same team reward split differently over the regions: the policy must tell them apart
     (a special event shows as a local reward, not only as a blur in the team's)."""

@@ -36,6 +36,10 @@ dense graph per step, the memory a (B, N, H) tensor. The A2C update treats each 
 sequence (discount ``gamma``, GAE ``gae_lambda``; back-propagation through the whole trial), so
 the memory learns to infer the city from what happened in earlier episodes.
 
+Warm start. RL² from scratch stays near equal distribution; ``init_actor`` starts it from the
+recurrent GNN imitating MPC-Forecast on the training cities (:mod:`.meta_imitation`, validated
+first and kept unless RL² beats it), and ``bc_coef`` adds that imitation loss to every update.
+
 Adaptation. In a new city the policy runs ``trial_episodes - 1`` episodes (stochastic actions,
 their own demand streams, never the report streams), and each evaluation episode starts from
 the memory those left: a handful of episodes and no gradient step.
@@ -130,6 +134,11 @@ def random_shock(city: City, rng: np.random.Generator) -> City:
 # --------------------------------------------------------------------------------------------
 # The agent: a policy with memory on one city, B trials in lockstep
 # --------------------------------------------------------------------------------------------
+def city_graph(city: City) -> DenseGraph:
+    """The city graph in the dense form of the batched path."""
+    return DenseGraph(torch.tensor(np.array(city.edge_index), dtype=torch.long), city.n_regions)
+
+
 class MetaAgent:
     """The recurrent policy on one city for B trials in lockstep: its scale, graph, memory (B, N, H)
     and previous action / rewards. It acts on a :class:`BatchFleetSystem` of B episodes, or (B = 1)
@@ -138,7 +147,7 @@ class MetaAgent:
     def __init__(self, model: RecurrentGNN, city: City, lookahead: int, num_trials: int = 1) -> None:
         self.model, self.city, self.lookahead, self.num_trials = model, city, lookahead, num_trials
         self.scale = CityScale.of(city)
-        self.graph = DenseGraph(torch.tensor(np.array(city.edge_index), dtype=torch.long), city.n_regions)
+        self.graph = city_graph(city)
         self.memory = model.initial_memory(city.n_regions, num_trials)  # a new trial: nothing known yet
         self.new_episode()
 
@@ -223,6 +232,8 @@ class Args(C.RunArgs):
     """memory and hidden units of the recurrent GNN"""
     conv: Literal["gcn", "sage"] = "sage"
     """message passing between regions' memories"""
+    stay_prior: bool = False
+    """the actor outputs log-ratios to the idle vehicles' distribution (:class:`RecurrentGNN`): untrained, it keeps vehicles where they are"""
     episodes: int = Field(20000, ge=1)
     """training episodes in all (updates x cities_per_update x num_envs x trial_episodes)"""
     trial_episodes: int = Field(6, ge=2, le=11)
@@ -243,6 +254,12 @@ class Args(C.RunArgs):
     """weight of the policy entropy bonus"""
     max_grad_norm: float = Field(1.0, gt=0)
     """gradient clipping (recurrent nets need it tight)"""
+    bc_coef: float = Field(0.0, ge=0)
+    """weight of an imitation term on MPC-Forecast demonstrations (``demos``) added to each update:
+    keeps an imitation warm start (``init_actor``, :mod:`.meta_imitation`) from drifting while
+    A2C's noisy signal accumulates"""
+    demos: str = "runs/meta_demos"
+    """folder of the MPC-Forecast demonstrations (:func:`.meta_imitation.collect_demos`), read when ``bc_coef`` > 0"""
     val_cities: list[str] = Field(default_factory=lambda: ["porto", "nyc_man_north", "shenzhen_north", "washington_dc"], min_length=1)
     """training cities whose adapted profit (``eval_episodes`` trials each, validation seeds) picks the best model"""
     eval_every: int = Field(600, ge=1)
@@ -252,11 +269,10 @@ class Args(C.RunArgs):
 
     def ignored_keys(self) -> dict[str, str]:
         return {"actor": "meta-RL always uses the recurrent GNN", "mode": "meta-RL is centralised",
-                "central_critic": "meta-RL is centralised", "critic_time": "the recurrent critic reads t / horizon already",
-                "init_actor": "meta-RL starts its recurrent model from scratch"}  # fmt: skip
+                "central_critic": "meta-RL is centralised", "critic_time": "the recurrent critic reads t / horizon already"}  # fmt: skip
 
 
-def _check_tasks(args: Args) -> None:
+def check_tasks(args: Args) -> None:
     from marl_amod.errors import ConfigError
 
     leaked = sorted(set(args.cities) & set(HELD_OUT)) + ([args.scenario] if args.scenario in args.cities else [])
@@ -278,16 +294,28 @@ def validate(model: RecurrentGNN, args: Args, cities: dict[str, City]) -> float:
 
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
     """Meta-train over trials on the training cities, keep the best validated model, write its card."""
-    _check_tasks(args)
+    check_tasks(args)
     torch.set_num_threads(args.threads)
     C.seed_everything(args.seed)
     cities = {name: load_city(name) for name in dict.fromkeys([*args.cities, *args.val_cities])}
     systems = {name: BatchFleetSystem(cities[name], args.num_envs) for name in args.cities}  # reused: the coordinator caches per city
-    model = RecurrentGNN(n_task_features(args.lookahead), args.hidden, args.conv)
+    model = RecurrentGNN(n_task_features(args.lookahead), args.hidden, args.conv, args.stay_prior)
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     rng = np.random.default_rng([args.seed, 17])  # which city (and shock) each draw gets
 
     start_ep, prior_wall, best = 0, 0.0, C.BestActor.of(model)
+    warm: dict[str, Any] = {}
+    if args.init_actor:  # a warm start (MPC-F imitation): validated first, kept unless beaten
+        start, card = load_meta(args.init_actor, like=model)
+        warm = {"warm_start": {k: card.get(k) for k in ("algorithm", "updates", "training_wall_s", "demonstrations")} | {"policy": args.init_actor}}
+        if not resume:
+            model.load_state_dict(start.state_dict())
+            best = C.BestActor(validate(model, args, cities), copy.deepcopy(model.state_dict()))
+    imitation = None
+    if args.bc_coef > 0:
+        from marl_amod.algos.meta_imitation import draw_trials, imitation_losses, load_all
+
+        imitation = load_all(args, cities)
     if resume:
         st = C.load_state(resume, "meta")
         model.load_state_dict(st["model"]), opt.load_state_dict(st["opt"])
@@ -325,8 +353,12 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                 losses.append(loss)
                 profits.append(float(trial.profits[-1].mean()) / (city.horizon * agent.scale.reward))
                 rewards.append(float(trial.rewards.mean()))
-            opt.zero_grad()
             total = torch.stack(losses).mean()
+            if imitation is not None:  # one city's trials of MPC-F demonstrations, teacher-forced
+                demos, graph = imitation[args.cities[int(rng.integers(len(args.cities)))]]
+                ce, vl = imitation_losses(model, demos, draw_trials(demos, args, rng), graph, args.gamma)
+                total = total + args.bc_coef * (ce + args.value_coef * vl)
+            opt.zero_grad()
             total.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), args.max_grad_norm)
             opt.step()
@@ -349,11 +381,15 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
 
     log.close()
     model.load_state_dict(best.state)
-    return _finish(args, model, timer(), ep, config_path)
+    return finish(args, model, timer(), ep, config_path, extra=warm)
 
 
-def _finish(args: Args, model: RecurrentGNN, wall_s: float, episodes: int, config_path: str | None) -> dict[str, Any]:
-    """Adapt to the held-out ``scenario`` and report there (report seeds), then the policy card."""
+def finish(
+    args: Args, model: RecurrentGNN, wall_s: float, episodes: int, config_path: str | None, algorithm: str = "meta",
+    extra: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Adapt to the held-out ``scenario`` and report there (report seeds), then the policy card
+    (``extra``: algorithm-specific fields, e.g. the demonstrations an imitation run learned from)."""
     from marl_amod.checkpoints import make_card, save_policy
     from marl_amod.evaluation import evaluate
     from marl_amod.files import write_json
@@ -363,12 +399,12 @@ def _finish(args: Args, model: RecurrentGNN, wall_s: float, episodes: int, confi
     result = evaluate(policy, city, args.final_eval_episodes, args.final_eval_seed)
     profit = result["metrics"]["profit"]
     card = make_card(
-        scenario=city.name, n_regions=None, algorithm="meta", mode="centralised", actor="recurrent", conv=args.conv,
+        scenario=city.name, n_regions=None, algorithm=algorithm, mode="centralised", actor="recurrent", conv=args.conv,
         hidden=args.hidden, n_features=n_task_features(args.lookahead), lookahead=args.lookahead, seed=args.seed,
         episodes_trained=episodes, eval_episodes=args.final_eval_episodes, eval_seed=args.final_eval_seed,
         profit_mean=profit["mean"], profit_std=profit["std"], served_demand_mean=result["metrics"]["served_demand"]["mean"],
         training_wall_s=round(wall_s, 1), torch_threads=torch.get_num_threads(), config=config_path,
-        args=args.model_dump(mode="json"),
+        args=args.model_dump(mode="json"), **(extra or {}),
     ).to_dict()
     summary: dict[str, Any] = {"card": card, "result": result}
     if args.policy_out:
@@ -418,21 +454,30 @@ def adapt(model: RecurrentGNN, city: City, episodes: int, lookahead: int, seed: 
     return MetaPolicy(agent)
 
 
-def load_meta(path: str | Path) -> tuple[RecurrentGNN, dict[str, Any]]:
-    """The recurrent model of a meta-RL policy file and its card (the weights checked against it)."""
+META_ALGOS = ("meta", "meta-bc")  # the cards of a recurrent meta-policy: RL², or its MPC-F imitation
+
+
+def load_meta(path: str | Path, like: RecurrentGNN | None = None) -> tuple[RecurrentGNN, dict[str, Any]]:
+    """The recurrent model of a meta-RL policy file and its card (the weights checked against it,
+    and against ``like``'s shapes when given: a warm start)."""
     from marl_amod.checkpoints import _card_of, _read_blob
     from marl_amod.errors import DataError
 
     path = Path(path)
     blob = _read_blob(path)
     card = _card_of(path, blob["card"]).to_dict()
-    if card["algorithm"] != "meta":
+    if card["algorithm"] not in META_ALGOS:
         raise DataError(f"{path} is a {card['algorithm']} policy, not a meta-RL one")
-    model = RecurrentGNN(card["n_features"], card["hidden"], card["conv"])
+
+    model = RecurrentGNN(card["n_features"], card["hidden"], card["conv"], card["args"].get("stay_prior", False))
     try:
         model.load_state_dict(blob["state_dict"])
     except RuntimeError as exc:
         raise DataError(f"{path}: weights do not fit its card: {str(exc).splitlines()[0]}") from None
+    theirs, ours = model.state_dict(), (like.state_dict() if like is not None else None)
+    if ours is not None and (set(theirs) != set(ours) or any(theirs[k].shape != ours[k].shape for k in ours) or model.stay_prior != like.stay_prior):
+        raise DataError(f"{path} is a recurrent GNN with {card['n_features']} features, hidden {card['hidden']}, {card['conv']}; "
+                        "this run's differs (set lookahead, hidden, conv and stay_prior to match)")  # fmt: skip
     model.eval()
     return model, card
 

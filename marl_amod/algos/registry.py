@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from marl_amod.algos import a2c, bc, cql, iql, meta, sac
+from marl_amod.algos import a2c, bc, cql, iql, meta, meta_imitation, sac
 from marl_amod.algos.common import Progress, RunArgs
 from marl_amod.config import load_config, make_args
 from marl_amod.errors import ConfigError
@@ -42,6 +42,7 @@ ALGOS: dict[str, Algorithm] = {
     "iql": Algorithm(iql.Args, iql.train, "implicit Q-learning from an offline dataset (expectile V, advantage-weighted actor)"),
     "cql": Algorithm(cql.Args, cql.train, "conservative Q-learning from an offline dataset (SAC with a CQL penalty)"),
     "meta": Algorithm(meta.Args, meta.train, "meta-RL through recurrence (RL2): a recurrent GNN over trials on ten cities"),
+    "meta-bc": Algorithm(meta_imitation.Args, meta_imitation.train, "the recurrent meta-policy imitating MPC-Forecast on the training cities (RL2's warm start)"),
 }
 
 

@@ -28,6 +28,8 @@ from marl_amod.models.dense import DenseGraph
 from marl_amod.models.gnn import ConvKind, Graph, batch_edge_index, concentration, make_conv, mlp_head
 
 N_FEEDBACK = 3  # previous action share, previous region reward, previous team reward
+STAY_FLOOR = 0.1  # x 1/N: what a region without idle vehicles gets in the stay prior
+STAY_CONCENTRATION = 20.0  # x N: total concentration of the untrained stay policy (samples near the mean)
 
 
 class RecurrentGNN(nn.Module):
@@ -35,11 +37,19 @@ class RecurrentGNN(nn.Module):
 
     Actor and critic share the memory and the message passing (one trunk, two heads): the value
     of a state depends on what the memory has inferred about the city as much as the action does.
+
+    ``stay_prior``: the actor's output is a log-ratio to the distribution of the idle vehicles now
+    (feature column 0, mixed with ``STAY_FLOOR`` / N of uniform): alpha_i = c N (idle share_i) exp(a_i),
+    c = ``STAY_CONCENTRATION``: concentrated enough that sampled actions (adaptation episodes, RL²)
+    stay near the mean an imitation fitted (the cross-entropy fits the mean, not the spread).
+    The untrained policy then asks for what is there (no move, no cost) instead of a random
+    distribution, and a demonstrator that mostly keeps vehicles where they are and moves a few
+    (MPC-Forecast) differs from it by small log-ratios instead of an exact copy of the idle counts.
     """
 
-    def __init__(self, n_features: int, hidden: int = 64, conv: ConvKind = "sage") -> None:
+    def __init__(self, n_features: int, hidden: int = 64, conv: ConvKind = "sage", stay_prior: bool = False) -> None:
         super().__init__()
-        self.hidden = hidden
+        self.hidden, self.stay_prior = hidden, stay_prior
         self.encode = nn.Sequential(nn.Linear(n_features + N_FEEDBACK, hidden), nn.ReLU())
         self.memory = nn.GRUCell(hidden, hidden)
         self.conv = make_conv(conv, hidden)
@@ -67,6 +77,12 @@ class RecurrentGNN(nn.Module):
             edges = batch_edge_index(graph, math.prod(lead), n) if lead else graph
             mixed = self.conv(memory.reshape(-1, self.hidden), edges).reshape(*lead, n, self.hidden)
         z = torch.cat([memory, F.relu(mixed)], dim=-1)  # (..., N, 2H): own memory, neighbours' memories
-        alpha = concentration(self.actor(z).squeeze(-1))  # (..., N)
+        if self.stay_prior:
+            idle = x[..., 0].clamp_min(0)  # (..., N) idle vehicles per region, in per-city units
+            share = idle / idle.sum(-1, keepdim=True).clamp_min(1e-9)
+            stay = (1 - STAY_FLOOR) * share + STAY_FLOOR / n
+            alpha = STAY_CONCENTRATION * n * stay * torch.exp(self.actor(z).squeeze(-1).clamp(-10, 10))  # (..., N)
+        else:
+            alpha = concentration(self.actor(z).squeeze(-1))  # (..., N)
         value = self.critic(z).squeeze(-1).mean(-1)  # (...) mean over regions: rewards are per-city scaled, so N-free
         return alpha, value, memory

@@ -1,0 +1,246 @@
+"""MPC-Forecast demonstrations for the meta-RL policy, and the imitation that warm-starts it.
+
+Why. RL² from scratch leaves the recurrent policy near equal distribution: its A2C signal over
+trials of ten cities is too weak to find what MPC-Forecast does (2-5% below MPC-Oracle on every
+city, from the forecast alone). So the recurrent GNN first learns to *imitate* MPC-Forecast on
+the training cities, then RL² (:mod:`marl_amod.algos.meta`, ``init_actor``) continues from there.
+
+Demonstrations (:func:`collect_demos`). MPC-Forecast drives whole episodes of each **training**
+city (never a held-out one) on demonstration streams of their own (:func:`demo_seed`: neither a
+report nor a validation stream, nor one meta-training draws). Each decision logs what the
+meta-policy would read: the task features in per-city units (:func:`~marl_amod.algos.meta.task_features`),
+MPC-F's desired distribution (its targets / the idle fleet: the policy's action space) and the
+rewards that follow (each region's and the team's, per-city units as :class:`~marl_amod.algos.meta.MetaAgent`
+feeds them back). One ``.npz`` per city: collection is split by city and resumes by skipping
+the cities already written.
+
+Imitation (:func:`imitation_losses`). Trials of ``trial_episodes`` demonstration episodes of one
+city run through the recurrent GNN with teacher forcing: the memory is carried across the
+episodes, the previous action it reads is MPC-F's (x N, as the agent feeds its own), the previous
+rewards are those MPC-F earned. The actor fits the Dirichlet *mean* to MPC-F's distribution
+(the cross-entropy of :func:`marl_amod.algos.offline.imitation_loss`: it is the mean that the
+deterministic policy plays), and the critic head the discounted return of the trial, so RL²
+starts with a critic that already knows what a good trial is worth instead of one whose large
+early errors flow back through the shared memory.
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from pydantic import Field
+
+from marl_amod.algos import common as C
+from marl_amod.algos import meta
+from marl_amod.algos.meta import CityScale, task_features
+from marl_amod.baselines.mpc import MPCForecast
+from marl_amod.errors import DataError
+from marl_amod.models.dense import DenseGraph
+from marl_amod.models.recurrent import RecurrentGNN
+from marl_amod.scenario import City, load_city
+from marl_amod.system import FleetSystem
+
+DEMO_FORMAT = "marl_amod.meta_demos/1"
+
+
+def demo_seed(seed: int, episode: int) -> np.random.SeedSequence:
+    """Demand of demonstration episode k: not a report (seed, k), validation or training stream."""
+    return np.random.SeedSequence([seed, episode, 6007])
+
+
+@dataclass
+class CityDemos:
+    """E demonstration episodes of one city, T decisions each, as tensors."""
+
+    x: torch.Tensor  # (E, T, N, F) task features before each decision
+    share: torch.Tensor  # (E, T, N) MPC-F's desired distribution (sums to 1)
+    region_reward: torch.Tensor  # (E, T, N) each region's reward after the decision, per-city units
+    reward: torch.Tensor  # (E, T) team reward after the decision, per-city units
+
+    @property
+    def episodes(self) -> int:
+        return int(self.x.shape[0])
+
+
+def collect_city(city: City, episodes: int, seed: int, lookahead: int) -> dict[str, np.ndarray]:
+    """MPC-Forecast on ``episodes`` demonstration streams of ``city``: the arrays of :class:`CityDemos`."""
+    scale, n = CityScale.of(city), city.n_regions
+    cols: dict[str, list[np.ndarray]] = {"x": [], "share": [], "region_reward": [], "reward": []}
+    system, policy = FleetSystem(city), MPCForecast()
+    for e in range(episodes):
+        system.reset(demo_seed(seed, e))
+        policy.reset(system, np.random.default_rng(demo_seed(seed, e)))
+        rows: dict[str, list[np.ndarray]] = {k: [] for k in cols}
+        while not system.done:
+            idle = system.sim.idle
+            target = np.asarray(policy.target(system), dtype=np.float64)
+            target = np.where(target < 0, idle, target)  # no wish: what is there
+            share = target / target.sum() if target.sum() > 0 else np.full(n, 1.0 / n)
+            rows["x"].append(task_features(system, scale, lookahead))
+            out = system.step(target.astype(np.int64))
+            rows["share"].append(share)
+            rows["region_reward"].append(out.region_reward * (n / scale.reward))
+            rows["reward"].append(np.asarray(out.region_reward.sum() / scale.reward))
+        for k, v in rows.items():
+            cols[k].append(np.stack(v))
+    return {k: np.stack(v).astype(np.float32) for k, v in cols.items()}
+
+
+def demo_path(folder: str | Path, city: str) -> Path:
+    return Path(folder) / f"{city}.npz"
+
+
+def collect_demos(folder: str | Path, cities: list[str], episodes: int, seed: int, lookahead: int) -> dict[str, float]:
+    """Write ``folder/<city>.npz`` for each city not yet there (resumable, split by city);
+    returns the collection wall seconds of every city's file (recorded in it)."""
+    held = sorted(set(cities) & set(meta.HELD_OUT))
+    if held:
+        raise DataError(f"demonstrations on held-out {held}: the study tests on them")
+    walls = {}
+    for name in cities:
+        city = load_city(name)
+        path = demo_path(folder, city.name)
+        if not path.is_file():
+            start = time.perf_counter()
+            arrays = collect_city(city, episodes, seed, lookahead)
+            wall = time.perf_counter() - start
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(".tmp.npz")
+            np.savez_compressed(tmp, **arrays, format=np.array(DEMO_FORMAT), city=np.array(name),
+                                seed=np.array(seed), lookahead=np.array(lookahead), wall_s=np.array(wall))  # fmt: skip
+            tmp.replace(path)
+        walls[city.name] = float(np.load(path)["wall_s"])
+    return walls
+
+
+def load_demos(folder: str | Path, city: City, lookahead: int) -> CityDemos:
+    """One city's demonstrations, checked against the city and the run's lookahead."""
+    path = demo_path(folder, city.name)
+    if not path.is_file():
+        raise DataError(f"no demonstrations for {city.name} at {path}")
+    data = np.load(path)
+    if str(data["format"]) != DEMO_FORMAT or int(data["lookahead"]) != lookahead or data["x"].shape[2] != city.n_regions:
+        raise DataError(f"{path}: demonstrations of another format, lookahead or city (want lookahead {lookahead}, {city.n_regions} regions)")
+    return CityDemos(*(torch.from_numpy(data[k]) for k in ("x", "share", "region_reward", "reward")))
+
+
+def imitation_losses(
+    model: RecurrentGNN, demos: CityDemos, episodes: np.ndarray, graph: DenseGraph, gamma: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(actor cross-entropy, critic loss) of B trials with teacher forcing; ``episodes`` (K, B)
+    are the demonstration episodes of each trial, the memory carried across its K episodes."""
+    k_eps, b = episodes.shape
+    n = demos.x.shape[2]
+    memory = model.initial_memory(n, b)
+    ce, values, rewards = [], [], []
+    for k in range(k_eps):
+        idx = torch.as_tensor(episodes[k])
+        x, share, rr, r = demos.x[idx], demos.share[idx], demos.region_reward[idx], demos.reward[idx]  # (B, T, ...)
+        prev_a, prev_rr, prev_r = torch.zeros(b, n), torch.zeros(b, n), torch.zeros(b)
+        for t in range(x.shape[1]):
+            alpha, v, memory = model(x[:, t], prev_a, prev_rr, prev_r, memory, graph)
+            mean = alpha / alpha.sum(-1, keepdim=True)
+            ce.append(-(share[:, t] * torch.log(mean.clamp_min(1e-8))).sum(-1))  # (B,)
+            values.append(v)
+            rewards.append(r[:, t])
+            prev_a, prev_rr, prev_r = share[:, t] * n, rr[:, t], r[:, t]
+    ret, running = [], torch.zeros(b)
+    for rew in reversed(rewards):  # discounted return to the trial's end, as the RL critic's targets
+        running = rew + gamma * running
+        ret.append(running)
+    target = torch.stack(ret[::-1])
+    return torch.stack(ce).mean(), F.smooth_l1_loss(torch.stack(values), target)
+
+
+# --------------------------------------------------------------------------------------------
+# Training: imitation of MPC-Forecast over trials (registered as ``meta-bc``)
+# --------------------------------------------------------------------------------------------
+class Args(meta.Args):
+    demos: str = "runs/meta_demos"
+    """folder of the demonstration files (one per training city; collected where missing)"""
+    demo_episodes: int = Field(64, ge=1)
+    """MPC-Forecast episodes per training city"""
+    updates: int = Field(600, ge=1)
+    """gradient steps, each on ``cities_per_update`` cities x ``num_envs`` trials of ``trial_episodes`` episodes"""
+    eval_every: int = Field(100, ge=1)
+    """updates between validations (meta-RL's adapted validation on ``val_cities``; the best is kept)"""
+
+    def ignored_keys(self) -> dict[str, str]:
+        return {**super().ignored_keys(), "episodes": "imitation takes no env episodes; set updates",
+                "shock_prob": "demonstrations are of the usual demand", "entropy_coef": "imitation has no entropy term",
+                "gae_lambda": "the critic fits the demonstrations' returns"}  # fmt: skip
+
+
+def load_all(args: meta.Args, cities: dict[str, City]) -> dict[str, tuple[CityDemos, DenseGraph]]:
+    """The demonstrations and dense graph of every training city."""
+    return {name: (load_demos(args.demos, cities[name], args.lookahead), meta.city_graph(cities[name])) for name in args.cities}
+
+
+def draw_trials(demos: CityDemos, args: meta.Args, rng: np.random.Generator) -> np.ndarray:
+    """(K, B) demonstration episodes for ``num_envs`` trials of ``trial_episodes`` episodes."""
+    return rng.integers(demos.episodes, size=(args.trial_episodes, args.num_envs))
+
+
+def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
+    """Collect what is missing, imitate MPC-Forecast over trials, keep the best validated model."""
+    meta.check_tasks(args)
+    torch.set_num_threads(args.threads)
+    C.seed_everything(args.seed)
+    walls = collect_demos(args.demos, args.cities, args.demo_episodes, args.seed, args.lookahead)
+    cities = {name: load_city(name) for name in dict.fromkeys([*args.cities, *args.val_cities])}
+    data = load_all(args, cities)
+    model = RecurrentGNN(meta.n_task_features(args.lookahead), args.hidden, args.conv, args.stay_prior)
+    opt = torch.optim.Adam(model.parameters(), lr=args.lr)
+    rng = np.random.default_rng([args.seed, 23])
+    step, prior_wall, best = 0, 0.0, C.BestActor.of(model)
+    if resume:
+        st = C.load_state(resume, "meta-bc")
+        model.load_state_dict(st["model"]), opt.load_state_dict(st["opt"])
+        step, prior_wall, best = st["episode"], st["wall_s"], C.BestActor(st["best_val"], st["best_actor"])
+        rng.bit_generator.state = st["city_rng"]
+    log = C.Logger(args.run_dir, resume_from=step if resume else None)
+    timer = C.Timer(prior_wall)
+
+    def save() -> tuple[Path, int]:
+        C.save_state(C.state_path(args), algorithm="meta-bc", model=model.state_dict(), opt=opt.state_dict(), episode=step,
+                     best_val=best.value, best_actor=best.state, wall_s=timer(), city_rng=rng.bit_generator.state)  # fmt: skip
+        return C.state_path(args), step
+
+    with C.interruptible(save):
+        while step < args.updates:
+            ces, vls = [], []
+            for _ in range(args.cities_per_update):
+                demos, graph = data[args.cities[int(rng.integers(len(args.cities)))]]
+                ce, vl = imitation_losses(model, demos, draw_trials(demos, args, rng), graph, args.gamma)
+                ces.append(ce), vls.append(vl)
+            ce, vl = torch.stack(ces).mean(), torch.stack(vls).mean()
+            opt.zero_grad()
+            (ce + args.value_coef * vl).backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), args.max_grad_norm)
+            opt.step()
+            step += 1
+            stats = {"loss/imitation": ce.item(), "loss/value": vl.item()}
+            out_of_time = bool(args.time_limit_s) and timer() > args.time_limit_s
+            if step % args.eval_every == 0 or step >= args.updates or out_of_time:
+                stats["eval/scaled_return"] = val = meta.validate(model, args, cities)
+                if val > best.value:
+                    best = C.BestActor(val, copy.deepcopy(model.state_dict()))
+                save()
+            stats["time/wall_s"] = timer()
+            log.log(step, **stats)
+            if progress is not None:
+                progress(step, args.updates, stats)
+            if out_of_time:
+                break
+    log.close()
+    model.load_state_dict(best.state)
+    extra = {"updates": step, "demonstrations": {"policy": "mpc-forecast", "cities": list(args.cities), "episodes_per_city": args.demo_episodes,
+             "collection_wall_s": round(sum(walls.values()), 1)}}  # fmt: skip
+    return meta.finish(args, model, timer(), 0, config_path, algorithm="meta-bc", extra=extra)

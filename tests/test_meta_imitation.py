@@ -1,0 +1,109 @@
+"""MPC-Forecast demonstrations and the imitation warm start of the meta-RL policy."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from marl_amod.algos import meta
+from marl_amod.algos import meta_imitation as mi
+from marl_amod.algos.registry import ALGOS
+from marl_amod.baselines.mpc import MPCForecast
+from marl_amod.errors import DataError
+from marl_amod.evaluation import evaluate
+from marl_amod.models.recurrent import RecurrentGNN
+from marl_amod.scenario import load_city
+
+
+def _city_yaml(tmp_path, name, **keys):
+    text = f"name: {name}\nsource: synthetic\nhorizon: 6\n" + "".join(f"{k}: {v}\n" for k, v in keys.items())
+    (tmp_path / f"{name}.yaml").write_text(text)
+    return str(tmp_path / f"{name}.yaml")
+
+
+@pytest.fixture
+def tasks(tmp_path):
+    return [_city_yaml(tmp_path, "small", rows=2, cols=3, vehicles_per_region=5),
+            _city_yaml(tmp_path, "large", rows=3, cols=3, vehicles_per_region=40, requests_per_region=20)]  # fmt: skip
+
+
+def test_demonstrations_are_mpc_forecasts_episodes_in_the_policys_units(tasks, tmp_path):
+    """The logged shares ask the coordinator for MPC-F's targets (to a vehicle per region), its
+    replayed episode earns the logged rewards, and those are the per-city units the agent feeds back."""
+    city = load_city(tasks[1])
+    demos = mi.collect_city(city, episodes=2, seed=3, lookahead=6)
+    e, t, n = demos["share"].shape
+    assert (e, n) == (2, city.n_regions) and demos["x"].shape == (e, t, n, meta.n_task_features(6))
+    np.testing.assert_allclose(demos["share"].sum(-1), 1.0, rtol=1e-5)
+    np.testing.assert_allclose(demos["region_reward"].sum(-1), demos["reward"] * n, rtol=1e-4)
+    from marl_amod.system import FleetSystem
+
+    system, mpc = FleetSystem(city), MPCForecast()
+    system.reset(mi.demo_seed(3, 1))
+    mpc.reset(system, np.random.default_rng(0))
+    rewards = []
+    for share in demos["share"][1]:
+        want = np.where((w := mpc.target(system)) < 0, system.sim.idle, w)
+        asked = system.targets_from_weights(share.astype(np.float64))  # the share asks for MPC-F's targets (float32 floors)
+        assert np.abs(asked - want).max() <= 1 and asked.sum() >= want.sum() - n
+        rewards.append(system.step(want).reward / meta.CityScale.of(city).reward)
+    np.testing.assert_allclose(rewards, demos["reward"][1], rtol=1e-4)
+
+
+def test_collection_is_split_by_city_resumes_and_refuses_held_out_cities(tasks, tmp_path):
+    folder = tmp_path / "demos"
+    walls = mi.collect_demos(folder, tasks, episodes=1, seed=0, lookahead=6)
+    assert set(walls) == {"small", "large"} and all(w > 0 for w in walls.values())
+    stamp = (folder / "small.npz").stat().st_mtime_ns
+    assert mi.collect_demos(folder, tasks, episodes=1, seed=0, lookahead=6) == walls  # nothing collected again
+    assert (folder / "small.npz").stat().st_mtime_ns == stamp
+    with pytest.raises(DataError, match="held-out"):
+        mi.collect_demos(folder, ["nyc_brooklyn"], episodes=1, seed=0, lookahead=6)
+    with pytest.raises(DataError, match="lookahead"):
+        mi.load_demos(folder, load_city(tasks[0]), lookahead=3)
+
+
+def test_imitation_fits_mpc_forecasts_distribution(tasks, tmp_path):
+    """Twenty teacher-forced steps bring the Dirichlet mean to MPC-F's shares: the
+    cross-entropy falls towards the shares' own entropy (its minimum)."""
+    mi.collect_demos(tmp_path / "d", tasks[1:], episodes=4, seed=0, lookahead=6)
+    city = load_city(tasks[1])
+    demos, graph = mi.load_demos(tmp_path / "d", city, 6), meta.city_graph(city)
+    torch.manual_seed(0)
+    model = RecurrentGNN(meta.n_task_features(6), hidden=16)
+    opt = torch.optim.Adam(model.parameters(), lr=3e-2)
+    trials = np.array([[0, 1, 2, 3], [1, 2, 3, 0]])  # (K = 2 episodes, B = 4 trials)
+    floor = float(-(demos.share * torch.log(demos.share.clamp_min(1e-12))).sum(-1).mean())
+    first = None
+    for _ in range(20):
+        ce, vl = mi.imitation_losses(model, demos, trials, graph, gamma=0.97)
+        first = ce.item() if first is None else first
+        opt.zero_grad(), (ce + vl).backward(), opt.step()
+    assert ce.item() - floor < 0.5 * (first - floor)
+
+
+def test_imitation_ships_a_meta_policy_that_warm_starts_rl2(tasks, tmp_path):
+    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
+                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=4, eval_every=2,
+                   eval_episodes=2, final_eval_episodes=1, run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
+    card = ALGOS["meta-bc"].train(args)["card"]
+    assert card["algorithm"] == "meta-bc" and card["demonstrations"]["episodes_per_city"] == 2 and card["updates"] == 4
+    assert np.isfinite(evaluate(str(tmp_path / "bc.pt"), "synthetic", episodes=1)["metrics"]["profit"]["mean"])
+    # RL² from that start, with the imitation term: 1 update of 2 cities x 2 trials x 2 episodes
+    rl = meta.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, episodes=8, trial_episodes=2, num_envs=2,
+                   cities_per_update=2, init_actor=str(tmp_path / "bc.pt"), bc_coef=1.0, demos=str(tmp_path / "demos"),
+                   eval_every=8, eval_episodes=2, final_eval_episodes=1, run_dir=str(tmp_path / "rl"), policy_out=str(tmp_path / "rl.pt"))  # fmt: skip
+    card = ALGOS["meta"].train(rl)["card"]
+    assert card["episodes_trained"] == 8 and card["warm_start"]["demonstrations"]["episodes_per_city"] == 2
+    # the transfer table names the demonstrations the meta-policy's training used
+    from marl_amod.transfer import run_strategy, study_markdown
+
+    rec = run_strategy("meta-rl", "synthetic", episodes=1, meta_policy=str(tmp_path / "rl.pt"), adapt_episodes=1)
+    assert rec["transfer"]["demonstrations"] == 4
+    rec["normalised_score"] = 0.0
+    assert "10 training cities (8) + 4 MPC-F demos" in study_markdown({"targets": {"synthetic": {"meta-rl": rec}}})
+    log = (tmp_path / "rl" / "log.csv").read_text()
+    assert "eval/scaled_return" in log
+    with pytest.raises(DataError, match="hidden 8"):
+        meta.train(rl.model_copy(update={"hidden": 4}))
