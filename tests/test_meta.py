@@ -133,6 +133,22 @@ def test_the_deployed_policy_replays_the_trained_agent_exactly():
     assert got == pytest.approx(trial.profits.mean(), rel=1e-9)
 
 
+def test_adaptation_is_reproducible_by_seed_and_leaves_torch_rng_alone():
+    """Adaptation samples its actions; the same seed must give the same memory whatever torch's
+    global stream did before, a different seed a different one, and the caller's stream is untouched."""
+    city = grid_city(rows=3, cols=3, horizon=6)
+    torch.manual_seed(1)
+    model = RecurrentGNN(meta.n_task_features(6), hidden=8)
+    first = meta.adapt(model, city, episodes=2, lookahead=6, seed=3).adapted
+    torch.manual_seed(12345)
+    before = torch.get_rng_state()
+    again = meta.adapt(model, city, episodes=2, lookahead=6, seed=3).adapted
+    assert torch.equal(torch.get_rng_state(), before)
+    assert torch.equal(first, again)
+    other = meta.adapt(model, city, episodes=2, lookahead=6, seed=4).adapted
+    assert not torch.equal(first, other)
+
+
 def test_meta_training_resumes_exactly_and_ships_a_policy_that_adapts(tmp_path):
     tasks = [_city_yaml(tmp_path, "small", rows=2, cols=3, vehicles_per_region=5),
              _city_yaml(tmp_path, "large", rows=3, cols=3, vehicles_per_region=40, requests_per_region=20)]  # fmt: skip

@@ -450,7 +450,11 @@ def adapt(model: RecurrentGNN, city: City, episodes: int, lookahead: int, seed: 
     """Run ``episodes`` adaptation episodes in ``city`` (memory carried, no gradient) -> the policy."""
     model.eval()
     agent = MetaAgent(model, city, lookahead)
-    run_trials(agent, BatchFleetSystem(city, 1), [[adapt_seed(seed, k)] for k in range(episodes)], sample=True)
+    # the adaptation samples its actions: draw them from a stream of the seed, not torch's global one,
+    # so the same policy file, city and seed always adapt to the same memory (and report the same numbers)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(np.random.SeedSequence([seed, 4243, 7]).generate_state(1)[0]))
+        run_trials(agent, BatchFleetSystem(city, 1), [[adapt_seed(seed, k)] for k in range(episodes)], sample=True)
     return MetaPolicy(agent)
 
 
