@@ -287,9 +287,9 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         with torch.no_grad():
             y2, logp2 = policy_sample(actor, b, "next_", edge_index, local, amp)
         # ---- twin Q regression towards the soft Bellman target ----
-        with torch.no_grad(), amp():  # (the critics' Q heads are float32 under autocast)
-            q_targ = torch.min(*critic_targ(C.with_time(b["next_x"], b.get("next_ctx"), args.critic_time), edge_index, y2))  # (B,)
         with torch.no_grad():
+            with amp():  # (the critics' Q heads are float32 under autocast)
+                q_targ = torch.min(*critic_targ(C.with_time(b["next_x"], b.get("next_ctx"), args.critic_time), edge_index, y2))  # (B,)
             backup = b["reward"] + args.gamma * (1 - b["done"]) * (q_targ - a * logp2)
         x = C.with_time(b["x"], b.get("ctx"), args.critic_time)  # (B, N, F [+ 3])
         with amp():

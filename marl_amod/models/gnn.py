@@ -185,10 +185,10 @@ class StackedTwinQ(nn.Module):
             h = h + self.root(flat)
         h = F.relu(h, inplace=True) + flat  # residual, as _GraphTrunk
         first, hidden, last = self.node
-        # (2, B*N, H); ReLU in place: the layers' outputs are not needed for their backward, and
-        # these are the update's largest tensors (memory traffic, not arithmetic, at 64 units)
-        # (viewed per graph before the last ReLU, so its backward takes the pooled gradient as
-        # broadcast and no (2, B, N, H) copy is made for the view)
+        # ReLU in place where it can be (a linear layer's output is not needed for its backward):
+        # these are the update's largest tensors, and their memory traffic is much of its cost.
+        # The last ReLU acts on the per-graph view, so its backward takes the pooled gradient as
+        # a broadcast and no (2, B, N, H) copy is made for the view.
         h = F.relu(hidden(F.relu(first(h), inplace=True)).view(2, b, n, -1))  # (2, B, N, H)
         # the last node layer is linear, so it commutes with the sum over regions (as GNNValueCritic);
         # the pooled head has B rows, so it runs in float32 under a bfloat16 autocast: Q's scale
