@@ -9,11 +9,13 @@ update (start-up, imports and warm-up excluded):
 
 * ``episodes/s`` and ``env steps/s`` (one control step of one episode; B lockstep episodes count B);
 * ``updates/s``: gradient steps (one critic and one actor step; counted at the optimisers);
-* the ratios this tree / ref.
+* the ratios this tree / ref, in wall time and in the worker's CPU time (``ratio CPU``: on a
+  loaded machine a process's CPU seconds vary less than its wall seconds).
 
 Settings compare like with like: the same network, batch size and updates per transition; the
 new tree runs ``--num-envs`` episodes in lockstep (the batched simulator and dense graph layers),
-the ref one at a time. Both run with one torch thread.
+the ref one at a time, and a setting may add options only the new tree has (``sac h256 bf16``:
+the bfloat16 update). Both run with one torch thread.
 
     python benchmarks/train_speed.py --ref main [--seconds 30] [--cities nyc_brooklyn synthetic]
         [--json docs/results/train_speed.json]
@@ -36,11 +38,14 @@ from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# (label, algo, args shared by both trees); the new tree adds num_envs (and critic_time: no, same networks)
-SETTINGS: dict[str, tuple[str, dict[str, Any]]] = {
-    "a2c": ("a2c", {"hidden": 32, "episodes_per_update": 16}),  # the new tree: 16 lockstep episodes = one update
-    "sac h256": ("sac", {"hidden": 256, "batch_size": 100, "warmup_steps": 100, "updates_per_step": 1}),
-    "sac h64": ("sac", {"hidden": 64, "batch_size": 100, "warmup_steps": 100, "updates_per_step": 1}),
+_SAC = {"batch_size": 100, "warmup_steps": 100, "updates_per_step": 1}
+# label -> (algo, args shared by both trees, args of the new tree only); the new tree also gets
+# num_envs (and no critic_time: the same networks)
+SETTINGS: dict[str, tuple[str, dict[str, Any], dict[str, Any]]] = {
+    "a2c": ("a2c", {"hidden": 32, "episodes_per_update": 16}, {}),  # the new tree: 16 lockstep episodes = one update
+    "sac h256": ("sac", {"hidden": 256, **_SAC}, {}),
+    "sac h256 bf16": ("sac", {"hidden": 256, **_SAC}, {"precision": "bf16"}),
+    "sac h64": ("sac", {"hidden": 64, **_SAC}, {}),
 }
 # 400 regions: a small replay buffer (each transition holds 2 x 400 x 13 floats), twice the time
 # (an episode of the ref takes seconds), and SAC with 256 hidden units only with --all
@@ -68,12 +73,12 @@ def worker(spec: dict[str, Any]) -> dict[str, Any]:
     from marl_amod.system import FleetSystem
 
     torch.set_num_threads(1)
-    events: dict[str, list[tuple[float, int]]] = {"env": [], "opt": []}
+    events: dict[str, list[tuple[float, int, float]]] = {"env": [], "opt": []}  # (wall, n, CPU seconds)
     deadline = [float("inf")]
 
     def tick(kind: str, n: int) -> None:
         now = time.perf_counter()
-        events[kind].append((now, n))
+        events[kind].append((now, n, time.process_time()))
         if now > deadline[0]:
             raise _Stop
 
@@ -109,19 +114,21 @@ def worker(spec: dict[str, Any]) -> dict[str, Any]:
             pass
     env, opt = events["env"], events["opt"]
     if not env:
-        return {"episodes_per_s": None, "env_steps_per_s": None, "updates_per_s": None, "timed_s": 0.0}
+        return {"episodes_per_s": None, "env_steps_per_s": None, "updates_per_s": None, "episodes_per_cpu_s": None, "timed_s": 0.0}
     from_start = len(opt) < 4  # fewer than two updates: no steady window after the first one
-    t0 = env[0][0] if from_start else opt[0][0]
-    t1 = max(env[-1][0], opt[-1][0] if opt else 0.0)
-    dt = t1 - t0
-    steps = sum(n for t, n in env if t >= t0) - (env[0][1] if from_start else 0)
+    first = env[0] if from_start else opt[0]
+    last = max(env[-1], opt[-1]) if opt else env[-1]
+    t0, dt, cpu_s = first[0], last[0] - first[0], last[2] - first[2]
+    steps = sum(n for t, n, _ in env if t >= t0) - (env[0][1] if from_start else 0)
     per_update = 2  # one critic and one actor optimiser step (no auto_entropy here)
-    updates = (len([1 for t, _ in opt if t > t0]) / per_update) if opt else 0.0
+    updates = (len([1 for t, _, _ in opt if t > t0]) / per_update) if opt else 0.0
     return {
         "episodes_per_s": steps / (horizon - 1) / dt,
         "env_steps_per_s": steps / dt,
         "updates_per_s": updates / dt,
+        "episodes_per_cpu_s": steps / (horizon - 1) / cpu_s,
         "timed_s": dt,
+        "cpu_s": cpu_s,
         "env_steps": steps,
         "updates": updates,
         "from_start": from_start,  # True: start-up and the first update included (slow cells)
@@ -156,16 +163,20 @@ def fmt(x: float | None, digits: int = 1) -> str:
 
 def table(rows: list[dict[str, Any]], num_envs: int) -> str:
     lines = [
-        f"| setting | city | episodes/s ref | episodes/s new (B={num_envs}) | ratio | env steps/s new | updates/s ref | updates/s new | ratio |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        f"| setting | city | episodes/s ref | episodes/s new (B={num_envs}) | ratio | ratio CPU | env steps/s new | updates/s ref | updates/s new | ratio |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
+
+    def ratio(new: dict[str, Any], old: dict[str, Any], key: str) -> float | None:
+        return new[key] / old[key] if old.get(key) and new.get(key) else None
+
     for r in rows:
         old, new = r["ref"], r["new"]
-        ep_ratio = new["episodes_per_s"] / old["episodes_per_s"] if old["episodes_per_s"] and new["episodes_per_s"] else None
-        up_ratio = new["updates_per_s"] / old["updates_per_s"] if old["updates_per_s"] and new["updates_per_s"] else None
         lines.append(
-            f"| {r['setting']} | {r['city']} | {fmt(old['episodes_per_s'], 2)} | {fmt(new['episodes_per_s'], 2)} | {fmt(ep_ratio, 2)}x "
-            f"| {fmt(new['env_steps_per_s'], 0)} | {fmt(old['updates_per_s'], 2)} | {fmt(new['updates_per_s'], 2)} | {fmt(up_ratio, 2)}x |"
+            f"| {r['setting']} | {r['city']} | {fmt(old['episodes_per_s'], 2)} | {fmt(new['episodes_per_s'], 2)} "
+            f"| {fmt(ratio(new, old, 'episodes_per_s'), 2)}x | {fmt(ratio(new, old, 'episodes_per_cpu_s'), 2)}x "
+            f"| {fmt(new['env_steps_per_s'], 0)} | {fmt(old['updates_per_s'], 2)} | {fmt(new['updates_per_s'], 2)} "
+            f"| {fmt(ratio(new, old, 'updates_per_s'), 2)}x |"
         )
     return "\n".join(lines)
 
@@ -190,19 +201,19 @@ def main() -> None:
         commit = export_ref(args.ref, Path(tmp))
         ref_tree = Path(tmp) / "tree"
         for setting in args.settings:
-            algo, shared = SETTINGS[setting]
+            algo, shared, new_only = SETTINGS[setting]
             for city in args.cities:
-                if city in LARGE and setting == "sac h256" and not args.all:
+                if city in LARGE and setting.startswith("sac h256") and not args.all:
                     continue
                 seconds = args.seconds * (2 if city in LARGE else 1)
                 extra = {"buffer_size": 2000} if algo == "sac" and city in LARGE else {}
                 spec = {"algo": algo, "city": city, "seconds": seconds, "args": {**shared, **extra}}
-                new_args = {**spec["args"], "num_envs": args.num_envs}
+                new_args = {**spec["args"], **new_only, "num_envs": args.num_envs}
                 if algo == "a2c":  # whole lockstep batches per update, as many episodes per update as the ref
                     new_args["episodes_per_update"] = max(shared["episodes_per_update"], args.num_envs)
                 ref = run_worker(ref_tree, spec)
                 new = run_worker(ROOT, {**spec, "args": new_args})
-                rows.append({"setting": setting, "algo": algo, "city": city, "args": spec["args"], "ref": ref, "new": new})
+                rows.append({"setting": setting, "algo": algo, "city": city, "args": spec["args"], "new_args": new_args, "ref": ref, "new": new})
                 print(f"{setting:9s} {city:16s} ref {fmt(ref['episodes_per_s'], 2)} ep/s  new {fmt(new['episodes_per_s'], 2)} ep/s", flush=True)
     md = table(rows, args.num_envs)
     print(md)

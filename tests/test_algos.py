@@ -330,15 +330,15 @@ def test_ctrl_c_saves_state_prints_one_line_and_resume_logs_each_episode_once(tm
     args = _common(tmp_path, tiny_yaml, episodes=8, episodes_per_update=2, eval_every=6)
     cfg = tmp_path / "run.yaml"
     cfg.write_text(yaml.safe_dump({"algo": "a2c", "args": args}))
-    real = common.close_episode
+    real = common.EpisodeBook.close
 
-    def interrupt_at_4(log, rollout, ep, *a, **k):
-        stop = real(log, rollout, ep, *a, **k)
+    def interrupt_at_4(self, ep, *a, **k):
+        stop = real(self, ep, *a, **k)
         if ep == 4:
             raise KeyboardInterrupt
         return stop
 
-    monkeypatch.setattr(common, "close_episode", interrupt_at_4)
+    monkeypatch.setattr(common.EpisodeBook, "close", interrupt_at_4)
     res = CliRunner().invoke(app, ["train", "--config", str(cfg)])
     state = tmp_path / "run" / "state.pt"
     assert res.exit_code == 130
@@ -347,7 +347,7 @@ def test_ctrl_c_saves_state_prints_one_line_and_resume_logs_each_episode_once(tm
     assert not (tmp_path / "policies" / "p.pt").exists()
     assert torch.load(state, map_location="cpu", weights_only=False)["episode"] == 4
 
-    monkeypatch.setattr(common, "close_episode", real)
+    monkeypatch.setattr(common.EpisodeBook, "close", real)
     res = CliRunner().invoke(app, ["train", "--config", str(cfg), "--resume", str(state)])
     assert res.exit_code == 0, res.output
     rows = [tuple(line.split(",")[:2]) for line in (tmp_path / "run" / "log.csv").read_text().splitlines()[1:]]

@@ -149,6 +149,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         )
         return path, done_ep
 
+    book = C.EpisodeBook(args, "a2c", actor, city, rollout, log, timer, best, save, progress, validate_at_time_limit=True)
     with C.interruptible(save):
         while ep < args.episodes:
             # ---- collect a batch of whole episodes, num_envs at a time ----
@@ -195,13 +196,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
             stats = {"train/episode_reward": float(np.mean(ep_rewards)), "train/revenue": revenue, "train/rebalancing_cost": reb_cost,
                      "loss/policy": loss_pi.item(), "loss/value": loss_v.item()}  # fmt: skip
             # ---- periodic validation, best-actor selection, resumable state ----
-            out_of_time = bool(args.time_limit_s) and timer() > args.time_limit_s  # validate the last actor too
-            if C.crossed(ep, args.episodes_per_update, args.eval_every) or ep >= args.episodes or out_of_time:
-                stats["eval/profit"] = best.validate(actor, city, args)
-                save()
-            if C.close_episode(log, rollout, ep, stats, args, timer(), progress):
+            if book.close(ep, args.episodes_per_update, stats):
                 break
 
-    log.close()
-    actor.load_state_dict(best.state)
-    return C.finish_run(args, "a2c", actor, city, timer(), ep, config_path)
+    return book.finish(ep, config_path)

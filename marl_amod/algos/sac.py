@@ -18,21 +18,24 @@ on the dense graph path (one matmul per layer for the whole (batch, N, F) sample
 critics as one :class:`~marl_amod.models.gnn.StackedTwinQ` (both critics' weights stacked: one
 batched matmul per layer for the pair); ``critic_time`` gives the critics the time context;
 ``auto_entropy`` tunes the temperature. On these small graphs an update is dominated by per-op
-overhead, so the update does each thing once: one replay gather, one actor pass for the target's
-and the policy loss's actions, fused Adam, no critic weight gradients in the policy step.
+overhead, so the update does each thing once: one replay gather, fused Adam, no critic weight
+gradients in the policy step. ``precision: bf16`` runs the update's network passes in bfloat16
+(twice as fast at 256 hidden units on CPUs with AMX; :func:`autocast`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import math
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from pydantic import Field
+from pydantic import Field, model_validator
 from torch.distributions import Dirichlet
 
 from marl_amod.algos import common as C
@@ -70,10 +73,21 @@ class Args(C.RunArgs):
     """entropy the temperature is tuned towards, per region (None: -1 per region, i.e. -N)"""
     polyak: float = Field(0.995, ge=0, le=1)
     """target-network averaging factor"""
+    precision: Literal["fp32", "bf16"] = "fp32"
+    """arithmetic of the gradient update's network passes. bf16: the actor's and critics' matmuls
+    and activations in bfloat16 (``torch.autocast``; on CPUs with AMX or AVX512-BF16 units several
+    times faster at 256 hidden units), with float32 weights, optimisers, Q heads, targets, losses
+    and Dirichlet log-densities; acting and validation stay float32. Batched path only (num_envs > 1)"""
     eval_every: int = Field(50, ge=1)
     """episodes between validation evaluations"""
     run_dir: str = "runs/sac"
     """TensorBoard + CSV logs and the resumable training state"""
+
+    @model_validator(mode="after")
+    def _bf16_on_the_dense_path(self) -> Args:
+        if self.precision != "fp32" and self.num_envs == 1:
+            raise ValueError(f"precision {self.precision} needs the batched path (num_envs > 1); one episode at a time runs in fp32")
+        return self
 
     def ignored_keys(self) -> dict[str, str]:
         ignored = {**super().ignored_keys(), "central_critic": "SAC's Q critics always read the global graph"}
@@ -152,19 +166,34 @@ def _obs_items(obs: Obs, prefix: str, local: bool, time: bool) -> dict[str, torc
     return items
 
 
-def both_halves(b: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """The actor's inputs of a sampled batch, observations then next observations: (2B, ...)."""
-    return {k: torch.cat([b[k], b[f"next_{k}"]]) for k in ("x", "own", "nbrs", "mask") if k in b}
+Autocast = Callable[[], contextlib.AbstractContextManager]
 
 
-def policy_sample(actor, b: dict[str, torch.Tensor], prefix: str, edge_index: Graph, local: bool) -> tuple[torch.Tensor, torch.Tensor]:
-    """Reparameterised action y (B, N) on the simplex and log pi (B,)."""
+def autocast(precision: str) -> Autocast:
+    """The context the update's network passes run in: bfloat16 autocast on the CPU, or nothing.
+
+    A fresh context per pass: autocast caches the bf16 copies of the weights until its outermost
+    context exits, and the critic's weights change between its passes of one update.
+    """
+    if precision == "fp32":
+        return contextlib.nullcontext
+    return lambda: torch.autocast("cpu", dtype=torch.bfloat16)
+
+
+def policy_sample(
+    actor, b: dict[str, torch.Tensor], prefix: str, edge_index: Graph, local: bool, amp: Autocast = contextlib.nullcontext,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Reparameterised action y (B, N) on the simplex and log pi (B,); the actor runs under
+    ``amp``, its concentrations and the distribution in float32."""
     if local:
-        alpha = actor.forward_local(b[f"{prefix}own"], b[f"{prefix}nbrs"], b[f"{prefix}mask"])  # (B, N)
+        with amp():
+            alpha = actor.forward_local(b[f"{prefix}own"], b[f"{prefix}nbrs"], b[f"{prefix}mask"])  # (B, N)
         g = gamma(alpha).rsample().clamp_min(1e-8)
         return g / g.sum(-1, keepdim=True), gamma_log_prob(g, alpha)
+    with amp():
+        alpha = actor(b[f"{prefix}x"], edge_index)  # (B, N)
     # one distribution for both calls, unvalidated: alpha > 0 by construction, y on the simplex
-    law = Dirichlet(actor(b[f"{prefix}x"], edge_index), validate_args=False)  # (B, N)
+    law = Dirichlet(alpha, validate_args=False)
     y = law.rsample().clamp_min(1e-6)
     y = y / y.sum(-1, keepdim=True)
     return y, law.log_prob(y)
@@ -200,6 +229,7 @@ def stack_twin_state(state: dict[str, Any], twin: TwinQ) -> dict[str, Any]:
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
     """Train, keep the best validation actor, write its policy card; returns the run summary."""
     torch.set_num_threads(args.threads)
+    C.retain_freed_memory()  # the update's activations are reused, not faulted in anew each step
     C.seed_everything(args.seed)
     gen = torch.Generator().manual_seed(args.seed)
     city = load_city(args.scenario)
@@ -220,6 +250,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     opt_alpha = torch.optim.Adam([log_alpha], lr=args.lr_alpha)
     target_entropy = (-1.0 if args.target_entropy is None else args.target_entropy) * city.n_regions
     buffer = Replay(args.buffer_size)
+    amp = autocast(args.precision)
 
     start_ep, prior_wall, n_steps, credit, best = 0, 0.0, 0, 0.0, C.BestActor.of(actor)
     if resume:
@@ -250,23 +281,28 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     def update() -> dict[str, torch.Tensor]:
         b = buffer.sample(args.batch_size, gen)
         a = log_alpha.detach().exp()
-        # one actor pass for the target's next actions and the policy loss's actions (the actor
-        # does not change in between); the target half is used without gradients
-        y_both, logp_both = policy_sample(actor, both_halves(b), "", edge_index, local)
-        (y, y2), (logp, logp2) = y_both.chunk(2), logp_both.chunk(2)
+        # the policy loss's actions, then the target's next actions without a graph (the actor does
+        # not change in between; one pass over both halves ran the backward over both, 5-10% slower)
+        y, logp = policy_sample(actor, b, "", edge_index, local, amp)
+        with torch.no_grad():
+            y2, logp2 = policy_sample(actor, b, "next_", edge_index, local, amp)
         # ---- twin Q regression towards the soft Bellman target ----
         with torch.no_grad():
-            q_targ = torch.min(*critic_targ(C.with_time(b["next_x"], b.get("next_ctx"), args.critic_time), edge_index, y2))  # (B,)
+            with amp():  # (the critics' Q heads are float32 under autocast)
+                q_targ = torch.min(*critic_targ(C.with_time(b["next_x"], b.get("next_ctx"), args.critic_time), edge_index, y2))  # (B,)
             backup = b["reward"] + args.gamma * (1 - b["done"]) * (q_targ - a * logp2)
         x = C.with_time(b["x"], b.get("ctx"), args.critic_time)  # (B, N, F [+ 3])
-        q1, q2 = critic(x, edge_index, b["action"])
+        with amp():
+            q1, q2 = critic(x, edge_index, b["action"])
         loss_q = F.mse_loss(q1, backup) + F.mse_loss(q2, backup)
         opt_c.zero_grad()
         loss_q.backward()
         torch.nn.utils.clip_grad_norm_(critic_params, args.max_grad_norm, foreach=True)
         opt_c.step()
         # ---- policy: maximise min Q minus entropy cost (gradients reach the actor only) ----
-        loss_pi = (a * logp - torch.min(*critic(x, edge_index, y))).mean()
+        with amp():
+            q_pi = torch.min(*critic(x, edge_index, y))
+        loss_pi = (a * logp - q_pi).mean()
         opt_a.zero_grad()
         loss_pi.backward(inputs=actor_params)  # no critic weight gradients computed
         torch.nn.utils.clip_grad_norm_(actor_params, args.max_grad_norm, foreach=True)
@@ -280,6 +316,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
             torch._foreach_lerp_(targ_params, critic_params, 1 - args.polyak)
         return {"loss/q": loss_q.detach(), "loss/policy": loss_pi.detach(), "alpha": a}  # read once per episode
 
+    book = C.EpisodeBook(args, "sac", actor, city, rollout, log, timer, best, save, progress)
     with C.interruptible(save):
         while ep < args.episodes:
             # B = rollout.num_envs episodes in lockstep (1: the episode-at-a-time run)
@@ -309,12 +346,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
             ep += rollout.num_envs
             stats = {k: float(v) for k, v in last.items()}
             stats["train/episode_reward"] = float(np.mean(ep_reward))
-            if C.crossed(ep, rollout.num_envs, args.eval_every) or ep >= args.episodes:
-                stats["eval/profit"] = best.validate(actor, city, args)
-                save()
-            if C.close_episode(log, rollout, ep, stats, args, timer(), progress):
+            if book.close(ep, rollout.num_envs, stats):
                 break
 
-    log.close()
-    actor.load_state_dict(best.state)
-    return C.finish_run(args, "sac", actor, city, timer(), ep, config_path)
+    return book.finish(ep, config_path)

@@ -60,8 +60,9 @@ def mlp_head(in_dim: int, hidden: int, out_dim: int = 1) -> nn.Sequential:
 
 
 def concentration(raw: torch.Tensor) -> torch.Tensor:
-    """softplus + eps: positive Dirichlet concentrations."""
-    return F.softplus(raw) + CONCENTRATION_EPS
+    """softplus + eps: positive Dirichlet concentrations, in float32 even when the network ran in
+    bfloat16 (SAC's ``precision: bf16``): the Dirichlet's log-density is steep in them."""
+    return F.softplus(raw.float()) + CONCENTRATION_EPS
 
 
 def _batched(x: torch.Tensor) -> tuple[torch.Tensor, bool]:
@@ -182,10 +183,18 @@ class StackedTwinQ(nn.Module):
         h = self.conv((graph.operator(self.kind) @ z).reshape(b * n, f))  # (2, B*N, F)
         if self.root is not None:
             h = h + self.root(flat)
-        h = F.relu(h) + flat  # residual, as _GraphTrunk
+        h = F.relu(h, inplace=True) + flat  # residual, as _GraphTrunk
         first, hidden, last = self.node
-        h = F.relu(hidden(F.relu(first(h))))  # (2, B*N, H)
-        # the last node layer is linear, so it commutes with the sum over regions (as GNNValueCritic)
-        pooled = last(h.view(2, b, n, -1).sum(2)) + (n - 1) * last.bias.unsqueeze(1)  # (2, B, H)
-        q = self.out(F.relu(pooled)).squeeze(-1)  # (2, B)
+        # ReLU in place where it can be (a linear layer's output is not needed for its backward):
+        # these are the update's largest tensors, and their memory traffic is much of its cost.
+        # The last ReLU acts on the per-graph view, so its backward takes the pooled gradient as
+        # a broadcast and no (2, B, N, H) copy is made for the view.
+        h = F.relu(hidden(F.relu(first(h), inplace=True)).view(2, b, n, -1))  # (2, B, N, H)
+        # the last node layer is linear, so it commutes with the sum over regions (as GNNValueCritic);
+        # the pooled head has B rows, so it runs in float32 under a bfloat16 autocast: Q's scale
+        # (returns in the hundreds) needs float32's mantissa
+        pooled = h.sum(2).float()  # (2, B, H)
+        with torch.autocast(h.device.type, enabled=False):
+            pooled = last(pooled) + (n - 1) * last.bias.unsqueeze(1)
+            q = self.out(F.relu(pooled)).squeeze(-1)  # (2, B)
         return q[0], q[1]
