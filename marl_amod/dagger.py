@@ -16,18 +16,21 @@ spread). DAgger (Ross, Gordon & Bagnell, 2011) closes that gap by rounds. Round 
 Every round's files stay under ``run_root`` and a round whose policy exists is skipped, so an
 interrupted run resumes at the round it stopped in (and a long run can be split into jobs by
 ``rounds``). The kept policy is the round with the best validation profit (the BC run's
-validation seeds, never the report seeds), copied with its card to the config's ``policy_out``.
+validation seeds, never the report seeds), written to the config's ``policy_out`` with a card
+whose algorithm is ``dagger`` and whose ``reproduce`` is the command that makes it.
 """
 
 from __future__ import annotations
 
 import json
-import shutil
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from marl_amod.algos.registry import args_for, run_training
+from marl_amod.checkpoints import write_policy
 from marl_amod.config import read_config
 from marl_amod.datasets import OfflineDataset, collect, concatenate
 from marl_amod.errors import ConfigError
@@ -79,12 +82,20 @@ def dagger(
             write_json(summary_path, {"config": str(config), "start": start, "expert": expert, "rounds": done})
         policy = str(policy_path)
     best = max(done[:rounds], key=lambda r: r["validation_profit"])
-    out = base.get("policy_out")
-    if out:
-        for suffix in (".pt", ".json", ".md"):
-            src = Path(best["policy"]).with_suffix(suffix)
-            if src.is_file():
-                shutil.copyfile(src, Path(out).with_suffix(suffix))
-    summary = {"config": str(config), "start": start, "expert": expert, "rounds": done[:rounds], "kept": best["round"], "policy_out": out}
+    summary = {"config": str(config), "start": start, "expert": expert, "rounds": done[:rounds], "kept": best["round"],
+               "policy_out": base.get("policy_out")}  # fmt: skip
+    if summary["policy_out"]:
+        ship(best["policy"], summary["policy_out"], summary, f"marl-amod dagger --config {config} --start {start} --expert {expert} "
+             f"--rounds {rounds} --episodes {episodes} --seed {seed} --run-root {run_root}")  # fmt: skip
     write_json(summary_path, summary)
     return summary
+
+
+def ship(policy: str | Path, out: str | Path, summary: dict[str, Any], command: str) -> Path:
+    """The kept round's policy as ``out``, its card saying it is DAgger's (rounds, validation
+    profits) and how to make it again (one BC run does not)."""
+    blob = torch.load(policy, map_location="cpu", weights_only=True)
+    rounds = [{k: r[k] for k in ("round", "transitions", "validation_profit")} for r in summary["rounds"]]
+    card = {**blob["card"], "algorithm": "dagger", "reproduce": command,
+            "dagger": {"expert": summary["expert"], "start": summary["start"], "kept_round": summary["kept"], "rounds": rounds}}  # fmt: skip
+    return write_policy(out, blob["state_dict"], card)

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 import yaml
 from typer.testing import CliRunner
 
@@ -15,6 +16,7 @@ from marl_amod.cli import app
 from marl_amod.dagger import dagger
 from marl_amod.datasets import OfflineDataset, collect, concatenate
 from marl_amod.errors import ConfigError, DataError
+from marl_amod.evaluation import evaluate
 from marl_amod.policies import make_policy
 from marl_amod.scenario import load_city
 
@@ -67,7 +69,13 @@ def test_dagger_rounds_aggregate_keep_the_best_and_resume(tmp_path, bc_config):
     assert r2.meta["policy"] == "prop" and r2.meta["seed"] == 2  # round k on collection seed 1 + k - 1
     kept = max(rounds, key=lambda r: r["validation_profit"])
     assert summary["kept"] == kept["round"]
-    assert (tmp_path / "dagger.pt").read_bytes() == Path(kept["policy"]).read_bytes()
+    shipped, source = (torch.load(p, weights_only=True) for p in (tmp_path / "dagger.pt", kept["policy"]))
+    assert all(torch.equal(shipped["state_dict"][k], v) for k, v in source["state_dict"].items())
+    assert shipped["card"]["algorithm"] == "dagger" and shipped["card"]["dagger"]["kept_round"] == kept["round"]
+    assert "Reproduce: `marl-amod dagger --config" in (tmp_path / "dagger.md").read_text()
+    city = load_city(yaml.safe_load(config.read_text())["args"]["scenario"])
+    profit = lambda p: evaluate(str(p), city, 1, 0)["metrics"]["profit"]["mean"]  # noqa: E731
+    assert profit(tmp_path / "dagger.pt") == profit(kept["policy"])  # it loads and plays as the kept round
     assert json.loads((root / "dagger.json").read_text())["kept"] == kept["round"]
     # rerun: nothing is collected or retrained again; one more round only adds round 3
     stamps = {p: p.stat().st_mtime_ns for p in root.glob("round*")}
