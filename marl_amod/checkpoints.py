@@ -115,7 +115,9 @@ def card_markdown(path: Path, card: dict[str, Any]) -> str:
         if isinstance(v, float):
             v = f"{v:,.2f}"
         lines.append(f"| {k} | {v} |")
-    if card.get("config"):
+    if card.get("reproduce"):  # a policy made by more than one training run (DAgger)
+        lines += ["", f"Reproduce: `{card['reproduce']}`"]
+    elif card.get("config"):
         config = card["config"]
         if "/compare/" in config or Path(config).stem.startswith("compare"):
             lines += ["", f"Reproduce: `marl-amod compare --config {config}` (trains it when the file is missing)"]

@@ -278,6 +278,28 @@ def train(
         console.print(f"wrote {summary['policy']} (+ .json, .md); logs in {args.run_dir}")
 
 
+@app.command()
+def dagger(
+    config: Annotated[Path, typer.Option(help="the BC config each round retrains (its dataset is the expert's own episodes)")],
+    start: Annotated[Path, typer.Option(help="the policy rolled out in round 1 (usually the config's own clone)")],
+    expert: Annotated[str, typer.Option(help="the policy whose actions label the visited states")] = "mpc-forecast",
+    rounds: Annotated[int, typer.Option(min=1, help="DAgger rounds (done rounds are skipped: rerun to resume)")] = 3,
+    episodes: Annotated[int, typer.Option(min=1, help="learner episodes collected per round")] = 20,
+    seed: Annotated[int, typer.Option(min=0, help="collection seed of round 1 (round k: seed + k - 1)")] = 1,
+    run_root: Annotated[Path, typer.Option(help="each round's dataset, BC run and policy; dagger.json")] = Path("runs/dagger"),
+    data_dir: DataDir = None,
+) -> None:
+    """DAgger: roll the clone out, label its states with the expert's actions, retrain BC on the aggregate."""
+    from marl_amod.dagger import dagger as run_dagger
+
+    _use_data_dir(data_dir)
+    summary = run_dagger(config, start=str(start), expert=expert, rounds=rounds, episodes=episodes, seed=seed, run_root=run_root,
+                         progress=lambda msg: console.print(msg, soft_wrap=True))  # fmt: skip
+    for r in summary["rounds"]:
+        console.print(f"round {r['round']}: {r['transitions']:,} transitions, validation profit {r['validation_profit']:,.0f} -> {r['policy']}")
+    console.print(f"kept round {summary['kept']}" + (f" as {summary['policy_out']}" if summary["policy_out"] else ""))
+
+
 @app.command("finetune-curve")
 def finetune_curve(
     policy: Annotated[Path, typer.Option(help="the offline policy to fine-tune (a bc/iql/cql .pt with its dataset on the card)")] = Path(

@@ -162,6 +162,29 @@ class OfflineDataset:
         }
 
 
+def concatenate(parts: list[OfflineDataset]) -> OfflineDataset:
+    """One dataset of several collected on the same city and features (DAgger's aggregate):
+    episodes renumbered one part after the other, ``meta["parts"]`` keeps each part's meta."""
+    if not parts:
+        raise DataError("nothing to concatenate")
+    first = parts[0].meta
+    for p in parts[1:]:
+        for key in ("scenario", "n_agents", "lookahead", "max_wait"):
+            if p.meta[key] != first[key]:
+                raise DataError(f"datasets differ in {key}: {first[key]} and {p.meta[key]}")
+    arrays = {k: np.concatenate([getattr(p, k) for p in parts]) for k in ARRAY_KEYS}
+    offsets = np.cumsum([0] + [int(p.episode_ids.max()) + 1 if len(p) else 0 for p in parts[:-1]])
+    arrays["episode_ids"] = np.concatenate([p.episode_ids + off for p, off in zip(parts, offsets, strict=True)])
+    policies = sorted({p.meta["policy"] for p in parts})
+    meta = {
+        **{k: v for k, v in first.items() if k not in ("rollout_policy", "parts")},
+        "policy": policies[0] if len(policies) == 1 else "+".join(policies),
+        "episodes": int(sum(p.meta["episodes"] for p in parts)), "transitions": int(len(arrays["team_rewards"])),
+        "parts": [p.meta for p in parts],
+    }  # fmt: skip
+    return OfflineDataset(**arrays, edge_index=parts[0].edge_index, edge_attr=parts[0].edge_attr, meta=meta)
+
+
 def action_share(actions: np.ndarray) -> np.ndarray:
     """(..., N) env weights -> the distribution the env normalises them to (all zeros: uniform)."""
     actions = np.asarray(actions, dtype=np.float32)
@@ -229,10 +252,15 @@ def collection_seed(seed: int, episode: int) -> int:
 
 def collect(
     city: City, policy: Policy, *, episodes: int, seed: int = 0, lookahead: int = 6, max_wait: int = 0, noise: float = 0.0,
-    progress: Callable[[int], None] | None = None,
+    labeller: Policy | None = None, progress: Callable[[int], None] | None = None,
 ) -> OfflineDataset:
     """Roll ``policy`` through the PettingZoo env for ``episodes`` episodes on the collection seeds
-    (``noise``: exploratory actions around the policy's, see :class:`EnvActionPolicy`)."""
+    (``noise``: exploratory actions around the policy's, see :class:`EnvActionPolicy`).
+
+    ``labeller`` (DAgger): the env still steps with ``policy``'s action, but the dataset records
+    the labeller's env action at the same state, so an imitation learner sees the expert's answer
+    on the states its own policy reaches. Rewards stay those of the steps taken; ``meta["policy"]``
+    names the labeller (whose actions are logged), ``meta["rollout_policy"]`` the policy driven."""
     from marl_amod import parallel_env
     from marl_amod.env.features import n_features
 
@@ -241,6 +269,7 @@ def collect(
     seed = as_seed(seed)
     env = parallel_env(city, reward_mode="local", action_mode="weight", lookahead=lookahead, max_wait=max_wait)
     behaviour = EnvActionPolicy(policy, noise)
+    expert = EnvActionPolicy(labeller) if labeller is not None else None
     agents = list(env.possible_agents)
     cols: dict[str, list] = {k: [] for k in ARRAY_KEYS}
     mismatch = steps = 0
@@ -248,18 +277,23 @@ def collect(
     for ep in range(episodes):
         obs, _ = env.reset(seed=collection_seed(seed, ep))
         behaviour.reset(env.system, np.random.default_rng([seed, ep, 2]))
+        if expert is not None:
+            expert.reset(env.system, np.random.default_rng([seed, ep, 3]))
         state, ep_return = env.state(), env.last_outcome.reward
         while env.agents:
             t = env.system.t
             action, wanted = behaviour.action(env.system)
+            logged = action
+            if expert is not None:  # DAgger: the expert's answer on the learner's state
+                logged, wanted = expert.action(env.system)
             if wanted is not None and env.system.sim.idle.sum() > 0:
-                mismatch += int(not np.array_equal(env.system.targets_from_weights(action.astype(np.float64)), wanted))
+                mismatch += int(not np.array_equal(env.system.targets_from_weights(logged.astype(np.float64)), wanted))
             steps += 1
             nxt, rew, terms, truncs, _ = env.step({a: action[i : i + 1] for i, a in enumerate(agents)})
             team = env.last_outcome.reward
             ep_return += team
             cols["observations"].append(np.stack([obs[a] for a in agents]))
-            cols["actions"].append(action)
+            cols["actions"].append(logged)
             cols["rewards"].append([rew[a] for a in agents])
             cols["team_rewards"].append(team)
             cols["states"].append(state)
@@ -277,7 +311,7 @@ def collect(
     arrays = {k: np.asarray(v, dtype=DTYPES.get(k, np.float32)) for k, v in cols.items()}
     graph = env.graph()
     meta = {
-        "format_version": FORMAT_VERSION, "scenario": city.name, "policy": behaviour.name, "noise": noise,
+        "format_version": FORMAT_VERSION, "scenario": city.name, "policy": expert.name if expert else behaviour.name, "noise": noise,
         "seed": seed, "episodes": episodes, "transitions": int(len(arrays["team_rewards"])), "lookahead": lookahead,
         "max_wait": max_wait, "n_agents": len(agents), "n_features": n_features(lookahead),
         "observation_dim": int(arrays["observations"].shape[-1]), "state_dim": int(arrays["states"].shape[-1]),
@@ -285,6 +319,8 @@ def collect(
         "episode_profit_mean": float(np.mean(returns)), "episode_profit_std": float(np.std(returns)),
         "target_mismatch": mismatch / max(steps, 1),
     }  # fmt: skip
+    if expert is not None:
+        meta["rollout_policy"] = behaviour.name
     return OfflineDataset(**arrays, edge_index=graph["edge_index"], edge_attr=graph["edge_attr"], meta=meta)
 
 

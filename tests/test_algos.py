@@ -81,6 +81,38 @@ def test_a2c_init_actor_fine_tunes_from_the_given_actor(tmp_path, tiny_yaml):
     assert not all(torch.allclose(init[k], cold[k], atol=1e-6) for k in init)
 
 
+def test_kl_to_is_zero_at_the_start_and_positive_away_from_it():
+    from marl_amod.algos.a2c import kl_to
+
+    alpha = torch.tensor([[1.0, 2.0, 3.0]])
+    for mode in ("centralised", "decentralised"):
+        assert kl_to(alpha, alpha, mode).item() == pytest.approx(0.0, abs=1e-6)
+        assert kl_to(alpha, alpha.flip(-1), mode).item() > 0.1
+    # scaling both concentrations keeps the Dirichlet mean but makes a deviation cost more
+    assert kl_to(10 * alpha, 10 * alpha.flip(-1), "centralised") > kl_to(alpha, alpha.flip(-1), "centralised")
+
+
+def test_a2c_kl_penalty_keeps_a_fine_tune_near_its_start(tmp_path, tiny_yaml):
+    """Same seed, same fast actor step: with kl_coef the logged KL to the start ends smaller."""
+    from marl_amod.algos import a2c
+    from marl_amod.algos.common import read_curve
+    from marl_amod.algos.registry import args_for
+
+    a2c.train(a2c.Args(**_common(tmp_path, tiny_yaml, episodes=4, episodes_per_update=2, seed=1)))
+    start = str(tmp_path / "policies" / "p.pt")
+    kl = {}
+    for coef in (0.0, 30.0):
+        run = str(tmp_path / f"kl{coef}")
+        args = _common(tmp_path, tiny_yaml, episodes=12, episodes_per_update=2, seed=2, lr_actor=3e-2, init_actor=start,
+                       kl_coef=coef, action_concentration=5.0, run_dir=run, policy_out="")  # fmt: skip
+        a2c.train(a2c.Args(**args))
+        kl[coef] = read_curve(run, "loss/kl_start")[1]
+    assert kl[0.0][0] == kl[30.0][0]  # the first batch is drawn at the start by both
+    assert kl[30.0][-1] < 0.2 * kl[0.0][-1]
+    with pytest.raises(ConfigError, match="init_actor"):
+        args_for("a2c", {"scenario": tiny_yaml, "kl_coef": 1.0})
+
+
 def test_a2c_resume_continues_from_saved_episode(tmp_path, tiny_yaml):
     from marl_amod.algos import a2c
 

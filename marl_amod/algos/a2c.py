@@ -18,6 +18,7 @@ the run is the episode-at-a-time one the shipped policies were trained with.
 
 from __future__ import annotations
 
+import copy
 from pathlib import Path
 from typing import Any
 
@@ -52,6 +53,15 @@ class Args(C.RunArgs):
     critic_warmup: int = Field(0, ge=0)
     """first updates that train the critic only: a warm-started actor (``init_actor``) is not
     pushed around by the advantages of a critic that has not learnt the values yet"""
+    action_concentration: float = Field(1.0, gt=0)
+    """multiplies the actor's concentrations when sampling training actions; the played policy,
+    alpha / sum(alpha), is unchanged. Behaviour cloning leaves the total concentration free (on
+    Luxembourg the clone's is ~8 over 10 regions, so its samples are nearly one-hot and A2C learns
+    from actions far from what the policy plays); a larger value explores near the clone's mean"""
+    kl_coef: float = Field(0.0, ge=0)
+    """weight of KL(pi || pi_start) at the visited states, pi_start the frozen ``init_actor``: an
+    RL update that refines a clone instead of walking away from it (the meso fine-tune from the
+    clone lost ~250 per episode to ED without it); needs ``init_actor``"""
     run_dir: str = "runs/a2c"
     """TensorBoard + CSV logs and the resumable training state"""
 
@@ -59,6 +69,8 @@ class Args(C.RunArgs):
     def _whole_batches(self) -> Args:
         if self.episodes_per_update % self.num_envs:
             raise ValueError(f"episodes_per_update ({self.episodes_per_update}) must be a multiple of num_envs ({self.num_envs})")
+        if self.kl_coef and not self.init_actor:
+            raise ValueError("kl_coef keeps the actor near its start: it needs init_actor")
         return self
 
     def ignored_keys(self) -> dict[str, str]:
@@ -81,6 +93,14 @@ def act(alpha: torch.Tensor, mode: str) -> tuple[np.ndarray, torch.Tensor, torch
         return y.numpy(), dist.log_prob(y), dist.entropy()
     g = gamma(alpha).sample().clamp_min(1e-8)  # each agent draws its own weight
     return g.numpy(), gamma_log_prob(g, alpha), gamma(alpha).entropy().sum(-1)
+
+
+def kl_to(alpha: torch.Tensor, ref: torch.Tensor, mode: str) -> torch.Tensor:
+    """KL(pi_alpha || pi_ref) (...,) of the policies act() samples from: the Dirichlet (centralised)
+    or the agents' independent Gammas (decentralised, summed over agents)."""
+    if mode == "centralised":
+        return torch.distributions.kl_divergence(dirichlet(alpha), dirichlet(ref))
+    return torch.distributions.kl_divergence(gamma(alpha), gamma(ref)).sum(-1)
 
 
 def concentrations(actor: torch.nn.Module, obs: Obs, graph: Graph, mode: str) -> torch.Tensor:
@@ -126,6 +146,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     critic_in = C.critic_features(n_features, args)
     critic = LocalValueCritic(critic_in, args.hidden) if local_critic else GNNValueCritic(critic_in, args.hidden, args.conv)
     C.warm_start(actor, args, city)  # offline -> online: start from a trained policy
+    start = copy.deepcopy(actor).requires_grad_(False) if args.init_actor else None  # before resume: the init actor
     opt_a = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
     opt_c = torch.optim.Adam(critic.parameters(), lr=args.lr_critic)
 
@@ -153,20 +174,25 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     with C.interruptible(save):
         while ep < args.episodes:
             # ---- collect a batch of whole episodes, num_envs at a time ----
-            logps, values, returns, ents, ep_rewards, ep_money = [], [], [], [], [], []
+            logps, values, returns, ents, kls, ep_rewards, ep_money = [], [], [], [], [], [], []
             for _ in range(args.episodes_per_update // rollout.num_envs):
                 obs = rollout.reset(train_seed(args.seed, ep)) if rollout.num_envs == 1 else rollout.reset(args.seed, ep)
                 steps: list[tuple[torch.Tensor, ...]] = []
                 rewards = []
                 while not rollout.done:
-                    w, logp, ent = act(concentrations(actor, obs, graph, args.mode), args.mode)
-                    steps.append((logp, value(critic, obs, graph, local_critic, args.critic_time), ent))
+                    alpha = args.action_concentration * concentrations(actor, obs, graph, args.mode)
+                    w, logp, ent = act(alpha, args.mode)
+                    if start is not None:
+                        kl = kl_to(alpha, args.action_concentration * concentrations(start, obs, graph, args.mode), args.mode)
+                    else:
+                        kl = torch.zeros_like(logp)
+                    steps.append((logp, value(critic, obs, graph, local_critic, args.critic_time), ent, kl))
                     obs, r = rollout.step(w)
                     rewards.append(np.asarray(r, dtype=np.float64) * args.reward_scale)
                 # (T, E) -> episode-major rows, as one episode after the other
-                logp_t, v_t, ent_t = (torch.stack(k).reshape(len(steps), -1).T.reshape(-1) for k in zip(*steps, strict=True))
+                logp_t, v_t, ent_t, kl_t = (torch.stack(k).reshape(len(steps), -1).T.reshape(-1) for k in zip(*steps, strict=True))
                 r_te = np.stack(rewards).reshape(len(rewards), -1)
-                logps.append(logp_t), values.append(v_t), ents.append(ent_t)
+                logps.append(logp_t), values.append(v_t), ents.append(ent_t), kls.append(kl_t)
                 returns.append(torch.tensor(discounted_returns(r_te, args.gamma).T.reshape(-1), dtype=torch.float32))
                 ep_rewards.extend(r_te.sum(0) / args.reward_scale)
                 totals = rollout.system.sim.totals  # the episodes' books: revenue and rebalancing cost apart
@@ -179,7 +205,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
             adv = ret - v.detach()
 
             # ---- one actor and one critic step ----
-            loss_pi = -(torch.cat(logps) * adv).mean() - args.entropy_coef * torch.cat(ents).mean()
+            kl = torch.cat(kls).mean()
+            loss_pi = -(torch.cat(logps) * adv).mean() - args.entropy_coef * torch.cat(ents).mean() + args.kl_coef * kl
             loss_v = F.smooth_l1_loss(v, ret)
             if ep > args.critic_warmup * args.episodes_per_update:  # after the critic-only warm-up
                 opt_a.zero_grad()
@@ -194,7 +221,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
 
             revenue, reb_cost = (float(np.mean(np.concatenate([np.atleast_1d(m[i]) for m in ep_money]))) for i in (0, 1))
             stats = {"train/episode_reward": float(np.mean(ep_rewards)), "train/revenue": revenue, "train/rebalancing_cost": reb_cost,
-                     "loss/policy": loss_pi.item(), "loss/value": loss_v.item()}  # fmt: skip
+                     "loss/policy": loss_pi.item(), "loss/value": loss_v.item(), "loss/kl_start": kl.item()}  # fmt: skip
             # ---- periodic validation, best-actor selection, resumable state ----
             if book.close(ep, args.episodes_per_update, stats):
                 break
