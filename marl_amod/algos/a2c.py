@@ -83,10 +83,11 @@ def act(alpha: torch.Tensor, mode: str) -> tuple[np.ndarray, torch.Tensor, torch
     return g.numpy(), gamma_log_prob(g, alpha), gamma(alpha).entropy().sum(-1)
 
 
-def concentrations(actor: torch.nn.Module, obs: Obs, graph: Graph, mode: str) -> torch.Tensor:
-    """alpha (..., N): the global graph (centralised) or each agent's local observation alone."""
+def concentrations(actor: torch.nn.Module, obs: Obs, graph: Graph, mode: str, time: bool = False) -> torch.Tensor:
+    """alpha (..., N): the global graph (centralised; with the time context on every node when
+    ``time``) or each agent's local observation alone."""
     if mode == "centralised":
-        return actor(obs.x, graph)
+        return actor(C.with_time(obs.x, obs.ctx, time), graph)
     return actor.forward_local(obs.own, obs.nbrs, obs.mask)
 
 
@@ -122,7 +123,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     if args.mode == "decentralised":
         actor = LocalActor(n_features, args.hidden)
     else:
-        actor = build_actor(args.actor, city, n_features, args.hidden, args.conv)
+        actor = build_actor(args.actor, city, C.actor_features(n_features, args), args.hidden, args.conv)
     critic_in = C.critic_features(n_features, args)
     critic = LocalValueCritic(critic_in, args.hidden) if local_critic else GNNValueCritic(critic_in, args.hidden, args.conv)
     C.warm_start(actor, args, city)  # offline -> online: start from a trained policy
@@ -158,7 +159,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                 steps: list[tuple[torch.Tensor, ...]] = []
                 rewards = []
                 while not rollout.done:
-                    w, logp, ent = act(concentrations(actor, obs, graph, args.mode), args.mode)
+                    w, logp, ent = act(concentrations(actor, obs, graph, args.mode, args.actor_time), args.mode)
                     steps.append((logp, value(critic, obs, graph, local_critic, args.critic_time), ent))
                     obs, r = rollout.step(w)
                     rewards.append(np.asarray(r, dtype=np.float64) * args.reward_scale)
