@@ -188,3 +188,24 @@ def test_actor_time_is_refused_where_the_actor_cannot_read_it(tiny_yaml):
         args_for("a2c", {"scenario": tiny_yaml, "mode": "decentralised", "actor_time": True})
     with pytest.raises(ConfigError, match="actor_time is not read"):
         args_for("sac", {"scenario": tiny_yaml, "actor_time": True})
+
+
+def test_a2c_concentration_scale_multiplies_the_sampled_concentrations_only(tmp_path, tiny_yaml, monkeypatch):
+    """The first update's samples come from k * alpha of the same untrained actor (same seed)."""
+    from marl_amod.algos import a2c
+
+    seen: list[torch.Tensor] = []
+    real_act = a2c.act
+
+    def recording_act(alpha, mode):
+        seen.append(alpha.detach().clone())
+        return real_act(alpha, mode)
+
+    monkeypatch.setattr(a2c, "act", recording_act)
+    firsts = {}
+    for k in (1.0, 7.0):
+        seen.clear()
+        a2c.train(a2c.Args(scenario=tiny_yaml, num_envs=2, episodes_per_update=2, episodes=2, eval_every=2, eval_episodes=1,
+                           final_eval_episodes=1, hidden=8, concentration_scale=k, run_dir=str(tmp_path / f"r{k}")))
+        firsts[k] = seen[0]
+    torch.testing.assert_close(firsts[7.0], 7.0 * firsts[1.0])
