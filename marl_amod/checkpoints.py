@@ -58,6 +58,8 @@ class PolicyCard(BaseModel):
     n_features: int
     lookahead: int
     seed: int
+    time_context: bool = False
+    """the actor also reads the 3 time values (time of day, step fraction) on every node (``actor_time``)"""
     env_version: str | None = None
     """the env module the policy was trained on: amod_v0 -> "v0" (results change with it)"""
     n_regions: int | None = None
@@ -241,7 +243,7 @@ def load_actor(path: str | Path, city: City) -> tuple[torch.nn.Module, dict[str,
                 "MLP and CNN actors are tied to a region count — use a GNN policy"
             )
     try:
-        actor = build_actor(card.actor, city, card.n_features, card.hidden, card.conv)
+        actor = build_actor(card.actor, city, actor_inputs(card.n_features, card.time_context), card.hidden, card.conv)
     except ValueError as exc:
         raise DataError(f"{path}: {exc}") from None
     expected = actor.state_dict()
@@ -259,33 +261,47 @@ def load_actor(path: str | Path, city: City) -> tuple[torch.nn.Module, dict[str,
     return actor, card.to_dict()
 
 
+def actor_inputs(n_node_features: int, time_context: bool) -> int:
+    """Input columns of an actor: the node features F, plus the 3 time values with ``time_context``."""
+    return n_node_features + ob.N_CONTEXT if time_context else n_node_features
+
+
+def with_context(x: torch.Tensor, ctx: torch.Tensor) -> torch.Tensor:
+    """Node features x (..., N, F) with the time values ctx (..., 3) appended to every node: (..., N, F + 3);
+    one function, so training and evaluation feed a time-aware actor (and critic) the same input."""
+    ctx = torch.as_tensor(ctx, dtype=x.dtype)
+    return torch.cat([x, ctx.unsqueeze(-2).expand(*x.shape[:-1], ctx.shape[-1])], dim=-1)
+
+
 class ActorPolicy(WeightPolicy):
     """Runs an actor deterministically: weights = Dirichlet mean of its concentrations.
 
     It is also a callable on the env's observations (PettingZoo convention: observations dict
     -> actions dict), so a trained policy runs wherever an outside one does (``record_episode``,
     ``marl_amod.evaluate``). Both paths feed the actor the same node features: each agent's
-    observation begins with its region's row of them.
+    observation begins with its region's row of them, followed by the time values that a
+    ``time_context`` actor reads as well.
     """
 
-    def __init__(self, actor: torch.nn.Module, city: City, lookahead: int = 6, name: str = "actor") -> None:
-        self.actor, self.lookahead, self.name = actor, lookahead, name
+    def __init__(self, actor: torch.nn.Module, city: City, lookahead: int = 6, name: str = "actor", time_context: bool = False) -> None:
+        self.actor, self.lookahead, self.name, self.time_context = actor, lookahead, name, time_context
         self.edge_index = torch.tensor(np.array(city.edge_index), dtype=torch.long)
         self.agents = ob.agent_names(city.n_regions)
 
     def weights(self, system: FleetSystem) -> np.ndarray:
-        return self._mean(node_features(system, self.lookahead))
+        return self._mean(node_features(system, self.lookahead), ob.time_features(system.city, system.t))
 
     def __call__(self, observations: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Actions (each agent's weight, shape (1,)) for the env's local observations."""
         stacked = np.stack([np.asarray(observations[a], dtype=np.float32) for a in self.agents])
-        own = ob.split_local(stacked, n_features(self.lookahead))[0]  # (N, F)
-        w = self._mean(own).astype(np.float32)  # exact: the weights are float32 values
+        own, ctx = ob.split_local(stacked, n_features(self.lookahead))[:2]  # (N, F), (N, 3)
+        w = self._mean(own, ctx[0]).astype(np.float32)  # exact: the weights are float32 values
         return {a: w[i : i + 1] for i, a in enumerate(self.agents)}
 
     @torch.no_grad()
-    def _mean(self, features: np.ndarray) -> np.ndarray:
-        alpha = self.actor(torch.as_tensor(features), self.edge_index)  # (N,)
+    def _mean(self, features: np.ndarray, ctx: np.ndarray) -> np.ndarray:
+        x = torch.as_tensor(features)
+        alpha = self.actor(with_context(x, ctx) if self.time_context else x, self.edge_index)  # (N,)
         return dirichlet_mean(alpha).numpy().astype(np.float64)
 
 
@@ -303,4 +319,4 @@ def load_policy(path: str | Path, city: City | str | None = None) -> WeightPolic
 
         return meta.load_policy(path, city)
     actor, card = load_actor(path, city)
-    return ActorPolicy(actor, city, card["lookahead"], name=Path(path).stem)
+    return ActorPolicy(actor, city, card["lookahead"], name=Path(path).stem, time_context=card["time_context"])

@@ -133,12 +133,15 @@ class OfflineDataset:
 
     # ------------------------------------------------------------------ views
     def global_view(self) -> dict[str, np.ndarray]:
-        """The centralised learner's view: x, next_x (T, N, F) node features, action (T, N) on the
-        simplex (the env's normalised weights), reward (T,) team reward, done (T,), edge_index."""
+        """The centralised learner's view: x, next_x (T, N, F) node features, ctx, next_ctx (T, 3) time
+        values, action (T, N) on the simplex (the env's normalised weights), reward (T,) team reward,
+        done (T,), edge_index."""
         t, n, f = len(self), self.n_agents, self.n_features
         return {
             "x": self.states[:, : n * f].reshape(t, n, f),
             "next_x": self.next_states[:, : n * f].reshape(t, n, f),
+            "ctx": self.states[:, n * f :],
+            "next_ctx": self.next_states[:, n * f :],
             "action": action_share(self.actions),
             "reward": self.team_rewards,
             "done": self.terminations | self.truncations,

@@ -52,7 +52,7 @@ def finetune_curve(
         raise ConfigError(f"{policy} has no dataset on its card: the study starts from an offline policy (bc, iql, cql)")
     common = {
         "scenario": trained.get("args", {}).get("scenario") or city.name, "mode": "centralised", "actor": card["actor"], "conv": card["conv"], "hidden": card["hidden"],
-        "lookahead": card["lookahead"], "episodes": episodes, "num_envs": num_envs, "episodes_per_update": num_envs,
+        "lookahead": card["lookahead"], "actor_time": card.get("time_context", False), "episodes": episodes, "num_envs": num_envs, "episodes_per_update": num_envs,
         "eval_every": eval_every, "eval_episodes": eval_episodes, "seed": seed, "gamma": 0.97, "reward_scale": 0.001,
         "final_eval_episodes": 1, "policy_out": "",
     }  # fmt: skip
@@ -62,7 +62,7 @@ def finetune_curve(
         "scratch": a2c.Args(**common, lr_actor=lr_actor, run_dir=str(Path(run_root) / "scratch")),
     }
     val = {"episodes": eval_episodes, "seed": runs["scratch"].eval_seed}
-    pretrained = evaluate_actor(actor, city, eval_episodes, val["seed"], card["lookahead"])["metrics"]["profit"]["mean"]
+    pretrained = evaluate_actor(actor, city, eval_episodes, val["seed"], card["lookahead"], card.get("time_context", False))["metrics"]["profit"]["mean"]
     beh = evaluate(behaviour, city, eval_episodes, val["seed"])["metrics"]["profit"]["mean"]
     out: dict[str, Any] = {
         "scenario": city.name, "policy": str(policy), "policy_algorithm": card["algorithm"], "behaviour_policy": behaviour,

@@ -74,13 +74,13 @@ def fine_tune(policy_path: str, scenario: str, episodes: int = K_FINE_TUNE, seed
     with tempfile.TemporaryDirectory(prefix="marl-amod-fine-tune-") as tmp:
         args = a2c.Args(
             scenario=scenario, actor=card["actor"], conv=card["conv"], hidden=card["hidden"], lookahead=card["lookahead"],
-            init_actor=str(policy_path), episodes=episodes, episodes_per_update=min(per_update, episodes), seed=seed,
+            actor_time=card.get("time_context", False), init_actor=str(policy_path), episodes=episodes, episodes_per_update=min(per_update, episodes), seed=seed,
             eval_every=episodes, eval_episodes=FINE_TUNE_VALIDATION, final_eval_episodes=1, run_dir=tmp, policy_out=f"{tmp}/fine_tuned.pt",
         )  # fmt: skip
         summary = a2c.train(args)
         city = load_city(scenario)
         actor, _ = load_actor(summary["policy"], city)
-    return ActorPolicy(actor, city, card["lookahead"], name=f"fine-tune({Path(policy_path).stem})")
+    return ActorPolicy(actor, city, card["lookahead"], name=f"fine-tune({Path(policy_path).stem})", time_context=card.get("time_context", False))
 
 
 # --------------------------------------------------------------------------------------------

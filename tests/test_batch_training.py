@@ -163,3 +163,49 @@ def test_a_state_saved_with_two_critics_resumes_with_the_stacked_critics():
     for net, ref in ((stacked, twin), (stacked_target, target)):
         for q, r in zip(net(x, graph, action), ref(x, graph, action), strict=True):
             torch.testing.assert_close(q, r, atol=1e-5, rtol=1e-5)
+
+
+def test_a2c_actor_time_feeds_the_actor_the_time_context_in_training_and_evaluation(tmp_path, tiny_yaml):
+    """actor_time: the actor's first layer reads F + 3 columns, the card says so, and evaluating the
+    shipped file reproduces the run's own final evaluation (the same input at every step)."""
+    from marl_amod.algos import a2c
+    from marl_amod.evaluation import evaluate
+
+    args = a2c.Args(scenario=tiny_yaml, conv="sage", actor_time=True, num_envs=2, episodes_per_update=2, episodes=4, eval_every=2,
+                    eval_episodes=1, final_eval_episodes=2, hidden=8, run_dir=str(tmp_path / "run"), policy_out=str(tmp_path / "p.pt"))
+    card = a2c.train(args)["card"]
+    assert card["time_context"] is True
+    state = torch.load(tmp_path / "p.pt", map_location="cpu", weights_only=False)["state_dict"]
+    assert state["trunk.conv.lin_l.weight"].shape == (16, 13 + 3)
+    shipped = evaluate(str(tmp_path / "p.pt"), load_city(tiny_yaml), episodes=2, seed=0)["metrics"]["profit"]["mean"]
+    assert shipped == pytest.approx(card["profit_mean"])
+
+
+def test_actor_time_is_refused_where_the_actor_cannot_read_it(tiny_yaml):
+    from marl_amod.algos.registry import args_for
+
+    with pytest.raises(ConfigError, match="actor_time is not read"):
+        args_for("a2c", {"scenario": tiny_yaml, "mode": "decentralised", "actor_time": True})
+    with pytest.raises(ConfigError, match="actor_time is not read"):
+        args_for("sac", {"scenario": tiny_yaml, "actor_time": True})
+
+
+def test_a2c_action_concentration_multiplies_the_sampled_concentrations_only(tmp_path, tiny_yaml, monkeypatch):
+    """The first update's samples come from k * alpha of the same untrained actor (same seed)."""
+    from marl_amod.algos import a2c
+
+    seen: list[torch.Tensor] = []
+    real_act = a2c.act
+
+    def recording_act(alpha, mode):
+        seen.append(alpha.detach().clone())
+        return real_act(alpha, mode)
+
+    monkeypatch.setattr(a2c, "act", recording_act)
+    firsts = {}
+    for k in (1.0, 7.0):
+        seen.clear()
+        a2c.train(a2c.Args(scenario=tiny_yaml, num_envs=2, episodes_per_update=2, episodes=2, eval_every=2, eval_episodes=1,
+                           final_eval_episodes=1, hidden=8, action_concentration=k, run_dir=str(tmp_path / f"r{k}")))
+        firsts[k] = seen[0]
+    torch.testing.assert_close(firsts[7.0], 7.0 * firsts[1.0])

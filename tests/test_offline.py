@@ -148,3 +148,19 @@ def test_imitation_loss_fits_the_mean_action_of_sparse_targets():
         opt.step()
     alpha = actor(b["x"], None)[0].detach()
     assert (alpha / alpha.sum()).tolist() == pytest.approx([0.75, 0.125, 0.125], abs=0.02)
+
+
+@pytest.mark.parametrize("algo", ["bc", "iql"])
+def test_offline_actor_time_reads_the_logged_time_values_and_evaluates_as_trained(tmp_path, tiny, algo):
+    """actor_time offline: the minibatches carry the dataset's time values, the card says so, and the
+    shipped file evaluates to the run's own final score; CQL's sampled actions cannot, so it refuses."""
+    extra = {"critic_hidden": 8} if algo != "bc" else {}
+    summary = ALGOS[algo].train(args_for(algo, _args(tmp_path, tiny, actor_time=True, **extra)))
+    assert summary["card"]["time_context"] is True
+    res = evaluate(str(tmp_path / "p.pt"), load_city(tiny[0]), episodes=2, seed=0)
+    assert res["metrics"]["profit"]["mean"] == pytest.approx(summary["card"]["profit_mean"])
+    data = O.Data(args_for(algo, _args(tmp_path, tiny)), load_city(tiny[0]))
+    steps = data.tensors["ctx"][:, 2] * load_city(tiny[0]).horizon  # step fraction t / horizon -> t
+    assert torch.allclose(steps, steps.round(), atol=1e-4) and steps.max() > 0
+    with pytest.raises(ConfigError, match="actor_time is not read"):
+        args_for("cql", _args(tmp_path, tiny, actor_time=True))

@@ -32,11 +32,11 @@ def tiny_yaml(tmp_path: Path) -> str:
     return str(path)
 
 
-def _saved_actor(tmp_path: Path, city: City) -> Path:
+def _saved_actor(tmp_path: Path, city: City, time_context: bool = False) -> Path:
     torch.manual_seed(0)
-    actor = build_actor("gnn", city, 13, 8)
+    actor = build_actor("gnn", city, 13 + 3 * time_context, 8)  # time_context: the 3 time values on every node too
     card = {"scenario": city.name, "algorithm": "a2c", "mode": "centralised", "actor": "gnn", "conv": "gcn",
-            "hidden": 8, "n_features": 13, "lookahead": 6, "seed": 0}
+            "hidden": 8, "n_features": 13, "lookahead": 6, "seed": 0, "time_context": time_context}
     return save_policy(tmp_path / "x.pt", actor, card)
 
 
@@ -95,10 +95,12 @@ def test_a_callable_that_always_returns_one_reproduces_equal_distribution_exactl
     assert _without_name(ones) == _without_name(ed)
 
 
-def test_load_policy_acts_identically_as_a_callable_and_on_the_simulator(tmp_path, tiny_city):
-    path = _saved_actor(tmp_path, tiny_city)
+@pytest.mark.parametrize("time_context", [False, True])
+def test_load_policy_acts_identically_as_a_callable_and_on_the_simulator(tmp_path, tiny_city, time_context):
+    """The env-callable path reads the time values from the observations, the simulator path from the clock."""
+    path = _saved_actor(tmp_path, tiny_city, time_context)
     policy = marl_amod.load_policy(path, tiny_city)
-    assert isinstance(policy, ActorPolicy) and callable(policy)
+    assert isinstance(policy, ActorPolicy) and callable(policy) and policy.time_context == time_context
     env = marl_amod.parallel_env(tiny_city)
     obs, _ = env.reset(seed=5)
     while env.agents:

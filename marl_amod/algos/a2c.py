@@ -55,9 +55,10 @@ class Args(C.RunArgs):
     pushed around by the advantages of a critic that has not learnt the values yet"""
     action_concentration: float = Field(1.0, gt=0)
     """multiplies the actor's concentrations when sampling training actions; the played policy,
-    alpha / sum(alpha), is unchanged. Behaviour cloning leaves the total concentration free (on
-    Luxembourg the clone's is ~8 over 10 regions, so its samples are nearly one-hot and A2C learns
-    from actions far from what the policy plays); a larger value explores near the clone's mean"""
+    alpha / sum(alpha), is unchanged. Behaviour cloning fits the mean and leaves the total
+    concentration free (Luxembourg's clone: ~8 over 10 regions; synthetic's MPC-Forecast clone ~14,
+    where A2C from scratch settles near 280), so its samples scatter far from what it plays and A2C
+    learns from actions it never takes; a larger value explores near the clone's mean"""
     kl_coef: float = Field(0.0, ge=0)
     """weight of KL(pi || pi_start) at the visited states, pi_start the frozen ``init_actor``: an
     RL update that refines a clone instead of walking away from it (the meso fine-tune from the
@@ -103,10 +104,11 @@ def kl_to(alpha: torch.Tensor, ref: torch.Tensor, mode: str) -> torch.Tensor:
     return torch.distributions.kl_divergence(gamma(alpha), gamma(ref)).sum(-1)
 
 
-def concentrations(actor: torch.nn.Module, obs: Obs, graph: Graph, mode: str) -> torch.Tensor:
-    """alpha (..., N): the global graph (centralised) or each agent's local observation alone."""
+def concentrations(actor: torch.nn.Module, obs: Obs, graph: Graph, mode: str, time: bool = False) -> torch.Tensor:
+    """alpha (..., N): the global graph (centralised; with the time context on every node when
+    ``time``) or each agent's local observation alone."""
     if mode == "centralised":
-        return actor(obs.x, graph)
+        return actor(C.with_time(obs.x, obs.ctx, time), graph)
     return actor.forward_local(obs.own, obs.nbrs, obs.mask)
 
 
@@ -142,7 +144,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     if args.mode == "decentralised":
         actor = LocalActor(n_features, args.hidden)
     else:
-        actor = build_actor(args.actor, city, n_features, args.hidden, args.conv)
+        actor = build_actor(args.actor, city, C.actor_features(n_features, args), args.hidden, args.conv)
     critic_in = C.critic_features(n_features, args)
     critic = LocalValueCritic(critic_in, args.hidden) if local_critic else GNNValueCritic(critic_in, args.hidden, args.conv)
     C.warm_start(actor, args, city)  # offline -> online: start from a trained policy
@@ -180,10 +182,10 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                 steps: list[tuple[torch.Tensor, ...]] = []
                 rewards = []
                 while not rollout.done:
-                    alpha = args.action_concentration * concentrations(actor, obs, graph, args.mode)
+                    alpha = args.action_concentration * concentrations(actor, obs, graph, args.mode, args.actor_time)
                     w, logp, ent = act(alpha, args.mode)
                     if start is not None:
-                        kl = kl_to(alpha, args.action_concentration * concentrations(start, obs, graph, args.mode), args.mode)
+                        kl = kl_to(alpha, args.action_concentration * concentrations(start, obs, graph, args.mode, args.actor_time), args.mode)
                     else:
                         kl = torch.zeros_like(logp)
                     steps.append((logp, value(critic, obs, graph, local_critic, args.critic_time), ent, kl))

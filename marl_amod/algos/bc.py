@@ -32,7 +32,9 @@ class Args(O.OfflineArgs):
 def make_actor(args: O.OfflineArgs, city) -> torch.nn.Module:
     """The GNN actor: the paper's on the global graph, or the local (SAGE) one for decentralised runs."""
     f = feature_count(args.lookahead)
-    return LocalActor(f, args.hidden) if args.mode == "decentralised" else build_actor(args.actor, city, f, args.hidden, args.conv)
+    if args.mode == "decentralised":
+        return LocalActor(f, args.hidden)
+    return build_actor(args.actor, city, C.actor_features(f, args), args.hidden, args.conv)
 
 
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
@@ -42,7 +44,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     opt = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
 
     def update(b: O.Batch, step: int) -> dict[str, float]:
-        loss = O.imitation_loss(actor, b, graph, local).mean()
+        loss = O.imitation_loss(actor, b, graph, local, args.actor_time).mean()
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(actor.parameters(), args.max_grad_norm)

@@ -28,7 +28,7 @@ import torch
 from pydantic import Field
 
 from marl_amod.algos.rollout import BatchRollout, Mode, Rollout
-from marl_amod.checkpoints import ActorPolicy, check_torch_file, make_card, save_policy
+from marl_amod.checkpoints import ActorPolicy, actor_inputs, check_torch_file, make_card, save_policy, with_context
 from marl_amod.config import CommonArgs
 from marl_amod.env.features import n_features
 from marl_amod.env.observations import N_CONTEXT
@@ -63,6 +63,9 @@ class RunArgs(CommonArgs):
     critic_time: bool = False
     """critics also read the time context the local actors see (time of day, step fraction):
     episodes have a fixed horizon, so the value of a state depends on the steps to go"""
+    actor_time: bool = False
+    """the centralised actor also reads the time context on every node: without it a GNN cannot
+    tell the last steps, where a move no longer pays back, from the first (the card records it)"""
     init_actor: str = ""
     """a policy .pt whose weights start the actor (offline -> online, macro -> SUMO fine-tuning);
     same actor, hidden, conv; the critic and optimisers start fresh (A2C validates the start first)"""
@@ -70,7 +73,7 @@ class RunArgs(CommonArgs):
     def ignored_keys(self) -> dict[str, str]:
         if self.mode == "centralised":
             return {"central_critic": "only decentralised runs choose their critic"}
-        return {"actor": "decentralised runs always use the local GNN actor"}
+        return {"actor": "decentralised runs always use the local GNN actor", "actor_time": "the local actor reads its own observation"}
 
 
 def make_rollout(city: City, args: RunArgs) -> Rollout | BatchRollout:
@@ -87,6 +90,11 @@ def make_graph(city: City, args: RunArgs) -> torch.Tensor | DenseGraph:
     return DenseGraph(edge_index, city.n_regions) if args.num_envs > 1 else edge_index
 
 
+def actor_features(n_features: int, args: RunArgs) -> int:
+    """Input columns of a centralised actor: F, plus the time context with ``actor_time``."""
+    return actor_inputs(n_features, args.actor_time)
+
+
 def critic_features(n_features: int, args: RunArgs) -> int:
     """Node features a critic reads: F, plus the time context with ``critic_time``."""
     return n_features + N_CONTEXT if args.critic_time else n_features
@@ -94,9 +102,7 @@ def critic_features(n_features: int, args: RunArgs) -> int:
 
 def with_time(x: torch.Tensor, ctx: torch.Tensor | None, use: bool) -> torch.Tensor:
     """x (..., N, F) with the time context (..., 3) appended to every node when ``use``: (..., N, F + 3)."""
-    if not use:
-        return x
-    return torch.cat([x, ctx.unsqueeze(-2).expand(*x.shape[:-1], ctx.shape[-1])], dim=-1)
+    return with_context(x, ctx) if use else x
 
 
 # --------------------------------------------------------------------------------------------
@@ -172,14 +178,16 @@ class Timer:
 # --------------------------------------------------------------------------------------------
 # Validation and the best actor
 # --------------------------------------------------------------------------------------------
-def evaluate_actor(actor: torch.nn.Module, city: City, episodes: int, seed: int, lookahead: int = 6) -> dict[str, Any]:
+def evaluate_actor(
+    actor: torch.nn.Module, city: City, episodes: int, seed: int, lookahead: int = 6, time_context: bool = False
+) -> dict[str, Any]:
     """Deterministic (Dirichlet mean) evaluation with the same loop and JSON as the baselines."""
     from marl_amod.evaluation import evaluate
 
     was_training = actor.training
     actor.eval()
     try:
-        return evaluate(ActorPolicy(actor, city, lookahead), city, episodes, seed)
+        return evaluate(ActorPolicy(actor, city, lookahead, time_context=time_context), city, episodes, seed)
     finally:
         actor.train(was_training)
 
@@ -206,7 +214,8 @@ class BestActor:
 
     def validate(self, actor: torch.nn.Module, city: City, args: ValidationArgs) -> float:
         """Mean profit of the deterministic actor on the validation seeds; kept when it is the best yet."""
-        val = evaluate_actor(actor, city, args.eval_episodes, args.eval_seed, args.lookahead)["metrics"]["profit"]["mean"]
+        time = getattr(args, "actor_time", False)  # RLlib's actors read node features only
+        val = evaluate_actor(actor, city, args.eval_episodes, args.eval_seed, args.lookahead, time)["metrics"]["profit"]["mean"]
         if val > self.value:
             self.value, self.state = val, copy.deepcopy(actor.state_dict())
         return val
@@ -369,13 +378,13 @@ def finish_run(
 ) -> dict[str, Any]:
     """Final evaluation on the report seeds, then the policy file and its card (written once);
     ``extra`` adds algorithm-specific card fields (an offline run's dataset)."""
-    result = evaluate_actor(actor, city, args.final_eval_episodes, args.final_eval_seed, args.lookahead)
+    result = evaluate_actor(actor, city, args.final_eval_episodes, args.final_eval_seed, args.lookahead, args.actor_time)
     profit = result["metrics"]["profit"]
     card = make_card(
         scenario=city.name, n_regions=city.n_regions, algorithm=algorithm, mode=args.mode,
         actor="local" if args.mode == "decentralised" else args.actor,
         conv="sage" if args.mode == "decentralised" else args.conv,
-        hidden=args.hidden, n_features=n_features(args.lookahead), lookahead=args.lookahead, seed=args.seed,
+        hidden=args.hidden, n_features=n_features(args.lookahead), lookahead=args.lookahead, seed=args.seed, time_context=args.actor_time,
         episodes_trained=episodes_done, eval_episodes=args.final_eval_episodes, eval_seed=args.final_eval_seed,
         profit_mean=profit["mean"], profit_std=profit["std"], served_demand_mean=result["metrics"]["served_demand"]["mean"],
         training_wall_s=round(wall_s, 1), torch_threads=torch.get_num_threads(),

@@ -55,7 +55,8 @@ class Args(O.OfflineArgs):
     """TensorBoard + CSV logs and the resumable training state"""
 
     def ignored_keys(self) -> dict[str, str]:
-        return {**super().ignored_keys(), "central_critic": "CQL's critics always read the global graph"}
+        return {**super().ignored_keys(), "central_critic": "CQL's critics always read the global graph",
+                "actor_time": "CQL's policy samples read node features only (A2C, BC and IQL feed the actor the time context)"}  # fmt: skip
 
 
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:

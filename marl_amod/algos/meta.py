@@ -269,7 +269,8 @@ class Args(C.RunArgs):
 
     def ignored_keys(self) -> dict[str, str]:
         return {"actor": "meta-RL always uses the recurrent GNN", "mode": "meta-RL is centralised",
-                "central_critic": "meta-RL is centralised", "critic_time": "the recurrent critic reads t / horizon already"}  # fmt: skip
+                "central_critic": "meta-RL is centralised", "critic_time": "the recurrent critic reads t / horizon already",
+                "actor_time": "the recurrent actor reads t / horizon already"}  # fmt: skip
 
 
 def check_tasks(args: Args) -> None:

@@ -98,7 +98,7 @@ class Data:
         view = data.global_view()
         t = lambda a: torch.tensor(a, dtype=torch.float32)  # noqa: E731 - a copy: npz arrays are read-only
         self.tensors: dict[str, torch.Tensor] = {
-            "x": t(view["x"]), "next_x": t(view["next_x"]), "action": t(view["action"]),
+            "x": t(view["x"]), "next_x": t(view["next_x"]), "ctx": t(view["ctx"]), "next_ctx": t(view["next_ctx"]), "action": t(view["action"]),
             "reward": t(view["reward"]) * args.reward_scale, "done": t(view["done"]),
         }  # fmt: skip
         if args.mode == "decentralised":
@@ -114,14 +114,17 @@ class Data:
         return Batch({k: v[idx] for k, v in self.tensors.items()})
 
 
-def concentrations(actor: torch.nn.Module, b: Batch, edge_index: Graph, local: bool, prefix: str = "") -> torch.Tensor:
-    """alpha (B, N): from the global graph (centralised) or from each agent's own observation."""
+def concentrations(
+    actor: torch.nn.Module, b: Batch, edge_index: Graph, local: bool, prefix: str = "", time: bool = False
+) -> torch.Tensor:
+    """alpha (B, N): from the global graph (centralised; with the time context on every node when
+    ``time``, as ``actor_time`` runs) or from each agent's own observation."""
     if local:
         return actor.forward_local(b[f"{prefix}own"], b[f"{prefix}nbrs"], b[f"{prefix}mask"])
-    return actor(b[f"{prefix}x"], edge_index)
+    return actor(C.with_time(b[f"{prefix}x"], b.get(f"{prefix}ctx"), time), edge_index)
 
 
-def imitation_loss(actor: torch.nn.Module, b: Batch, graph: Graph, local: bool) -> torch.Tensor:
+def imitation_loss(actor: torch.nn.Module, b: Batch, graph: Graph, local: bool, time: bool = False) -> torch.Tensor:
     """Per-transition loss (B,) of imitating the logged action: the cross-entropy
     -sum_i y_i log mean_i of the logged distribution y under the Dirichlet mean alpha / sum(alpha).
 
@@ -134,7 +137,7 @@ def imitation_loss(actor: torch.nn.Module, b: Batch, graph: Graph, local: bool) 
     the likelihood as well moves every alpha_i by the same amount (d sum / d alpha_i = 1), which
     drags the mean towards uniform (INF: 45k instead of 55k on the validation seeds).
     """
-    alpha = concentrations(actor, b, graph, local)  # (B, N)
+    alpha = concentrations(actor, b, graph, local, time=time)  # (B, N)
     mean = alpha / alpha.sum(-1, keepdim=True)
     y = b["action"] / b["action"].sum(-1, keepdim=True).clamp_min(1e-12)
     return -(y * torch.log(mean.clamp_min(1e-8))).sum(-1)

@@ -90,7 +90,8 @@ class Args(C.RunArgs):
         return self
 
     def ignored_keys(self) -> dict[str, str]:
-        ignored = {**super().ignored_keys(), "central_critic": "SAC's Q critics always read the global graph"}
+        ignored = {**super().ignored_keys(), "central_critic": "SAC's Q critics always read the global graph",
+                   "actor_time": "SAC's actor reads node features only (A2C, BC and IQL feed the actor the time context)"}  # fmt: skip
         if self.mode == "decentralised":
             ignored["conv"] = "decentralised SAC uses the local actor and SAGE critics"
         if not self.auto_entropy:
