@@ -148,3 +148,33 @@ def test_imitation_loss_fits_the_mean_action_of_sparse_targets():
         opt.step()
     alpha = actor(b["x"], None)[0].detach()
     assert (alpha / alpha.sum()).tolist() == pytest.approx([0.75, 0.125, 0.125], abs=0.02)
+
+
+
+def test_keep_best_with_a_start_ships_the_start_unless_a_validation_beats_it(tmp_path, tiny, monkeypatch):
+    """A conservative improvement step: with init_actor and keep best the start is validated first,
+    so a run whose every later validation is worse ships its start unchanged."""
+    from marl_amod.algos import common as C
+    from marl_amod.checkpoints import load_actor
+
+    ALGOS["bc"].train(args_for("bc", _args(tmp_path, tiny)))
+    city = load_city(tiny[0])
+    start, _ = load_actor(tmp_path / "p.pt", city)
+    real, calls = C.evaluate_actor, []
+
+    def scripted(actor, city_, episodes, seed, lookahead):  # validations: the start 100, every later one 50
+        out = real(actor, city_, episodes, seed, lookahead)
+        if seed == 1000:
+            out["metrics"]["profit"]["mean"] = 100.0 if not calls else 50.0
+            calls.append(seed)
+        return out
+
+    monkeypatch.setattr(C, "evaluate_actor", scripted)
+    args = _args(tmp_path, tiny, init_actor=str(tmp_path / "p.pt"), keep="best", lr_actor=0.5, run_dir=str(tmp_path / "r2"),
+                 policy_out=str(tmp_path / "q.pt"))  # fmt: skip
+    card = ALGOS["bc"].train(args_for("bc", args))["card"]
+    assert len(calls) == 3 and card["best_validation"] == 100.0  # the start, then updates 3 and 6
+    shipped, _ = load_actor(tmp_path / "q.pt", city)
+    assert all(torch.equal(shipped.state_dict()[k], v) for k, v in start.state_dict().items())
+    last = torch.load(tmp_path / "r2" / "state.pt", weights_only=False)["actor"]
+    assert any(not torch.equal(last[k], v) for k, v in start.state_dict().items())  # the updates did move it
