@@ -52,6 +52,10 @@ class Args(C.RunArgs):
     critic_warmup: int = Field(0, ge=0)
     """first updates that train the critic only: a warm-started actor (``init_actor``) is not
     pushed around by the advantages of a critic that has not learnt the values yet"""
+    concentration_cap: float | None = Field(None, gt=0)
+    """cap on the Dirichlet's total concentration sum(alpha) when sampling (alpha scaled down to it;
+    the mean, which evaluation plays, is unchanged): an offline clone is ten times as concentrated
+    as a fresh actor (109 vs 9 on PROP's states), so without a cap its samples barely explore"""
     run_dir: str = "runs/a2c"
     """TensorBoard + CSV logs and the resumable training state"""
 
@@ -68,12 +72,15 @@ class Args(C.RunArgs):
         return ignored
 
 
-def act(alpha: torch.Tensor, mode: str) -> tuple[np.ndarray, torch.Tensor, torch.Tensor]:
+def act(alpha: torch.Tensor, mode: str, cap: float | None = None) -> tuple[np.ndarray, torch.Tensor, torch.Tensor]:
     """Sample an action from concentrations alpha (..., N); returns (weights (..., N), log pi (...), entropy (...)).
 
     Centralised: y ~ Dir(alpha). Decentralised: every agent draws its own g_i ~ Gamma(alpha_i)
-    (alpha_i from its own observation only). Leading axes are episodes in lockstep.
+    (alpha_i from its own observation only). Leading axes are episodes in lockstep. ``cap``
+    scales alpha down to total concentration ``cap`` where it is larger (:func:`capped`).
     """
+    if cap is not None:
+        alpha = capped(alpha, cap)
     if mode == "centralised":
         dist = dirichlet(alpha)
         y = dist.sample().clamp_min(1e-6)
@@ -81,6 +88,12 @@ def act(alpha: torch.Tensor, mode: str) -> tuple[np.ndarray, torch.Tensor, torch
         return y.numpy(), dist.log_prob(y), dist.entropy()
     g = gamma(alpha).sample().clamp_min(1e-8)  # each agent draws its own weight
     return g.numpy(), gamma_log_prob(g, alpha), gamma(alpha).entropy().sum(-1)
+
+
+def capped(alpha: torch.Tensor, cap: float) -> torch.Tensor:
+    """alpha (..., N) scaled so that sum(alpha) <= cap: the same mean, wider samples (the scale is
+    differentiated through, so the policy gradient moves the mean while the total stays at the cap)."""
+    return alpha * (cap / alpha.sum(-1, keepdim=True)).clamp(max=1.0)
 
 
 def concentrations(actor: torch.nn.Module, obs: Obs, graph: Graph, mode: str) -> torch.Tensor:
@@ -158,7 +171,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                 steps: list[tuple[torch.Tensor, ...]] = []
                 rewards = []
                 while not rollout.done:
-                    w, logp, ent = act(concentrations(actor, obs, graph, args.mode), args.mode)
+                    w, logp, ent = act(concentrations(actor, obs, graph, args.mode), args.mode, args.concentration_cap)
                     steps.append((logp, value(critic, obs, graph, local_critic, args.critic_time), ent))
                     obs, r = rollout.step(w)
                     rewards.append(np.asarray(r, dtype=np.float64) * args.reward_scale)
