@@ -66,7 +66,9 @@ def run_one(config: Path, seed: int, done: dict[str, Any], retrain: bool = False
         return None
     card_path = Path(args.policy_out).with_suffix(".json")
     card = json.loads(card_path.read_text()) if card_path.is_file() else None
-    if retrain or card is None or {k: v for k, v in card.get("args", {}).items() if k not in RUN_KEYS} != same:
+    start = Path(args.init_actor) if args.init_actor else None
+    stale = start is not None and card is not None and start.stat().st_mtime > card_path.stat().st_mtime  # its start was retrained
+    if retrain or stale or card is None or {k: v for k, v in card.get("args", {}).items() if k not in RUN_KEYS} != same:
         t = time.time()
         card = run_training(algo, args, config_path=str(config))["card"]
         print(f"{key} seed {seed}: trained in {time.time() - t:.0f} s", flush=True)
