@@ -9,6 +9,10 @@ online SAC (``policies/sac_gnn_<city>_fast.json``, 29 min on the batched path), 
 (``policies/<algo>_gnn_<city>_<dataset>.json``). Every cell is profit (mean +- std over the 10
 evaluation episodes of ``marl-amod evaluate --seed 0``) and the normalised score (0 = equal
 distribution, 100 = MPC-Oracle). Writes ``docs/offline/table.md`` and ``table.json``.
+
+Training seeds: where ``docs/offline/seeds.json`` (``benchmarks/offline_seeds.py``) holds two or
+more seeds of a cell's config, a second table gives their mean +- std over training seeds (each
+seed's profit is its 10-episode mean on the report seeds) beside the mean per-seed evaluation std.
 """
 
 from __future__ import annotations
@@ -16,6 +20,8 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+
+import numpy as np
 
 from marl_amod.datasets import normalised_score
 
@@ -38,7 +44,18 @@ def score(card_path: Path, evaluate: bool) -> dict | None:
     return {"mean": card["profit_mean"], "std": card["profit_std"], "card": card}
 
 
-def build(city: str, cards: Path, policies: Path, evaluate: bool) -> dict:
+def over_seeds(cell: dict | None, behaviour: float, refs: dict) -> dict | None:
+    """Mean +- std over the training seeds of one cell (None under two seeds)."""
+    if not cell or len(cell["seeds"]) < 2:
+        return None
+    profits = np.array([r["profit_mean"] for r in cell["seeds"].values()])
+    mean = float(profits.mean())
+    return {"n": len(profits), "mean": mean, "std": float(profits.std(ddof=1)), "eval_std": float(np.mean([r["profit_std"] for r in cell["seeds"].values()])),
+            "min": float(profits.min()), "normalised": normalised_score(mean, refs), "vs_behaviour_pct": 100.0 * (mean / behaviour - 1.0),
+            "per_seed": {k: r["profit_mean"] for k, r in sorted(cell["seeds"].items())}}  # fmt: skip
+
+
+def build(city: str, cards: Path, policies: Path, evaluate: bool, seeds: dict | None = None) -> dict:
     online = score(policies / f"{ONLINE.format(city=city)}.json", evaluate)
     rows = []
     for ds in DATASETS:
@@ -57,6 +74,9 @@ def build(city: str, cards: Path, policies: Path, evaluate: bool) -> dict:
                 row[algo] = {"mean": s["mean"], "std": s["std"], "normalised": normalised_score(s["mean"], refs),
                              "vs_behaviour_pct": 100.0 * (s["mean"] / beh["mean"] - 1.0),
                              "training_wall_s": s["card"].get("training_wall_s"), "updates": s["card"].get("updates")}
+                seeded = over_seeds((seeds or {}).get(f"{algo}_gnn_{city}_{ds}"), beh["mean"], refs)
+                if seeded:
+                    row[algo]["seeds"] = seeded
         rows.append(row)
     refs = json.loads((cards / f"{city}_{rows[0]['dataset']}.json").read_text())["reference_scores"] if rows else {}
     return {"scenario": city, "evaluation": {"episodes": 10, "seed": 0}, "reference_scores": refs, "rows": rows,
@@ -96,18 +116,44 @@ def markdown(table: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def seeds_markdown(table: dict) -> str:
+    """The second table: mean +- std over training seeds, [mean per-seed evaluation std], n seeds."""
+    lines = [
+        "Over training seeds (`benchmarks/offline_seeds.py`, `seeds.json`): profit mean ± std over n training seeds of each "
+        "seed's 10-episode mean on the same report seeds; in square brackets the mean per-seed evaluation std.",
+        "",
+        "| Dataset | Beh. pol. | BC | IQL | CQL | BC vs beh. | best of IQL/CQL vs beh. |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in table["rows"]:
+        seeded = {a: r[a]["seeds"] for a in ALGOS if a in r and "seeds" in r[a]}
+        if not seeded:
+            continue
+        text = lambda s: f"{s['mean'] / 1000:.1f}k ±{s['std'] / 1000:.1f} [±{s['eval_std'] / 1000:.1f}] (n={s['n']})" if s else "-"  # noqa: E731
+        rl = max([a for a in ("iql", "cql") if a in seeded], key=lambda a: seeded[a]["mean"], default=None)
+        bc = f"{seeded['bc']['vs_behaviour_pct']:+.1f}%" if "bc" in seeded else "-"
+        gain = f"{seeded[rl]['vs_behaviour_pct']:+.1f}% ({rl.upper()})" if rl else "-"
+        lines.append(f"| {r['dataset'].upper().replace('_', '-')} | {r['behaviour']['mean'] / 1000:.1f}k | "
+                     + " | ".join(text(seeded.get(a)) for a in ALGOS) + f" | {bc} | {gain} |")  # fmt: skip
+    return "\n".join(lines) + "\n" if len(lines) > 4 else ""
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="nyc_brooklyn")
     ap.add_argument("--cards", type=Path, default=ROOT / "docs/offline/datasets", help="folder of dataset cards")
     ap.add_argument("--policies", type=Path, default=ROOT / "policies")
+    ap.add_argument("--seeds", type=Path, default=ROOT / "docs/offline/seeds.json", help="training seeds (benchmarks/offline_seeds.py)")
     ap.add_argument("--out", type=Path, default=ROOT / "docs/offline")
     ap.add_argument("--evaluate", action="store_true", help="re-evaluate every policy instead of reading its card")
     args = ap.parse_args()
-    table = build(args.scenario, args.cards, args.policies, args.evaluate)
+    seeds = json.loads(args.seeds.read_text()) if args.seeds.is_file() else None
+    table = build(args.scenario, args.cards, args.policies, args.evaluate, seeds)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "table.json").write_text(json.dumps(table, indent=2) + "\n")
     md = markdown(table)
+    extra = seeds_markdown(table)
+    md += f"\n{extra}" if extra else ""
     (args.out / "table.md").write_text(md)
     print(md)
 

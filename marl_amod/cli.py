@@ -311,6 +311,9 @@ def finetune_curve(
     eval_episodes: Annotated[int, typer.Option(min=1)] = 10,
     critic_warmup: Annotated[int, typer.Option(min=0, help="first fine-tuning updates that train the critic only")] = 50,
     finetune_lr: Annotated[float, typer.Option(min=0, help="actor learning rate when fine-tuning")] = 1e-4,
+    concentration_cap: Annotated[
+        float | None, typer.Option(min=0, help="cap on the fine-tuned actor's total Dirichlet concentration when sampling")
+    ] = None,
     out: Annotated[Path, typer.Option(help="folder for finetune.json and finetune.png")] = Path("docs/offline"),
     run_root: Annotated[Path, typer.Option(help="the two runs' logs")] = Path("runs/finetune"),
     seed: Annotated[int, typer.Option(min=0)] = 0,
@@ -324,8 +327,8 @@ def finetune_curve(
         task = bar.add_task("A2C", total=episodes)
         study = finetune.finetune_curve(
             str(policy), episodes=episodes, num_envs=num_envs, eval_every=eval_every, eval_episodes=eval_episodes, seed=seed,
-            finetune_lr_actor=finetune_lr, critic_warmup=critic_warmup, run_root=run_root,
-            progress=lambda ep, total, stats: bar.update(task, completed=ep),
+            finetune_lr_actor=finetune_lr, critic_warmup=critic_warmup, concentration_cap=concentration_cap,
+            run_root=run_root, progress=lambda ep, total, stats: bar.update(task, completed=ep),
         )  # fmt: skip
     paths = finetune.write(study, out)
     console.print(finetune.describe(study), soft_wrap=True)

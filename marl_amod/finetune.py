@@ -4,7 +4,9 @@ Both runs are :func:`marl_amod.algos.a2c.train` with the same budget, batch and 
 (episode k draws the same demand in both, so they are compared pair by pair); the fine-tuned one
 starts its actor from the offline policy (``init_actor``), trains its fresh critic alone for
 ``critic_warmup`` updates (advantages from an untrained critic would push the actor off its
-start) and moves the actor with a smaller learning rate. Every ``eval_every`` episodes each actor
+start), moves the actor with its own learning rate and samples with its total Dirichlet
+concentration capped (``concentration_cap``: an offline clone is ten times as concentrated as a
+fresh actor, so uncapped its samples barely explore and fine-tuning stalls). Every ``eval_every`` episodes each actor
 is scored deterministically on the validation seeds (never the report seeds).
 
 What the study reports, as the paper does:
@@ -39,8 +41,8 @@ METRICS = ("eval/profit", "train/revenue", "train/rebalancing_cost")
 
 def finetune_curve(
     policy: str, *, episodes: int = 6000, num_envs: int = 4, eval_every: int = 200, eval_episodes: int = 10, seed: int = 0,
-    lr_actor: float = 1e-3, finetune_lr_actor: float = 1e-4, critic_warmup: int = 50, run_root: str | Path = "runs/finetune",
-    progress: a2c.C.Progress | None = None,
+    lr_actor: float = 1e-3, finetune_lr_actor: float = 1e-4, critic_warmup: int = 50, concentration_cap: float | None = None,
+    run_root: str | Path = "runs/finetune", progress: a2c.C.Progress | None = None,
 ) -> dict[str, Any]:
     """Fine-tune ``policy`` (an offline policy file) online and train from scratch with the same budget;
     returns the curves and the study's numbers (see the module docstring)."""
@@ -58,7 +60,7 @@ def finetune_curve(
     }  # fmt: skip
     runs = {
         "finetune": a2c.Args(**common, init_actor=str(policy), lr_actor=finetune_lr_actor, critic_warmup=critic_warmup,
-                             run_dir=str(Path(run_root) / "finetune")),  # fmt: skip
+                             concentration_cap=concentration_cap, run_dir=str(Path(run_root) / "finetune")),  # fmt: skip
         "scratch": a2c.Args(**common, lr_actor=lr_actor, run_dir=str(Path(run_root) / "scratch")),
     }
     val = {"episodes": eval_episodes, "seed": runs["scratch"].eval_seed}
@@ -72,7 +74,7 @@ def finetune_curve(
         summary = a2c.train(args, progress=progress)
         curves = {m: read_curve(args.run_dir, m) for m in METRICS}
         out["runs"][name] = {
-            "args": {k: v for k, v in args.model_dump(mode="json").items() if k in ("init_actor", "lr_actor", "lr_critic", "critic_warmup", "num_envs", "episodes_per_update")},
+            "args": {k: v for k, v in args.model_dump(mode="json").items() if k in ("init_actor", "lr_actor", "lr_critic", "critic_warmup", "concentration_cap", "num_envs", "episodes_per_update")},
             "validation": [list(p) for p in zip(*curves["eval/profit"], strict=True)],  # [episodes, profit]
             "train": [[e, r, c] for e, r, c in zip(curves["train/revenue"][0], curves["train/revenue"][1], curves["train/rebalancing_cost"][1], strict=True)],
             "wall_s": summary["card"]["training_wall_s"],

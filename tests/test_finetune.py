@@ -85,3 +85,24 @@ def test_cli_finetune_curve(tmp_path, offline_policy):
                                    "--eval-episodes", "1", "--out", str(tmp_path / "o"), "--run-root", str(tmp_path / "r")])  # fmt: skip
     assert res.exit_code == 0, res.output
     assert (tmp_path / "o" / "finetune.json").is_file() and (tmp_path / "o" / "finetune.png").is_file()
+
+
+def test_concentration_cap_keeps_the_mean_and_bounds_the_total():
+    """The fine-tuning cap widens samples without moving what the deterministic policy plays."""
+    import torch
+
+    from marl_amod.algos.a2c import Args, act, capped, sampling_concentrations
+
+    alpha = torch.tensor([[60.0, 30.0, 10.0], [1.0, 2.0, 3.0]])
+    out = capped(alpha, 10.0)
+    assert torch.allclose(out.sum(-1), torch.tensor([10.0, 6.0]))  # the first scaled down, the second under the cap untouched
+    assert torch.allclose(out / out.sum(-1, keepdim=True), alpha / alpha.sum(-1, keepdim=True))
+    torch.manual_seed(0)
+    sampled = sampling_concentrations(alpha[:1].expand(2000, -1), Args(concentration_cap=10.0))
+    wide = torch.tensor(act(sampled, "centralised")[0])
+    torch.manual_seed(0)
+    narrow = torch.tensor(act(alpha[:1].expand(2000, -1), "centralised")[0])
+    assert (wide.std(0) > 2.5 * narrow.std(0)).all()  # std ~ sqrt(m(1-m)/(total+1)): total 100 -> 10
+    assert torch.allclose(wide.mean(0), torch.tensor([0.6, 0.3, 0.1]), atol=0.02)
+    both = sampling_concentrations(alpha, Args(action_concentration=4.0, concentration_cap=10.0))
+    assert torch.allclose(both.sum(-1), torch.tensor([10.0, 10.0]))  # scaled first (x4: 400, 24), then capped

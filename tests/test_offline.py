@@ -164,3 +164,58 @@ def test_offline_actor_time_reads_the_logged_time_values_and_evaluates_as_traine
     assert torch.allclose(steps, steps.round(), atol=1e-4) and steps.max() > 0
     with pytest.raises(ConfigError, match="actor_time is not read"):
         args_for("cql", _args(tmp_path, tiny, actor_time=True))
+
+
+def test_keep_best_with_a_start_ships_the_start_unless_a_validation_beats_it(tmp_path, tiny, monkeypatch):
+    """A conservative improvement step: with init_actor and keep best the start is validated first,
+    so a run whose every later validation is worse ships its start unchanged."""
+    from marl_amod.algos import common as C
+    from marl_amod.checkpoints import load_actor
+
+    ALGOS["bc"].train(args_for("bc", _args(tmp_path, tiny)))
+    city = load_city(tiny[0])
+    start, _ = load_actor(tmp_path / "p.pt", city)
+    real, calls = C.evaluate_actor, []
+
+    def scripted(actor, city_, episodes, seed, *rest):  # validations: the start 100, every later one 50
+        out = real(actor, city_, episodes, seed, *rest)
+        if seed == 1000:
+            out["metrics"]["profit"]["mean"] = 100.0 if not calls else 50.0
+            calls.append(seed)
+        return out
+
+    monkeypatch.setattr(C, "evaluate_actor", scripted)
+    args = _args(tmp_path, tiny, init_actor=str(tmp_path / "p.pt"), keep="best", lr_actor=0.5, run_dir=str(tmp_path / "r2"),
+                 policy_out=str(tmp_path / "q.pt"))  # fmt: skip
+    card = ALGOS["bc"].train(args_for("bc", args))["card"]
+    assert len(calls) == 3 and card["best_validation"] == 100.0  # the start, then updates 3 and 6
+    shipped, _ = load_actor(tmp_path / "q.pt", city)
+    assert all(torch.equal(shipped.state_dict()[k], v) for k, v in start.state_dict().items())
+    last = torch.load(tmp_path / "r2" / "state.pt", weights_only=False)["actor"]
+    assert any(not torch.equal(last[k], v) for k, v in start.state_dict().items())  # the updates did move it
+
+
+def test_training_seeds_get_their_own_files_and_start_and_the_table_averages_them(tmp_path, tiny, monkeypatch):
+    """benchmarks/offline_seeds.py: seed s writes apart and starts from its start's seed-s run where
+    it exists (else the config's start); offline_table.py reports mean +- std over the seeds."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    import offline_seeds
+    import offline_table
+
+    monkeypatch.setattr(offline_seeds, "SEED_DIR", tmp_path / "seeds")
+    args = args_for("cql", _args(tmp_path, tiny, init_actor="policies/bc_x.pt", policy_out="policies/cql_x.pt"))
+    assert offline_seeds.seed_args(args, 0) is args  # the config's own seed: the shipped policy
+    one = offline_seeds.seed_args(args, 1)
+    assert one.seed == 1 and one.policy_out == str(tmp_path / "seeds" / "cql_x_s1.pt") and one.init_actor == "policies/bc_x.pt"
+    (tmp_path / "seeds").mkdir()
+    (tmp_path / "seeds" / "bc_x_s2.pt").write_bytes(b"")
+    assert offline_seeds.seed_args(args, 2).init_actor == str(tmp_path / "seeds" / "bc_x_s2.pt")
+    assert offline_seeds.comparable(one) == offline_seeds.comparable(args)  # the same experiment
+    cell = {"seeds": {str(s): {"profit_mean": p, "profit_std": 10.0} for s, p in enumerate((100.0, 110.0, 120.0))}}
+    refs = {"equal-distribution": {"mean": 100.0}, "mpc-oracle": {"mean": 200.0}}
+    stats = offline_table.over_seeds(cell, 100.0, refs)
+    assert stats["n"] == 3 and stats["mean"] == pytest.approx(110.0) and stats["std"] == pytest.approx(10.0)
+    assert stats["vs_behaviour_pct"] == pytest.approx(10.0) and stats["normalised"] == pytest.approx(10.0)
+    assert offline_table.over_seeds({"seeds": {"0": cell["seeds"]["0"]}}, 100.0, refs) is None

@@ -63,6 +63,10 @@ class Args(C.RunArgs):
     """weight of KL(pi || pi_start) at the visited states, pi_start the frozen ``init_actor``: an
     RL update that refines a clone instead of walking away from it (the meso fine-tune from the
     clone lost ~250 per episode to ED without it); needs ``init_actor``"""
+    concentration_cap: float | None = Field(None, gt=0)
+    """cap on the Dirichlet's total concentration sum(alpha) when sampling (alpha scaled down to it;
+    the mean, which evaluation plays, is unchanged): an offline clone is ten times as concentrated
+    as a fresh actor (109 vs 9 on PROP's states), so without a cap its samples barely explore"""
     run_dir: str = "runs/a2c"
     """TensorBoard + CSV logs and the resumable training state"""
 
@@ -94,6 +98,19 @@ def act(alpha: torch.Tensor, mode: str) -> tuple[np.ndarray, torch.Tensor, torch
         return y.numpy(), dist.log_prob(y), dist.entropy()
     g = gamma(alpha).sample().clamp_min(1e-8)  # each agent draws its own weight
     return g.numpy(), gamma_log_prob(g, alpha), gamma(alpha).entropy().sum(-1)
+
+
+def capped(alpha: torch.Tensor, cap: float) -> torch.Tensor:
+    """alpha (..., N) scaled so that sum(alpha) <= cap: the same mean, wider samples (the scale is
+    differentiated through, so the policy gradient moves the mean while the total stays at the cap)."""
+    return alpha * (cap / alpha.sum(-1, keepdim=True)).clamp(max=1.0)
+
+
+def sampling_concentrations(alpha: torch.Tensor, args: Args) -> torch.Tensor:
+    """The concentrations training actions are drawn from: alpha times ``action_concentration``, then
+    capped at ``concentration_cap``; the mean, which evaluation plays, is alpha's either way."""
+    alpha = alpha * args.action_concentration
+    return alpha if args.concentration_cap is None else capped(alpha, args.concentration_cap)
 
 
 def kl_to(alpha: torch.Tensor, ref: torch.Tensor, mode: str) -> torch.Tensor:
@@ -182,10 +199,10 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                 steps: list[tuple[torch.Tensor, ...]] = []
                 rewards = []
                 while not rollout.done:
-                    alpha = args.action_concentration * concentrations(actor, obs, graph, args.mode, args.actor_time)
+                    alpha = sampling_concentrations(concentrations(actor, obs, graph, args.mode, args.actor_time), args)
                     w, logp, ent = act(alpha, args.mode)
                     if start is not None:
-                        kl = kl_to(alpha, args.action_concentration * concentrations(start, obs, graph, args.mode, args.actor_time), args.mode)
+                        kl = kl_to(alpha, sampling_concentrations(concentrations(start, obs, graph, args.mode, args.actor_time), args), args.mode)
                     else:
                         kl = torch.zeros_like(logp)
                     steps.append((logp, value(critic, obs, graph, local_critic, args.critic_time), ent, kl))

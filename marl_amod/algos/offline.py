@@ -55,7 +55,9 @@ class OfflineArgs(C.RunArgs):
     actor cannot see, and its validation profit swung by 8k between checkpoints without it)"""
     keep: Literal["last", "best"] = "last"
     """the actor shipped: the last one (no env interaction at all: offline RL proper) or the best
-    on the validation seeds (uses ``eval_episodes`` env episodes per validation, as online runs do)"""
+    on the validation seeds (uses ``eval_episodes`` env episodes per validation, as online runs do:
+    online policy selection, as D4RL papers report it; with ``init_actor`` the start is a candidate
+    too, so an improvement step is kept only where the validation seeds confirm it)"""
 
     def ignored_keys(self) -> dict[str, str]:
         return {**super().ignored_keys(), "episodes": "offline runs take no env episodes; set updates"}
@@ -157,6 +159,8 @@ def fit(
     if not resume:
         C.warm_start(actor, args, city)
     step, prior_wall, best = 0, 0.0, C.BestActor.of(actor)
+    if args.init_actor and args.keep == "best" and not resume:  # a conservative improvement step: the start
+        best.validate(actor, city, args)  # is a candidate, so the shipped actor never validates below it
     if resume:
         st = C.load_state(resume, algorithm)
         for name, part in parts.items():
