@@ -136,7 +136,7 @@ def test_a_state_saved_with_two_critics_resumes_with_the_stacked_critics():
     from marl_amod.scenario import grid_city
 
     city = grid_city(3, 3, seed=0)
-    graph = DenseGraph(torch.as_tensor(city.edge_index), city.n_regions)
+    graph = DenseGraph(torch.tensor(city.edge_index), city.n_regions)
     torch.manual_seed(0)
     x, action = torch.rand(5, 9, 16), torch.rand(5, 9)
     twin = TwinQ(16, 8, "gcn")
