@@ -285,7 +285,7 @@ def plot(payload: dict, path: Path) -> None:
     one line style per route (solid: the first, dashed: the second)."""
     import matplotlib.pyplot as plt
 
-    fig, (top, bottom) = plt.subplots(2, 1, figsize=(7, 7), sharex=True)
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(9.5, 7.5), sharex=True)
     twin = bottom.twinx()
     styles = ("-", "--", ":")
     for (route, block), style in zip(payload["routes"].items(), styles, strict=False):
@@ -300,15 +300,17 @@ def plot(payload: dict, path: Path) -> None:
         bars(bottom, "wait_time", marker="o", color="tab:red", label=f"waiting time ({label})")
         bars(twin, "utilization", marker="s", color="tab:purple", label=f"utilisation ({label})")
     top.set_ylabel("money per episode")
-    top.legend(fontsize="small")
+    top.set_ylim(top=1.5 * top.get_ylim()[1])  # room above the curves for one legend column per route
+    top.legend(fontsize="x-small", ncol=len(payload["routes"]), loc="upper center")
     bottom.set_ylabel("waiting time (min)")
     bottom.set_xlabel(r"$\beta$ (trip cost $c_{ij} = \beta\,\tau_{ij}$)")
     twin.set_ylabel("fleet utilisation")
     lines = bottom.get_legend_handles_labels()[0] + twin.get_legend_handles_labels()[0]
-    bottom.legend(lines, [ln.get_label() for ln in lines], loc="best", fontsize="small")
+    labels = [ln.get_label() for ln in lines]  # below the panel: the curves fill it
+    bottom.legend(lines, labels, loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2, fontsize="x-small")
     fig.suptitle("Graph-RL on Luxembourg (SUMO meso) vs trip-cost weight")
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
 
 
