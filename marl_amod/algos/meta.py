@@ -48,6 +48,7 @@ the memory those left: a handful of episodes and no gradient step.
 from __future__ import annotations
 
 import copy
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -293,6 +294,35 @@ def validate(model: RecurrentGNN, args: Args, cities: dict[str, City]) -> float:
     return float(np.mean(scores))
 
 
+@dataclass
+class MetaBook:
+    """What meta-RL and its imitation warm start do after every update, in one place: validate when
+    due and at the time limit (keeping the best model), save the resumable state, log, report
+    progress; ``best`` lives here so the state saved on an interrupt is the one validation kept."""
+
+    args: Args
+    model: RecurrentGNN
+    cities: dict[str, City]
+    log: C.Logger
+    timer: C.Timer
+    best: C.BestActor
+    progress: C.Progress | None = None
+
+    def close(self, count: int, total: int, stats: dict[str, float], due: bool, save: Callable[[], Any]) -> bool:
+        """After update ``count`` (of ``total``): validate if ``due`` or out of time, log; True when time is up."""
+        out_of_time = bool(self.args.time_limit_s) and self.timer() > self.args.time_limit_s  # validate the last model too
+        if due or out_of_time:
+            stats["eval/scaled_return"] = val = validate(self.model, self.args, self.cities)
+            if val > self.best.value:
+                self.best = C.BestActor(val, copy.deepcopy(self.model.state_dict()))
+            save()
+        stats["time/wall_s"] = self.timer()
+        self.log.log(count, **stats)
+        if self.progress is not None:
+            self.progress(count, total, stats)
+        return out_of_time
+
+
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
     """Meta-train over trials on the training cities, keep the best validated model, write its card."""
     check_tasks(args)
@@ -324,6 +354,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         rng.bit_generator.state = st["city_rng"]
     log = C.Logger(args.run_dir, resume_from=start_ep if resume else None)
     timer = C.Timer(prior_wall)
+    book = MetaBook(args, model, cities, log, timer, best, progress)
     done_ep = ep = start_ep
     b, k_eps = args.num_envs, args.trial_episodes
     per_update = args.cities_per_update * b * k_eps
@@ -331,7 +362,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     def save() -> tuple[Path, int]:
         path = C.state_path(args)
         C.save_state(path, algorithm="meta", model=model.state_dict(), opt=opt.state_dict(), episode=done_ep,
-                     best_val=best.value, best_actor=best.state, wall_s=timer(), city_rng=rng.bit_generator.state)  # fmt: skip
+                     best_val=book.best.value, best_actor=book.best.state, wall_s=timer(), city_rng=rng.bit_generator.state)  # fmt: skip
         return path, done_ep
 
     with C.interruptible(save):
@@ -367,21 +398,11 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
 
             stats = {"train/last_episode_scaled_profit": float(np.mean(profits)), "train/scaled_reward": float(np.mean(rewards)),
                      "train/shocked_cities": shocked, "loss/total": total.item()}  # fmt: skip
-            out_of_time = bool(args.time_limit_s) and timer() > args.time_limit_s  # validate the last model too
-            if C.crossed(ep, per_update, args.eval_every) or ep >= args.episodes or out_of_time:
-                stats["eval/scaled_return"] = val = validate(model, args, cities)
-                if val > best.value:
-                    best = C.BestActor(val, copy.deepcopy(model.state_dict()))
-                save()
-            stats["time/wall_s"] = timer()
-            log.log(ep, **stats)
-            if progress is not None:
-                progress(ep, args.episodes, stats)
-            if out_of_time:
+            if book.close(ep, args.episodes, stats, C.crossed(ep, per_update, args.eval_every) or ep >= args.episodes, save):
                 break
 
     log.close()
-    model.load_state_dict(best.state)
+    model.load_state_dict(book.best.state)
     return finish(args, model, timer(), ep, config_path, extra=warm)
 
 

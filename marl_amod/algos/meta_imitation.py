@@ -26,7 +26,6 @@ early errors flow back through the shared memory.
 
 from __future__ import annotations
 
-import copy
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -207,10 +206,11 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         rng.bit_generator.state = st["city_rng"]
     log = C.Logger(args.run_dir, resume_from=step if resume else None)
     timer = C.Timer(prior_wall)
+    book = meta.MetaBook(args, model, cities, log, timer, best, progress)
 
     def save() -> tuple[Path, int]:
         C.save_state(C.state_path(args), algorithm="meta-bc", model=model.state_dict(), opt=opt.state_dict(), episode=step,
-                     best_val=best.value, best_actor=best.state, wall_s=timer(), city_rng=rng.bit_generator.state)  # fmt: skip
+                     best_val=book.best.value, best_actor=book.best.state, wall_s=timer(), city_rng=rng.bit_generator.state)  # fmt: skip
         return C.state_path(args), step
 
     with C.interruptible(save):
@@ -227,20 +227,10 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
             opt.step()
             step += 1
             stats = {"loss/imitation": ce.item(), "loss/value": vl.item()}
-            out_of_time = bool(args.time_limit_s) and timer() > args.time_limit_s
-            if step % args.eval_every == 0 or step >= args.updates or out_of_time:
-                stats["eval/scaled_return"] = val = meta.validate(model, args, cities)
-                if val > best.value:
-                    best = C.BestActor(val, copy.deepcopy(model.state_dict()))
-                save()
-            stats["time/wall_s"] = timer()
-            log.log(step, **stats)
-            if progress is not None:
-                progress(step, args.updates, stats)
-            if out_of_time:
+            if book.close(step, args.updates, stats, step % args.eval_every == 0 or step >= args.updates, save):
                 break
     log.close()
-    model.load_state_dict(best.state)
+    model.load_state_dict(book.best.state)
     extra = {"updates": step, "demonstrations": {"policy": "mpc-forecast", "cities": list(args.cities), "episodes_per_city": args.demo_episodes,
              "collection_wall_s": round(sum(walls.values()), 1)}}  # fmt: skip
     return meta.finish(args, model, timer(), 0, config_path, algorithm="meta-bc", extra=extra)
