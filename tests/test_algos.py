@@ -151,27 +151,37 @@ def test_discounted_returns():
     np.testing.assert_array_equal(discounted_returns([[1.0, 0.0], [2.0, 0.0], [4.0, 8.0]], 0.5), [[3.0, 2.0], [4.0, 4.0], [4.0, 8.0]])
 
 
-def test_train_config_typo_is_a_clear_error(tmp_path):
-    from marl_amod.algos.registry import load_train_config
+TYPO_CASES = [
+    ("marl_amod.algos.registry:load_train_config", "algo: a2c\nargs: {episodse: 10}\n", "episodse"),
+    ("marl_amod.algos.registry:load_train_config", "algo: a2c\nargz: {}\n", "argz"),
+    ("marl_amod.algos.registry:load_train_config", "algo: a2c\nargs: {gamma: fast}\n", "gamma"),
+    ("marl_amod.comparison:load_compare_config", "scenario: synthetic\nepisodez: 3\n", "episodez"),
+    (
+        "marl_amod.comparison:load_compare_config",
+        "scenario: synthetic\nruns: [{label: x, algo: sac, args: {hiden: 3, policy_out: a.pt}}]\n",
+        "hiden",
+    ),
+]
 
+
+def _loader(spec: str):
+    import importlib
+
+    module, name = spec.split(":")
+    return getattr(importlib.import_module(module), name)
+
+
+@pytest.mark.parametrize(("loader", "text", "culprit"), TYPO_CASES)
+def test_config_typo_is_a_clear_error_naming_the_key(tmp_path, loader, text, culprit):
     bad = tmp_path / "bad.yaml"
-    bad.write_text("algo: a2c\nargs: {episodse: 10}\n")
-    with pytest.raises(ConfigError, match="episodse"):
-        load_train_config(bad)
-    bad.write_text("algo: a2c\nargz: {}\n")
-    with pytest.raises(ConfigError, match="argz"):
-        load_train_config(bad)
-    bad.write_text("algo: a2c\nargs: {gamma: fast}\n")
-    with pytest.raises(ConfigError, match="gamma"):
-        load_train_config(bad)
+    bad.write_text(text)
+    with pytest.raises(ConfigError, match=culprit):
+        _loader(loader)(bad)
 
 
 @pytest.mark.parametrize("loader", ["marl_amod.algos.registry:load_train_config", "marl_amod.comparison:load_compare_config"])
 def test_malformed_or_missing_config_is_a_config_error_naming_the_file(tmp_path, loader):
-    import importlib
-
-    module, name = loader.split(":")
-    load = getattr(importlib.import_module(module), name)
+    load = _loader(loader)
     bad = tmp_path / "broken.yaml"
     bad.write_text("algo: a2c\nargs: {episodes: [1, 2\n")
     with pytest.raises(ConfigError, match="malformed YAML in .*broken.yaml"):
@@ -181,18 +191,6 @@ def test_malformed_or_missing_config_is_a_config_error_naming_the_file(tmp_path,
         load(bad)
     with pytest.raises(ConfigError, match="not found"):
         load(tmp_path / "missing.yaml")
-
-
-def test_compare_config_typo_is_a_clear_error(tmp_path):
-    from marl_amod.comparison import load_compare_config
-
-    bad = tmp_path / "c.yaml"
-    bad.write_text("scenario: synthetic\nepisodez: 3\n")
-    with pytest.raises(ConfigError, match="episodez"):
-        load_compare_config(bad)
-    bad.write_text("scenario: synthetic\nruns: [{label: x, algo: sac, args: {hiden: 3, policy_out: a.pt}}]\n")
-    with pytest.raises(ConfigError, match="hiden"):
-        load_compare_config(bad)
 
 
 def test_bundled_configs_validate():
