@@ -166,6 +166,28 @@ def test_offline_actor_time_reads_the_logged_time_values_and_evaluates_as_traine
         args_for("cql", _args(tmp_path, tiny, actor_time=True))
 
 
+@pytest.mark.parametrize("algo", ["iql", "cql"])
+def test_mlp_clone_is_the_start_of_iql_and_cql_and_ships_as_an_mlp(tmp_path, tiny, algo):
+    """The MPC-Forecast and DTV recipe: BC with the MLP actor (all regions' features in), then IQL or
+    CQL starting from that clone; each file is an MLP policy that evaluates to its card's score, and
+    the improvement step starts from the clone's weights (its first loss is the clone's)."""
+    from marl_amod.checkpoints import load_actor
+
+    bc = ALGOS["bc"].train(args_for("bc", _args(tmp_path, tiny, actor="mlp", policy_out=str(tmp_path / "bc.pt"))))
+    assert bc["card"]["actor"] == "mlp"
+    extra = {"critic_hidden": 8, "bc_steps": 6, "n_actions": 2} if algo == "cql" else {"critic_hidden": 8, "beta": 0.0}
+    args = _args(tmp_path, tiny, actor="mlp", init_actor=str(tmp_path / "bc.pt"), lr_actor=1e-12, run_dir=str(tmp_path / "r2"), **extra)
+    card = ALGOS[algo].train(args_for(algo, args))["card"]
+    city = load_city(tiny[0])
+    clone, _ = load_actor(tmp_path / "bc.pt", city)
+    shipped, shipped_card = load_actor(tmp_path / "p.pt", city)
+    assert shipped_card["actor"] == "mlp" and type(shipped) is type(clone)
+    # a learning rate of 1e-12 leaves the start where it was: the step began from the clone
+    assert all(torch.allclose(shipped.state_dict()[k], v, atol=1e-6) for k, v in clone.state_dict().items())
+    res = evaluate(str(tmp_path / "p.pt"), city, episodes=2, seed=0)
+    assert res["metrics"]["profit"]["mean"] == pytest.approx(card["profit_mean"])
+
+
 def test_keep_best_with_a_start_ships_the_start_unless_a_validation_beats_it(tmp_path, tiny, monkeypatch):
     """A conservative improvement step: with init_actor and keep best the start is validated first,
     so a run whose every later validation is worse ships its start unchanged."""
