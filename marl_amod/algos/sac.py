@@ -1,7 +1,7 @@
 """Soft actor-critic with a Dirichlet policy and twin GNN Q critics (paper, sec. 4; RL4AMOD's SAC).
 
 Read top to bottom: Args, the replay buffer, the reparameterised policy sample for both modes,
-then ``train``.
+the :class:`Learner` (networks, optimisers and one gradient update), then ``train``.
 
 The action is the desired distribution y (N,) on the simplex. Centralised: y = rsample of
 Dir(actor(x)). Decentralised: every agent draws g_i ~ Gamma(alpha_i(o_i), 1) (reparameterised)
@@ -44,7 +44,7 @@ from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import LocalActor, TwinQ, build_actor, dirichlet, gamma, gamma_log_prob
 from marl_amod.models.dense import DenseGraph
 from marl_amod.models.gnn import Graph, StackedTwinQ
-from marl_amod.scenario import load_city
+from marl_amod.scenario import City, load_city
 
 
 class Args(C.RunArgs):
@@ -239,7 +239,7 @@ class Learner:
     ``benchmarks/sac_update.py`` times the real update part by part.
     """
 
-    def __init__(self, args: Args, city, edge_index: Graph) -> None:
+    def __init__(self, args: Args, city: City, edge_index: Graph) -> None:
         self.args, self.edge_index = args, edge_index
         self.local = local = args.mode == "decentralised"
         n_features = feature_count(args.lookahead)
