@@ -126,6 +126,28 @@ class _Best:
         return 1.0
 
 
+def test_learner_update_marks_its_parts_in_order_and_moves_actor_critics_and_targets():
+    """``Learner.update`` calls ``mark`` after each part, in the order benchmarks/sac_update.py
+    reports them (so its table cannot silently lose a part), and one update changes the actor,
+    the critics and, by Polyak averaging, the target critics."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    import sac_update
+
+    from marl_amod.algos.sac import Args, Learner
+
+    city = grid_city(3, 3, seed=0)
+    args = Args(scenario="synthetic", hidden=8, batch_size=4, num_envs=2, policy_out="")
+    learner = Learner(args, city, C.make_graph(city, args))
+    buffer = sac_update.filled_replay(city.n_regions, 13, 8, seed=0)
+    nets = {"actor": learner.actor, "critic": learner.critic, "target": learner.critic_targ}
+    before = {k: [p.detach().clone() for p in m.parameters()] for k, m in nets.items()}
+    parts: list[str] = []
+    learner.update(buffer.sample(4, torch.Generator().manual_seed(0)), parts.append)
+    assert parts == sac_update.PARTS[:-1]  # all but the replay sample, which the caller takes
+    for k, m in nets.items():
+        assert any(not torch.equal(p, q) for p, q in zip(m.parameters(), before[k], strict=True)), k
+
+
 @pytest.mark.parametrize(("at_limit", "validations"), [(True, 1), (False, 0)])
 def test_episode_book_validates_when_due_and_the_out_of_time_batch_only_if_asked(tmp_path, at_limit, validations):
     from marl_amod.algos.a2c import Args

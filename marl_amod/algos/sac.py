@@ -1,7 +1,7 @@
 """Soft actor-critic with a Dirichlet policy and twin GNN Q critics (paper, sec. 4; RL4AMOD's SAC).
 
 Read top to bottom: Args, the replay buffer, the reparameterised policy sample for both modes,
-then ``train``.
+the :class:`Learner` (networks, optimisers and one gradient update), then ``train``.
 
 The action is the desired distribution y (N,) on the simplex. Centralised: y = rsample of
 Dir(actor(x)). Decentralised: every agent draws g_i ~ Gamma(alpha_i(o_i), 1) (reparameterised)
@@ -44,7 +44,7 @@ from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import LocalActor, TwinQ, build_actor, dirichlet, gamma, gamma_log_prob
 from marl_amod.models.dense import DenseGraph
 from marl_amod.models.gnn import Graph, StackedTwinQ
-from marl_amod.scenario import load_city
+from marl_amod.scenario import City, load_city
 
 
 class Args(C.RunArgs):
@@ -227,6 +227,83 @@ def stack_twin_state(state: dict[str, Any], twin: TwinQ) -> dict[str, Any]:
     return state
 
 
+def _no_mark(part: str) -> None:
+    """The default part marker of :meth:`Learner.update`: nothing (benchmarks time the parts)."""
+
+
+class Learner:
+    """SAC's networks, optimisers and temperature, and one gradient step on a replay sample.
+
+    Built in the order ``train`` always used (actor, then the critics: the same initial weights
+    for a seed). :meth:`update` calls ``mark(part)`` after each part of the step, so
+    ``benchmarks/sac_update.py`` times the real update part by part.
+    """
+
+    def __init__(self, args: Args, city: City, edge_index: Graph) -> None:
+        self.args, self.edge_index = args, edge_index
+        self.local = local = args.mode == "decentralised"
+        n_features = feature_count(args.lookahead)
+        self.actor = LocalActor(n_features, args.hidden) if local else build_actor(args.actor, city, n_features, args.hidden, args.conv)
+        C.warm_start(self.actor, args, city)  # offline -> online: start from a trained policy
+        self.twin = TwinQ(C.critic_features(n_features, args), args.hidden, "sage" if local else args.conv)
+        # the dense path stacks the twin critics' weights: one batched matmul per layer for both
+        self.critic = StackedTwinQ(self.twin) if isinstance(edge_index, DenseGraph) else self.twin
+        self.critic_targ = copy.deepcopy(self.critic).requires_grad_(False)
+        self.actor_params, self.critic_params = list(self.actor.parameters()), list(self.critic.parameters())
+        self.targ_params = list(self.critic_targ.parameters())
+        self.opt_a = torch.optim.Adam(self.actor_params, lr=args.lr_actor, fused=True)  # one kernel per step for all tensors
+        self.opt_c = torch.optim.Adam(self.critic_params, lr=args.lr_critic, fused=True)
+        self.log_alpha = torch.tensor(float(np.log(args.alpha)), requires_grad=True)
+        self.opt_alpha = torch.optim.Adam([self.log_alpha], lr=args.lr_alpha)
+        self.target_entropy = (-1.0 if args.target_entropy is None else args.target_entropy) * city.n_regions
+        self.amp = autocast(args.precision)
+
+    def update(self, b: dict[str, torch.Tensor], mark: Callable[[str], None] = _no_mark) -> dict[str, torch.Tensor]:
+        """One critic and one actor step (and the temperature's with auto_entropy) on the sample ``b``."""
+        args, actor, critic, edge_index, local, amp = self.args, self.actor, self.critic, self.edge_index, self.local, self.amp
+        a = self.log_alpha.detach().exp()
+        # the policy loss's actions, then the target's next actions without a graph (the actor does
+        # not change in between; one pass over both halves ran the backward over both, 5-10% slower)
+        y, logp = policy_sample(actor, b, "", edge_index, local, amp)
+        with torch.no_grad():
+            y2, logp2 = policy_sample(actor, b, "next_", edge_index, local, amp)
+        mark("actor")
+        # ---- twin Q regression towards the soft Bellman target ----
+        with torch.no_grad():
+            with amp():  # (the critics' Q heads are float32 under autocast)
+                q_targ = torch.min(*self.critic_targ(C.with_time(b["next_x"], b.get("next_ctx"), args.critic_time), edge_index, y2))  # (B,)
+            backup = b["reward"] + args.gamma * (1 - b["done"]) * (q_targ - a * logp2)
+        mark("target critics")
+        x = C.with_time(b["x"], b.get("ctx"), args.critic_time)  # (B, N, F [+ 3])
+        with amp():
+            q1, q2 = critic(x, edge_index, b["action"])
+        loss_q = F.mse_loss(q1, backup) + F.mse_loss(q2, backup)
+        self.opt_c.zero_grad()
+        loss_q.backward()
+        mark("critic loss")
+        torch.nn.utils.clip_grad_norm_(self.critic_params, args.max_grad_norm, foreach=True)
+        self.opt_c.step()
+        mark("critic step")
+        # ---- policy: maximise min Q minus entropy cost (gradients reach the actor only) ----
+        with amp():
+            q_pi = torch.min(*critic(x, edge_index, y))
+        loss_pi = (a * logp - q_pi).mean()
+        self.opt_a.zero_grad()
+        loss_pi.backward(inputs=self.actor_params)  # no critic weight gradients computed
+        mark("policy loss")
+        torch.nn.utils.clip_grad_norm_(self.actor_params, args.max_grad_norm, foreach=True)
+        self.opt_a.step()
+        if args.auto_entropy:
+            loss_alpha = -(self.log_alpha * (logp.detach() + self.target_entropy)).mean()
+            self.opt_alpha.zero_grad()
+            loss_alpha.backward()
+            self.opt_alpha.step()
+        with torch.no_grad():  # Polyak averaging: targ <- polyak targ + (1 - polyak) critic
+            torch._foreach_lerp_(self.targ_params, self.critic_params, 1 - args.polyak)
+        mark("actor step, Polyak")
+        return {"loss/q": loss_q.detach(), "loss/policy": loss_pi.detach(), "alpha": a}  # read once per episode
+
+
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
     """Train, keep the best validation actor, write its policy card; returns the run summary."""
     torch.set_num_threads(args.threads)
@@ -237,21 +314,10 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     local = args.mode == "decentralised"
     rollout = C.make_rollout(city, args)
     edge_index = C.make_graph(city, args)
-    n_features = feature_count(args.lookahead)
-    actor = LocalActor(n_features, args.hidden) if local else build_actor(args.actor, city, n_features, args.hidden, args.conv)
-    C.warm_start(actor, args, city)  # offline -> online: start from a trained policy
-    twin = TwinQ(C.critic_features(n_features, args), args.hidden, "sage" if local else args.conv)
-    # the dense path stacks the twin critics' weights: one batched matmul per layer for both
-    critic = StackedTwinQ(twin) if isinstance(edge_index, DenseGraph) else twin
-    critic_targ = copy.deepcopy(critic).requires_grad_(False)
-    actor_params, critic_params, targ_params = list(actor.parameters()), list(critic.parameters()), list(critic_targ.parameters())
-    opt_a = torch.optim.Adam(actor_params, lr=args.lr_actor, fused=True)  # one kernel per step for all tensors
-    opt_c = torch.optim.Adam(critic_params, lr=args.lr_critic, fused=True)
-    log_alpha = torch.tensor(float(np.log(args.alpha)), requires_grad=True)
-    opt_alpha = torch.optim.Adam([log_alpha], lr=args.lr_alpha)
-    target_entropy = (-1.0 if args.target_entropy is None else args.target_entropy) * city.n_regions
+    learner = Learner(args, city, edge_index)
+    actor, critic, critic_targ, twin = learner.actor, learner.critic, learner.critic_targ, learner.twin
+    opt_a, opt_c, opt_alpha, log_alpha = learner.opt_a, learner.opt_c, learner.opt_alpha, learner.log_alpha
     buffer = Replay(args.buffer_size)
-    amp = autocast(args.precision)
 
     start_ep, prior_wall, n_steps, credit, best = 0, 0.0, 0, 0.0, C.BestActor.of(actor)
     if resume:
@@ -279,44 +345,6 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         )
         return path, ep
 
-    def update() -> dict[str, torch.Tensor]:
-        b = buffer.sample(args.batch_size, gen)
-        a = log_alpha.detach().exp()
-        # the policy loss's actions, then the target's next actions without a graph (the actor does
-        # not change in between; one pass over both halves ran the backward over both, 5-10% slower)
-        y, logp = policy_sample(actor, b, "", edge_index, local, amp)
-        with torch.no_grad():
-            y2, logp2 = policy_sample(actor, b, "next_", edge_index, local, amp)
-        # ---- twin Q regression towards the soft Bellman target ----
-        with torch.no_grad():
-            with amp():  # (the critics' Q heads are float32 under autocast)
-                q_targ = torch.min(*critic_targ(C.with_time(b["next_x"], b.get("next_ctx"), args.critic_time), edge_index, y2))  # (B,)
-            backup = b["reward"] + args.gamma * (1 - b["done"]) * (q_targ - a * logp2)
-        x = C.with_time(b["x"], b.get("ctx"), args.critic_time)  # (B, N, F [+ 3])
-        with amp():
-            q1, q2 = critic(x, edge_index, b["action"])
-        loss_q = F.mse_loss(q1, backup) + F.mse_loss(q2, backup)
-        opt_c.zero_grad()
-        loss_q.backward()
-        torch.nn.utils.clip_grad_norm_(critic_params, args.max_grad_norm, foreach=True)
-        opt_c.step()
-        # ---- policy: maximise min Q minus entropy cost (gradients reach the actor only) ----
-        with amp():
-            q_pi = torch.min(*critic(x, edge_index, y))
-        loss_pi = (a * logp - q_pi).mean()
-        opt_a.zero_grad()
-        loss_pi.backward(inputs=actor_params)  # no critic weight gradients computed
-        torch.nn.utils.clip_grad_norm_(actor_params, args.max_grad_norm, foreach=True)
-        opt_a.step()
-        if args.auto_entropy:
-            loss_alpha = -(log_alpha * (logp.detach() + target_entropy)).mean()
-            opt_alpha.zero_grad()
-            loss_alpha.backward()
-            opt_alpha.step()
-        with torch.no_grad():  # Polyak averaging: targ <- polyak targ + (1 - polyak) critic
-            torch._foreach_lerp_(targ_params, critic_params, 1 - args.polyak)
-        return {"loss/q": loss_q.detach(), "loss/policy": loss_pi.detach(), "alpha": a}  # read once per episode
-
     book = C.EpisodeBook(args, "sac", actor, city, rollout, log, timer, best, save, progress)
     with C.interruptible(save):
         while ep < args.episodes:
@@ -342,7 +370,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                 if buffer.size >= max(args.warmup_steps, args.batch_size):
                     credit += args.updates_per_step * rollout.num_envs
                     while credit >= 1:
-                        last = update()
+                        last = learner.update(buffer.sample(args.batch_size, gen))
                         credit -= 1
             ep += rollout.num_envs
             stats = {k: float(v) for k, v in last.items()}
