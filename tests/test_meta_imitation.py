@@ -154,3 +154,29 @@ def test_dagger_rounds_join_the_demonstrations_and_resume_from_disk(tasks, tmp_p
 
     rec = run_strategy("meta-rl", "synthetic", episodes=1, meta_policy=str(tmp_path / "bc2.pt"), adapt_episodes=0)
     assert rec["transfer"]["target_episodes"] == 0 and np.isfinite(rec["metrics"]["profit"]["mean"])
+
+
+def test_shocked_dagger_trials_are_labelled_by_mpc_told_the_shock(tasks):
+    """A shocked trial draws the shocked demand, its features keep the usual forecast, and its
+    labels are MPC's plan on the shocked expected demand, which MPC-Forecast's plan is not."""
+    city = load_city(tasks[1])
+    torch.manual_seed(0)
+    model = RecurrentGNN(meta.n_task_features(6), hidden=8, stay_prior=True)
+    got = mi.collect_city(city, episodes=1, seed=2, lookahead=6, learner=model, seed_of=mi.dagger_seed, shock_prob=1.0)
+    shocks = np.random.default_rng(mi.dagger_seed(2, 10**6))
+    shocks.random()
+    shocked = meta.random_shock(city, shocks)  # the trial's shock, drawn as the collection drew it
+    from marl_amod.system import FleetSystem
+
+    system, told, usual = FleetSystem(shocked), mi.MPCToldTheShock(), MPCForecast()
+    system.reset(mi.dagger_seed(2, 0))
+    told.reset(system, np.random.default_rng(0)), usual.reset(system, np.random.default_rng(0))
+    differ = 0
+    for x, share, played in zip(got["x"][0], got["share"][0], got["action"][0], strict=True):
+        np.testing.assert_allclose(x, meta.task_features(system, meta.CityScale.of(city), 6), rtol=1e-5)
+        want = np.where((w := told.target(system)) < 0, system.sim.idle, w)
+        np.testing.assert_allclose(share, want / want.sum(), rtol=1e-5)
+        plain = np.where((w := usual.target(system)) < 0, system.sim.idle, w)
+        differ += int(np.abs(plain - want).sum() > 0)
+        system.step(system.targets_from_weights(played.astype(np.float64)))
+    assert differ > 0

@@ -46,6 +46,7 @@ from marl_amod.errors import DataError
 from marl_amod.models.dense import DenseGraph
 from marl_amod.models.recurrent import RecurrentGNN
 from marl_amod.scenario import City, load_city
+from marl_amod.scenario.types import step_rows
 from marl_amod.system import FleetSystem
 
 DEMO_FORMAT = "marl_amod.meta_demos/1"
@@ -76,24 +77,44 @@ class CityDemos:
         return int(self.x.shape[0])
 
 
+class MPCToldTheShock(MPCForecast):
+    """MPC-Forecast told a trial's demand shock: it plans on the expected demand *with* the event
+    (``demand_rate``), not on the draw (MPC-Oracle) nor the usual forecast. The expert for the
+    shocked DAgger trials: a policy that has seen the shock in the served and unserved requests
+    and the regions' rewards (in this episode and the trial's earlier ones) should plan like it."""
+
+    name = "mpc-told-the-shock"
+
+    def forecast(self, system: FleetSystem, steps: np.ndarray) -> np.ndarray:
+        return step_rows(system.city.demand_rate, steps)
+
+
 def collect_city(
     city: City, episodes: int, seed: int, lookahead: int, learner: RecurrentGNN | None = None, trial_episodes: int = 1,
-    seed_of: Callable[[int, int], np.random.SeedSequence] = demo_seed,
+    seed_of: Callable[[int, int], np.random.SeedSequence] = demo_seed, shock_prob: float = 0.0,
 ) -> dict[str, np.ndarray]:
     """``episodes`` episodes of ``city`` labelled by MPC-Forecast: the arrays of :class:`CityDemos`.
 
     Without ``learner`` MPC-F also drives (demonstrations). With it (DAgger) the recurrent policy
     drives, as it is deployed: trials of ``trial_episodes`` episodes with its memory carried, the
-    first ones sampled (adaptation), the last deterministic; MPC-F only labels the states it reaches."""
+    first ones sampled (adaptation), the last deterministic; MPC-F only labels the states it
+    reaches. With ``shock_prob`` that share of the trials get a random demand shock
+    (:func:`~marl_amod.algos.meta.random_shock`, the same in each of the trial's episodes), which
+    the features do not show and :class:`MPCToldTheShock` labels."""
     scale, n = CityScale.of(city), city.n_regions
     cols: dict[str, list[np.ndarray]] = {"x": [], "share": [], "region_reward": [], "reward": [], "action": []}
     system, policy = FleetSystem(city), MPCForecast()
+    shocks = np.random.default_rng(seed_of(seed, 10**6))  # which trials are shocked, and how
     agent = None
     for e in range(episodes):
+        if learner is not None and e % trial_episodes == 0:  # a new trial: fresh memory, maybe a shock
+            shocked = shock_prob > 0 and shocks.random() < shock_prob
+            trial_city = meta.random_shock(city, shocks) if shocked else city
+            system, policy = (FleetSystem(trial_city), MPCToldTheShock()) if shocked else (FleetSystem(city), MPCForecast())
+            agent = meta.MetaAgent(learner, trial_city, lookahead)
         system.reset(seed_of(seed, e))
         policy.reset(system, np.random.default_rng(seed_of(seed, e)))
-        if learner is not None:
-            agent = agent if agent is not None and e % trial_episodes else meta.MetaAgent(learner, city, lookahead)  # a new trial: fresh memory
+        if agent is not None:
             agent.new_episode()
         sample = (e + 1) % trial_episodes != 0  # the trial's last episode is the deterministic one
         rows: dict[str, list[np.ndarray]] = {k: [] for k in cols}
@@ -127,7 +148,7 @@ def demo_path(folder: str | Path, city: str) -> Path:
 
 def collect_demos(
     folder: str | Path, cities: list[str], episodes: int, seed: int, lookahead: int, learner: RecurrentGNN | None = None,
-    trial_episodes: int = 1, seed_of: Callable[[int, int], np.random.SeedSequence] = demo_seed,
+    trial_episodes: int = 1, seed_of: Callable[[int, int], np.random.SeedSequence] = demo_seed, shock_prob: float = 0.0,
 ) -> dict[str, float]:
     """Write ``folder/<city>.npz`` for each city not yet there (resumable, split by city; with
     ``learner``, a DAgger round: :func:`collect_city`); returns the collection wall seconds of every
@@ -141,7 +162,7 @@ def collect_demos(
         path = demo_path(folder, city.name)
         if not path.is_file():
             start = time.perf_counter()
-            arrays = collect_city(city, episodes, seed, lookahead, learner, trial_episodes, seed_of)
+            arrays = collect_city(city, episodes, seed, lookahead, learner, trial_episodes, seed_of, shock_prob)
             wall = time.perf_counter() - start
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_suffix(".tmp.npz")
@@ -214,6 +235,9 @@ class Args(meta.Args):
     """updates between DAgger rounds (round 1 before the run's first update)"""
     dagger_episodes: int = Field(8, ge=1)
     """episodes per training city and DAgger round"""
+    dagger_shock_prob: float = Field(0.0, ge=0, le=1)
+    """share of the DAgger trials with a random demand shock, labelled by MPC told the shock
+    (:class:`MPCToldTheShock`): the policy learns to react to what the forecast misses"""
 
     def ignored_keys(self) -> dict[str, str]:
         return {**super().ignored_keys(), "episodes": "imitation takes no env episodes; set updates",
@@ -236,7 +260,7 @@ def dagger_round(args: Args, model: RecurrentGNN, k: int, data: dict[str, tuple[
     folder = Path(args.run_dir) / "dagger" / f"round{k}"
     with torch.no_grad():
         walls = collect_demos(folder, args.cities, args.dagger_episodes, args.seed, args.lookahead, learner=model,
-                              trial_episodes=args.trial_episodes, seed_of=partial(dagger_seed, round=k))  # fmt: skip
+                              trial_episodes=args.trial_episodes, seed_of=partial(dagger_seed, round=k), shock_prob=args.dagger_shock_prob)  # fmt: skip
     for name in args.cities:
         demos, graph = data[name]
         data[name] = (joined(demos, load_demos(folder, cities[name], args.lookahead, args.city_features)), graph)
@@ -304,5 +328,6 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     extra = {"updates": step, "demonstrations": {"policy": "mpc-forecast", "cities": list(args.cities), "episodes_per_city": args.demo_episodes,
              "collection_wall_s": round(sum(walls.values()), 1)}, **warm}  # fmt: skip
     if args.dagger_rounds:
-        extra["dagger"] = {"rounds": started_rounds(args, step), "episodes_per_city": args.dagger_episodes, "collection_wall_s": round(dagger_wall, 1)}
+        extra["dagger"] = {"rounds": started_rounds(args, step), "episodes_per_city": args.dagger_episodes, "shock_prob": args.dagger_shock_prob,
+                           "collection_wall_s": round(dagger_wall, 1)}  # fmt: skip
     return meta.finish(args, model, timer(), 0, config_path, algorithm="meta-bc", extra=extra)
