@@ -152,8 +152,12 @@ def test_dagger_rounds_join_the_demonstrations_and_resume_from_disk(tasks, tmp_p
     assert card["n_features"] == meta.n_task_features(6, structure=True)
     from marl_amod.transfer import run_strategy
 
+    from marl_amod.transfer import study_markdown
+
     rec = run_strategy("meta-rl", "synthetic", episodes=1, meta_policy=str(tmp_path / "bc2.pt"), adapt_episodes=0)
     assert rec["transfer"]["target_episodes"] == 0 and np.isfinite(rec["metrics"]["profit"]["mean"])
+    rec["normalised_score"] = 0.0  # (its 1 round + the start's 2) x 2 episodes x 2 cities
+    assert "| 10 training cities + 4 MPC-F demos + 12 DAgger |" in study_markdown({"targets": {"synthetic": {"meta-rl": rec}}})
 
 
 def test_shocked_dagger_trials_are_labelled_by_mpc_told_the_shock(tasks):
