@@ -85,7 +85,7 @@ def k_validation(policy: str, ks: list[int]) -> None:
 def event(policy: str, surge: tuple[int, ...] = (8, 10), hotspots: tuple[int, ...] = (5, 6), window: range = range(6, 14)) -> None:
     for name in ("nyc_brooklyn", "nyc_brooklyn_event"):
         city = load_city(name)
-        makers = {"meta K=3": lambda: meta.load_policy(policy, city, 3), "meta K=0": lambda: meta.load_policy(policy, city, 0),
+        makers = {"meta K=3": lambda c=city: meta.load_policy(policy, c, 3), "meta K=0": lambda c=city: meta.load_policy(policy, c, 0),
                   "mpc-forecast": MPCForecast, "mpc-oracle": MPCOracle}  # fmt: skip
         for label, make in makers.items():
             pol, inside, outside, unserved = make(), [], [], []

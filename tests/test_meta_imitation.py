@@ -150,9 +150,7 @@ def test_dagger_rounds_join_the_demonstrations_and_resume_from_disk(tasks, tmp_p
     card = ALGOS["meta-bc"].train(more)["card"]
     assert card["warm_start"]["policy"] == str(tmp_path / "bc.pt") and card["warm_start"]["dagger"]["rounds"] == 2
     assert card["n_features"] == meta.n_task_features(6, structure=True)
-    from marl_amod.transfer import run_strategy
-
-    from marl_amod.transfer import study_markdown
+    from marl_amod.transfer import run_strategy, study_markdown
 
     rec = run_strategy("meta-rl", "synthetic", episodes=1, meta_policy=str(tmp_path / "bc2.pt"), adapt_episodes=0)
     assert rec["transfer"]["target_episodes"] == 0 and np.isfinite(rec["metrics"]["profit"]["mean"])

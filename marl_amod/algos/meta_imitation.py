@@ -70,7 +70,7 @@ class CityDemos:
     share: torch.Tensor  # (E, T, N) MPC-F's desired distribution (sums to 1): the label
     region_reward: torch.Tensor  # (E, T, N) each region's reward after the decision, per-city units
     reward: torch.Tensor  # (E, T) team reward after the decision, per-city units
-    action: torch.Tensor  # (E, T, N) the distribution played (the learner's in DAgger episodes, else MPC-F's): fed back as the previous action
+    action: torch.Tensor  # (E, T, N) what was played (the learner's in DAgger, else MPC-F's): the next previous action
 
     @property
     def episodes(self) -> int:
