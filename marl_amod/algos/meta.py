@@ -15,7 +15,9 @@ units (:class:`CityScale`):
   balance of a city stays visible;
 * the requests served out of each region at the step just dispatched and those left unserved,
   in vehicles per region: what the operator saw happen (a shock the forecast misses shows here);
-* a last column is the step fraction t / horizon;
+* a last column is the step fraction t / horizon; with ``city_features`` the city's structure
+  follows (:func:`structure_table`: expected requests into each region, trip and rebalancing
+  times, the cost of driving), which a single-city policy memorises and MPC-Forecast plans with;
 * the reward is the step's profit divided by the city's expected fare revenue per step
   (``forecast_rate * price`` over the episode, / horizon): about 0.5-1 per step in every city;
   the memory also reads each region's own reward (its trips' profit minus its rebalancing cost)

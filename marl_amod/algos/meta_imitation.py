@@ -22,6 +22,14 @@ rewards are those MPC-F earned. The actor fits the Dirichlet *mean* to MPC-F's d
 deterministic policy plays), and the critic head the discounted return of the trial, so RL²
 starts with a critic that already knows what a good trial is worth instead of one whose large
 early errors flow back through the shared memory.
+
+DAgger (``dagger_rounds``). Teacher forcing fits MPC-F on MPC-F's states; the policy's own
+mistakes lead it elsewhere. Every ``dagger_every`` updates the current policy drives
+``dagger_episodes`` episodes of each training city as it is deployed (:func:`collect_city` with a
+``learner``), MPC-F labels the states it reached, and they join the city's demonstrations (the
+previous action the memory reads is then the policy's own). A share of those trials may carry a
+random demand shock, labelled by :class:`MPCToldTheShock`. Rounds are files under the run, so a
+resumed run reads them back.
 """
 
 from __future__ import annotations
