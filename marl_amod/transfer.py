@@ -31,7 +31,7 @@ Strategy = Literal["zero-shot", "fine-tune", "meta-rl", "single-city", "mpc-fore
 STRATEGIES: tuple[Strategy, ...] = ("zero-shot", "fine-tune", "meta-rl", "single-city", "mpc-forecast", "mpc-oracle")
 K_FINE_TUNE = 10  # online (training) episodes fine-tuning gets in the target city
 FINE_TUNE_VALIDATION = 2  # deterministic validation episodes of the start and of the end
-META_POLICY = "policies/meta_rl_cities.pt"  # configs/meta/cities.yaml
+META_POLICY = "policies/meta_rl_cities.pt"  # configs/meta/bc_dagger_city.yaml
 
 
 @dataclass(frozen=True)
@@ -135,9 +135,15 @@ def run_strategy(
         k = card["args"]["trial_episodes"] - 1 if adapt_episodes is None else adapt_episodes
         pol = adapt(model, city, k, card["lookahead"], seed=seed)
         used.update(source=meta_policy, source_city="10 training cities", source_episodes=card.get("episodes_trained"), target_episodes=k)
-        demos = (card.get("warm_start") or {}).get("demonstrations") or card.get("demonstrations")
+        warm = card.get("warm_start") or {}
+        demos = warm.get("demonstrations") or card.get("demonstrations")
         if demos:  # trained from an imitation of MPC-Forecast on the same cities
             used["demonstrations"] = demos["episodes_per_city"] * len(demos["cities"])
+        rounds = [d for d in (card.get("dagger"), warm.get("dagger")) if d]  # its own DAgger rounds and its start's
+        if rounds and demos:  # the policy's own episodes there, labelled by MPC-F
+            used["dagger_episodes"] = sum(d["rounds"] * d["episodes_per_city"] for d in rounds) * len(demos["cities"])
+        if card["algorithm"] == "meta-bc":  # imitation only: no RL episode
+            used["source_episodes"] = None
     result = evaluate(pol, city, episodes, seed)
     result["transfer"] = used
     return result
@@ -200,6 +206,8 @@ def study_markdown(payload: dict[str, Any]) -> str:
                 source = f"{source} ({used['source_episodes']:,})"
             if used.get("demonstrations"):
                 source += f" + {used['demonstrations']:,} MPC-F demos"
+            if used.get("dagger_episodes"):
+                source += f" + {used['dagger_episodes']:,} DAgger"
             in_target = f"{used.get('target_episodes', 0) or 0:,}"
             if used.get("validation_episodes"):
                 in_target += f" + {used['validation_episodes']} val."

@@ -52,6 +52,50 @@ def test_task_features_show_the_served_and_unserved_requests_of_the_step():
     assert feats[:, -2].sum() > 0  # more requests than vehicles: some go unserved
 
 
+def test_structure_features_tell_where_trips_go_and_what_moves_cost():
+    """The structure columns: expected requests into each region at t+1..t+T (vehicles per region),
+    trip and rebalancing times in steps / T, the cost of driving / the mean fare; stored task
+    features gain the same columns from their step column as the agent reads live."""
+    city = load_city("synthetic")
+    scale, lookahead = meta.CityScale.of(city), 3
+    system = FleetSystem(city)
+    system.reset(np.random.SeedSequence(2))
+    for _ in range(2):
+        system.step(system.sim.idle.copy())
+    live = meta.task_features(system, scale, lookahead, structure=True)
+    assert live.shape == (city.n_regions, meta.n_task_features(lookahead, structure=True))
+    t = system.sim.t
+    np.testing.assert_allclose(live[:, -6:-3] * scale.vehicles, city.forecast_rate[t + 1 : t + 4].sum(axis=1).T, rtol=1e-5)
+    src, dst = city.edge_index
+    i = int(src[0])
+    np.testing.assert_allclose(live[i, -2] * lookahead, city.reb_time[i, dst[src == i]].mean(), rtol=1e-5)
+    fare = (city.forecast_rate[: city.horizon] * city.price[: city.horizon]).sum() / city.forecast_rate[: city.horizon].sum()
+    np.testing.assert_allclose(live[:, -1], city.beta * city.tstep / fare, rtol=1e-5)
+    base = meta.task_features(system, scale, lookahead)[None, None]  # (E, T, N, F) as stored
+    np.testing.assert_allclose(meta.with_structure(base, city, lookahead)[0, 0], live, rtol=1e-6)
+
+
+def test_a_policy_extended_to_the_structure_features_starts_as_the_same_policy():
+    """Widening a warm start: the new input columns start at zero weight, so the actions and
+    values are the old model's until training uses them."""
+    from marl_amod.models.dense import DenseGraph
+
+    torch.manual_seed(0)
+    old = RecurrentGNN(meta.n_task_features(2), hidden=8, stay_prior=True)
+    new = RecurrentGNN(meta.n_task_features(2, structure=True), hidden=8, stay_prior=True)
+    new.load_state_dict(meta.widened(old, new))
+    assert meta.reads_structure(new, 2) and not meta.reads_structure(old, 2)
+    graph = DenseGraph(torch.tensor([[0, 1, 1, 2], [1, 0, 2, 1]]), 3)
+    x = torch.rand(2, 3, new.n_features)
+    feedback = (torch.rand(2, 3), torch.rand(2, 3), torch.rand(2), torch.rand(2, 3, 8))
+    for a, b in zip(old(x[..., : old.n_features], *feedback, graph), new(x, *feedback, graph), strict=True):
+        torch.testing.assert_close(a, b)
+    from marl_amod.errors import DataError
+
+    with pytest.raises(DataError, match="cannot extend"):
+        meta.widened(old, RecurrentGNN(meta.n_task_features(2, structure=True), hidden=4, stay_prior=True))
+
+
 def test_recurrent_gnn_is_size_agnostic_batched_and_its_memory_changes_the_action():
     from marl_amod.models.dense import DenseGraph
 

@@ -107,3 +107,78 @@ def test_imitation_ships_a_meta_policy_that_warm_starts_rl2(tasks, tmp_path):
     assert "eval/scaled_return" in log
     with pytest.raises(DataError, match="hidden 8"):
         meta.train(rl.model_copy(update={"hidden": 4}))
+
+
+def test_dagger_episodes_are_the_learners_labelled_by_mpc_forecast(tasks):
+    """With a learner the recurrent policy drives (its played shares are not MPC-F's) and MPC-F
+    labels every state it reached: the label is what MPC-F asks there, the played share what the
+    coordinator was given."""
+    city = load_city(tasks[1])
+    torch.manual_seed(0)
+    model = RecurrentGNN(meta.n_task_features(6), hidden=8, stay_prior=True)
+    got = mi.collect_city(city, episodes=2, seed=5, lookahead=6, learner=model, trial_episodes=2, seed_of=mi.dagger_seed)
+    assert got["action"].shape == got["share"].shape and np.abs(got["action"] - got["share"]).sum(-1).mean() > 0.05
+    from marl_amod.system import FleetSystem
+
+    system, mpc = FleetSystem(city), MPCForecast()
+    system.reset(mi.dagger_seed(5, 0))
+    mpc.reset(system, np.random.default_rng(0))
+    for x, share, played in zip(got["x"][0], got["share"][0], got["action"][0], strict=True):
+        np.testing.assert_allclose(x, meta.task_features(system, meta.CityScale.of(city), 6), rtol=1e-5)  # the learner's states
+        want = np.where((w := mpc.target(system)) < 0, system.sim.idle, w)
+        np.testing.assert_allclose(share, want / want.sum(), rtol=1e-5)
+        system.step(system.targets_from_weights(played.astype(np.float64)))
+    demos = mi.collect_city(city, episodes=1, seed=5, lookahead=6)  # without a learner MPC-F plays its label
+    np.testing.assert_array_equal(demos["action"], demos["share"])
+
+
+def test_dagger_rounds_join_the_demonstrations_and_resume_from_disk(tasks, tmp_path):
+    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
+                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=4, eval_every=2,
+                   eval_episodes=2, final_eval_episodes=1, dagger_rounds=2, dagger_every=2, dagger_episodes=2,
+                   run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
+    card = ALGOS["meta-bc"].train(args.model_copy(update={"updates": 2}))["card"]
+    rounds = tmp_path / "bc" / "dagger"
+    assert card["dagger"]["rounds"] == 1 and sorted(p.name for p in rounds.iterdir()) == ["round1"]
+    stamp = (rounds / "round1" / "small.npz").stat().st_mtime_ns
+    card = ALGOS["meta-bc"].train(args, resume=str(tmp_path / "bc" / "state.pt"))["card"]  # round 1 read back, round 2 collected
+    assert card["dagger"]["rounds"] == 2 and (rounds / "round2" / "large.npz").is_file() and card["updates"] == 4
+    assert (rounds / "round1" / "small.npz").stat().st_mtime_ns == stamp
+    # continuing a shipped imitation, extended to the city-structure features: validated first, named on the card
+    more = args.model_copy(update={"init_actor": str(tmp_path / "bc.pt"), "run_dir": str(tmp_path / "bc2"), "updates": 1, "dagger_rounds": 1,
+                                   "city_features": True, "policy_out": str(tmp_path / "bc2.pt")})  # fmt: skip
+    card = ALGOS["meta-bc"].train(more)["card"]
+    assert card["warm_start"]["policy"] == str(tmp_path / "bc.pt") and card["warm_start"]["dagger"]["rounds"] == 2
+    assert card["n_features"] == meta.n_task_features(6, structure=True)
+    from marl_amod.transfer import run_strategy, study_markdown
+
+    rec = run_strategy("meta-rl", "synthetic", episodes=1, meta_policy=str(tmp_path / "bc2.pt"), adapt_episodes=0)
+    assert rec["transfer"]["target_episodes"] == 0 and np.isfinite(rec["metrics"]["profit"]["mean"])
+    rec["normalised_score"] = 0.0  # (its 1 round + the start's 2) x 2 episodes x 2 cities
+    assert "| 10 training cities + 4 MPC-F demos + 12 DAgger |" in study_markdown({"targets": {"synthetic": {"meta-rl": rec}}})
+
+
+def test_shocked_dagger_trials_are_labelled_by_mpc_told_the_shock(tasks):
+    """A shocked trial draws the shocked demand, its features keep the usual forecast, and its
+    labels are MPC's plan on the shocked expected demand, which MPC-Forecast's plan is not."""
+    city = load_city(tasks[1])
+    torch.manual_seed(0)
+    model = RecurrentGNN(meta.n_task_features(6), hidden=8, stay_prior=True)
+    got = mi.collect_city(city, episodes=1, seed=2, lookahead=6, learner=model, seed_of=mi.dagger_seed, shock_prob=1.0)
+    shocks = np.random.default_rng(mi.dagger_seed(2, 10**6))
+    shocks.random()
+    shocked = meta.random_shock(city, shocks)  # the trial's shock, drawn as the collection drew it
+    from marl_amod.system import FleetSystem
+
+    system, told, usual = FleetSystem(shocked), mi.MPCToldTheShock(), MPCForecast()
+    system.reset(mi.dagger_seed(2, 0))
+    told.reset(system, np.random.default_rng(0)), usual.reset(system, np.random.default_rng(0))
+    differ = 0
+    for x, share, played in zip(got["x"][0], got["share"][0], got["action"][0], strict=True):
+        np.testing.assert_allclose(x, meta.task_features(system, meta.CityScale.of(city), 6), rtol=1e-5)
+        want = np.where((w := told.target(system)) < 0, system.sim.idle, w)
+        np.testing.assert_allclose(share, want / want.sum(), rtol=1e-5)
+        plain = np.where((w := usual.target(system)) < 0, system.sim.idle, w)
+        differ += int(np.abs(plain - want).sum() > 0)
+        system.step(system.targets_from_weights(played.astype(np.float64)))
+    assert differ > 0

@@ -15,7 +15,9 @@ units (:class:`CityScale`):
   balance of a city stays visible;
 * the requests served out of each region at the step just dispatched and those left unserved,
   in vehicles per region: what the operator saw happen (a shock the forecast misses shows here);
-* a last column is the step fraction t / horizon;
+* a last column is the step fraction t / horizon; with ``city_features`` the city's structure
+  follows (:func:`structure_table`: expected requests into each region, trip and rebalancing
+  times, the cost of driving), which a single-city policy memorises and MPC-Forecast plans with;
 * the reward is the step's profit divided by the city's expected fare revenue per step
   (``forecast_rate * price`` over the episode, / horizon): about 0.5-1 per step in every city;
   the memory also reads each region's own reward (its trips' profit minus its rebalancing cost)
@@ -48,6 +50,7 @@ the memory those left: a handful of episodes and no gradient step.
 from __future__ import annotations
 
 import copy
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -68,6 +71,7 @@ from marl_amod.models.distributions import dirichlet
 from marl_amod.models.recurrent import RecurrentGNN
 from marl_amod.scenario import City, load_city
 from marl_amod.scenario.events import DemandEvent, apply_events
+from marl_amod.scenario.types import step_rows
 from marl_amod.system import FleetSystem
 
 TRAIN_CITIES = (
@@ -97,9 +101,10 @@ class CityScale:
         return cls(vehicles=per_region, requests=revenue / max(requests, 1e-9) * per_region, reward=revenue / city.horizon)
 
 
-def task_features(system: FleetSystem | BatchFleetSystem, scale: CityScale, lookahead: int) -> np.ndarray:
+def task_features(system: FleetSystem | BatchFleetSystem, scale: CityScale, lookahead: int, structure: bool = False) -> np.ndarray:
     """(..., N, 2T + 4) float32: the paper's features in per-city units, the step's served and
-    unserved requests out of each region (vehicles per region), then t / horizon."""
+    unserved requests out of each region (vehicles per region), then t / horizon; with
+    ``structure`` the T + 3 columns of :func:`structure_table` after them."""
     sim = system.sim
     raw = state_features(system.city, sim.t, sim.idle, sim.arrivals, lookahead, scale=1.0).astype(np.float64)  # idle, supply x T, value x T
     raw[..., : 1 + lookahead] /= scale.vehicles
@@ -107,11 +112,61 @@ def task_features(system: FleetSystem | BatchFleetSystem, scale: CityScale, look
     served = sim.last_dispatch.sum(-1) / scale.vehicles  # (..., N) trips that just left each region
     unserved = sim.requests().sum(-1) / scale.vehicles  # (..., N) requests no vehicle was there for
     step = np.full(sim.idle.shape, sim.t / system.city.horizon)
-    return np.concatenate([raw, np.stack([served, unserved, step], axis=-1)], axis=-1).astype(np.float32)
+    cols = [raw, np.stack([served, unserved, step], axis=-1)]
+    if structure:
+        cols.append(np.broadcast_to(structure_table(system.city, lookahead)[sim.t], (*sim.idle.shape, lookahead + 3)))
+    return np.concatenate(cols, axis=-1).astype(np.float32)
 
 
-def n_task_features(lookahead: int) -> int:
-    return 4 + 2 * lookahead
+N_STRUCTURE = 3  # + T: columns of structure_table
+
+
+def n_task_features(lookahead: int, structure: bool = False) -> int:
+    return 4 + 2 * lookahead + (lookahead + N_STRUCTURE if structure else 0)
+
+
+_STRUCTURE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def structure_table(city: City, lookahead: int) -> np.ndarray:
+    """(S, N, T + 3) float32: what MPC-Forecast plans with beyond the paper's features and a
+    single-city policy memorises, in per-city units, as a function of (city, t) alone:
+
+    * expected requests *into* each region at t+1..t+T (where trips will leave vehicles), in
+      vehicles per region;
+    * the demand-weighted trip time out of the region and the mean rebalancing time to its graph
+      neighbours, in steps / T (how long a vehicle sent there is away);
+    * the cost of a step of driving / the mean fare (what a move costs against what a trip earns).
+    """
+    per_city = _STRUCTURE.setdefault(city, {})
+    if lookahead not in per_city:
+        scale, n, rate = CityScale.of(city), city.n_regions, city.forecast_rate
+        steps = np.arange(city.n_steps)[:, None] + np.arange(1, lookahead + 1)[None, :]  # (S, T)
+        inflow = np.swapaxes(step_rows(rate.sum(axis=1), steps), -1, -2) / scale.vehicles  # (S, N, T)
+        out = rate.sum(axis=2)  # (S, N)
+        trip = np.where(out > 0, (rate * city.trip_time).sum(axis=2) / np.maximum(out, 1e-12), city.trip_time.mean(axis=2))
+        src, dst = np.asarray(city.edge_index)
+        degree = np.bincount(src, minlength=n)
+        neighbours = np.bincount(src, weights=city.reb_time[src, dst], minlength=n) / np.maximum(degree, 1)
+        neighbours = np.where(degree > 0, neighbours, city.reb_time.sum(1) / max(n - 1, 1))  # no neighbour: the mean to all
+        mean_fare = scale.requests / scale.vehicles
+        cost = np.full((city.n_steps, n), city.beta * city.tstep / mean_fare)
+        table = np.concatenate([inflow, np.stack([trip / lookahead, np.broadcast_to(neighbours / lookahead, out.shape), cost], axis=-1)], axis=-1)
+        per_city[lookahead] = table.astype(np.float32)
+        per_city[lookahead].setflags(write=False)
+    return per_city[lookahead]
+
+
+def with_structure(x: np.ndarray, city: City, lookahead: int) -> np.ndarray:
+    """Task features (..., N, 2T + 4) -> with the structure columns (..., N, 3T + 7): the step is
+    read back from the last column, t / horizon (stored demonstrations gain them at load)."""
+    t = np.rint(x[..., 0, -1] * city.horizon).astype(np.int64)  # (...)
+    return np.concatenate([x, structure_table(city, lookahead)[t]], axis=-1)
+
+
+def reads_structure(model: RecurrentGNN, lookahead: int) -> bool:
+    """Whether ``model``'s input is the task features with the structure columns."""
+    return model.n_features == n_task_features(lookahead, structure=True)
 
 
 # --------------------------------------------------------------------------------------------
@@ -147,7 +202,7 @@ class MetaAgent:
 
     def __init__(self, model: RecurrentGNN, city: City, lookahead: int, num_trials: int = 1) -> None:
         self.model, self.city, self.lookahead, self.num_trials = model, city, lookahead, num_trials
-        self.scale = CityScale.of(city)
+        self.scale, self.structure = CityScale.of(city), reads_structure(model, lookahead)
         self.graph = city_graph(city)
         self.memory = model.initial_memory(city.n_regions, num_trials)  # a new trial: nothing known yet
         self.new_episode()
@@ -160,7 +215,7 @@ class MetaAgent:
     def act(self, system: FleetSystem | BatchFleetSystem, sample: bool) -> tuple[np.ndarray, torch.Tensor, torch.Tensor, torch.Tensor]:
         """(weights (B, N), log pi (B,), entropy (B,), value (B,)) and the memory moves one step."""
         b, n = self.num_trials, self.city.n_regions
-        x = torch.as_tensor(task_features(system, self.scale, self.lookahead)).reshape(b, n, -1)
+        x = torch.as_tensor(task_features(system, self.scale, self.lookahead, self.structure)).reshape(b, n, -1)
         alpha, v, self.memory = self.model(x, self.prev_action, self.prev_region_reward, self.prev_reward, self.memory, self.graph)
         dist = dirichlet(alpha)
         if sample:
@@ -233,6 +288,10 @@ class Args(C.RunArgs):
     """memory and hidden units of the recurrent GNN"""
     conv: Literal["gcn", "sage"] = "sage"
     """message passing between regions' memories"""
+    city_features: bool = False
+    """the policy also reads the city's structure (:func:`structure_table`: expected requests into
+    each region, trip and rebalancing times, the cost of driving): what a single-city policy
+    memorises and a policy for many cities must be told"""
     stay_prior: bool = False
     """the actor outputs log-ratios to the idle vehicles' distribution (:class:`RecurrentGNN`): untrained, it keeps vehicles where they are"""
     episodes: int = Field(20000, ge=1)
@@ -323,6 +382,36 @@ class MetaBook:
         return out_of_time
 
 
+def warm_start(args: Args, model: RecurrentGNN, cities: dict[str, City], resume: str | None) -> tuple[C.BestActor, dict[str, Any]]:
+    """Load ``init_actor`` (a meta-policy file: the MPC-F imitation) into ``model`` on a fresh run and
+    validate it first, so it is kept unless training beats it; (the best so far, the card's ``warm_start``)."""
+    if not args.init_actor:
+        return C.BestActor.of(model), {}
+    start, card = load_meta(args.init_actor, like=None if reads_structure(model, args.lookahead) else model)
+    warm = {"warm_start": {k: card.get(k) for k in ("algorithm", "updates", "training_wall_s", "demonstrations", "dagger")} | {"policy": args.init_actor}}
+    if resume:  # the resumed state brings its own model and best
+        return C.BestActor.of(model), warm
+    model.load_state_dict(widened(start, model))
+    return C.BestActor(validate(model, args, cities), copy.deepcopy(model.state_dict())), warm
+
+
+def widened(start: RecurrentGNN, model: RecurrentGNN) -> dict[str, torch.Tensor]:
+    """``start``'s weights for ``model``; where ``model`` reads more features (the structure columns
+    after the task features), their input weights start at zero: the same policy, free to use them."""
+    state = start.state_dict()
+    if start.n_features == model.n_features:
+        return state
+    from marl_amod.errors import DataError
+
+    ours = model.state_dict()
+    if start.n_features > model.n_features or set(state) != set(ours) or start.stay_prior != model.stay_prior or start.hidden != model.hidden:
+        raise DataError(f"init_actor reads {start.n_features} features, hidden {start.hidden}; this run's model cannot extend it")
+    weight = state["encode.0.weight"]  # (H, F + feedback): the new columns go between the features and the feedback
+    zeros = weight.new_zeros(weight.shape[0], model.n_features - start.n_features)
+    state["encode.0.weight"] = torch.cat([weight[:, : start.n_features], zeros, weight[:, start.n_features :]], dim=1)
+    return state
+
+
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
     """Meta-train over trials on the training cities, keep the best validated model, write its card."""
     check_tasks(args)
@@ -330,18 +419,12 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     C.seed_everything(args.seed)
     cities = {name: load_city(name) for name in dict.fromkeys([*args.cities, *args.val_cities])}
     systems = {name: BatchFleetSystem(cities[name], args.num_envs) for name in args.cities}  # reused: the coordinator caches per city
-    model = RecurrentGNN(n_task_features(args.lookahead), args.hidden, args.conv, args.stay_prior)
+    model = RecurrentGNN(n_task_features(args.lookahead, args.city_features), args.hidden, args.conv, args.stay_prior)
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     rng = np.random.default_rng([args.seed, 17])  # which city (and shock) each draw gets
 
-    start_ep, prior_wall, best = 0, 0.0, C.BestActor.of(model)
-    warm: dict[str, Any] = {}
-    if args.init_actor:  # a warm start (MPC-F imitation): validated first, kept unless beaten
-        start, card = load_meta(args.init_actor, like=model)
-        warm = {"warm_start": {k: card.get(k) for k in ("algorithm", "updates", "training_wall_s", "demonstrations")} | {"policy": args.init_actor}}
-        if not resume:
-            model.load_state_dict(start.state_dict())
-            best = C.BestActor(validate(model, args, cities), copy.deepcopy(model.state_dict()))
+    start_ep, prior_wall = 0, 0.0
+    best, warm = warm_start(args, model, cities, resume)
     imitation = None
     if args.bc_coef > 0:
         from marl_amod.algos.meta_imitation import draw_trials, imitation_losses, load_all
@@ -422,7 +505,7 @@ def finish(
     profit = result["metrics"]["profit"]
     card = make_card(
         scenario=city.name, n_regions=None, algorithm=algorithm, mode="centralised", actor="recurrent", conv=args.conv,
-        hidden=args.hidden, n_features=n_task_features(args.lookahead), lookahead=args.lookahead, seed=args.seed,
+        hidden=args.hidden, n_features=model.n_features, lookahead=args.lookahead, seed=args.seed,
         episodes_trained=episodes, eval_episodes=args.final_eval_episodes, eval_seed=args.final_eval_seed,
         profit_mean=profit["mean"], profit_std=profit["std"], served_demand_mean=result["metrics"]["served_demand"]["mean"],
         training_wall_s=round(wall_s, 1), torch_threads=torch.get_num_threads(), config=config_path,
@@ -476,7 +559,8 @@ def adapt(model: RecurrentGNN, city: City, episodes: int, lookahead: int, seed: 
     # so the same policy file, city and seed always adapt to the same memory (and report the same numbers)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(np.random.SeedSequence([seed, 4243, 7]).generate_state(1)[0]))
-        run_trials(agent, BatchFleetSystem(city, 1), [[adapt_seed(seed, k)] for k in range(episodes)], sample=True)
+        if episodes:  # K = 0: zero-shot, the memory of a new trial
+            run_trials(agent, BatchFleetSystem(city, 1), [[adapt_seed(seed, k)] for k in range(episodes)], sample=True)
     return MetaPolicy(agent)
 
 

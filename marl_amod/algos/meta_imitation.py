@@ -22,12 +22,22 @@ rewards are those MPC-F earned. The actor fits the Dirichlet *mean* to MPC-F's d
 deterministic policy plays), and the critic head the discounted return of the trial, so RL²
 starts with a critic that already knows what a good trial is worth instead of one whose large
 early errors flow back through the shared memory.
+
+DAgger (``dagger_rounds``). Teacher forcing fits MPC-F on MPC-F's states; the policy's own
+mistakes lead it elsewhere. Every ``dagger_every`` updates the current policy drives
+``dagger_episodes`` episodes of each training city as it is deployed (:func:`collect_city` with a
+``learner``), MPC-F labels the states it reached, and they join the city's demonstrations (the
+previous action the memory reads is then the policy's own). A share of those trials may carry a
+random demand shock, labelled by :class:`MPCToldTheShock`. Rounds are files under the run, so a
+resumed run reads them back.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +54,7 @@ from marl_amod.errors import DataError
 from marl_amod.models.dense import DenseGraph
 from marl_amod.models.recurrent import RecurrentGNN
 from marl_amod.scenario import City, load_city
+from marl_amod.scenario.types import step_rows
 from marl_amod.system import FleetSystem
 
 DEMO_FORMAT = "marl_amod.meta_demos/1"
@@ -54,28 +65,66 @@ def demo_seed(seed: int, episode: int) -> np.random.SeedSequence:
     return np.random.SeedSequence([seed, episode, 6007])
 
 
+def dagger_seed(seed: int, episode: int, round: int = 1) -> np.random.SeedSequence:
+    """Demand of DAgger round ``round``'s episode k: apart from demonstration, report, validation and training streams."""
+    return np.random.SeedSequence([seed, round, episode, 6011])
+
+
 @dataclass
 class CityDemos:
     """E demonstration episodes of one city, T decisions each, as tensors."""
 
     x: torch.Tensor  # (E, T, N, F) task features before each decision
-    share: torch.Tensor  # (E, T, N) MPC-F's desired distribution (sums to 1)
+    share: torch.Tensor  # (E, T, N) MPC-F's desired distribution (sums to 1): the label
     region_reward: torch.Tensor  # (E, T, N) each region's reward after the decision, per-city units
     reward: torch.Tensor  # (E, T) team reward after the decision, per-city units
+    action: torch.Tensor  # (E, T, N) what was played (the learner's in DAgger, else MPC-F's): the next previous action
 
     @property
     def episodes(self) -> int:
         return int(self.x.shape[0])
 
 
-def collect_city(city: City, episodes: int, seed: int, lookahead: int) -> dict[str, np.ndarray]:
-    """MPC-Forecast on ``episodes`` demonstration streams of ``city``: the arrays of :class:`CityDemos`."""
+class MPCToldTheShock(MPCForecast):
+    """MPC-Forecast told a trial's demand shock: it plans on the expected demand *with* the event
+    (``demand_rate``), not on the draw (MPC-Oracle) nor the usual forecast. The expert for the
+    shocked DAgger trials: a policy that has seen the shock in the served and unserved requests
+    and the regions' rewards (in this episode and the trial's earlier ones) should plan like it."""
+
+    name = "mpc-told-the-shock"
+
+    def forecast(self, system: FleetSystem, steps: np.ndarray) -> np.ndarray:
+        return step_rows(system.city.demand_rate, steps)
+
+
+def collect_city(
+    city: City, episodes: int, seed: int, lookahead: int, learner: RecurrentGNN | None = None, trial_episodes: int = 1,
+    seed_of: Callable[[int, int], np.random.SeedSequence] = demo_seed, shock_prob: float = 0.0,
+) -> dict[str, np.ndarray]:
+    """``episodes`` episodes of ``city`` labelled by MPC-Forecast: the arrays of :class:`CityDemos`.
+
+    Without ``learner`` MPC-F also drives (demonstrations). With it (DAgger) the recurrent policy
+    drives, as it is deployed: trials of ``trial_episodes`` episodes with its memory carried, the
+    first ones sampled (adaptation), the last deterministic; MPC-F only labels the states it
+    reaches. With ``shock_prob`` that share of the trials get a random demand shock
+    (:func:`~marl_amod.algos.meta.random_shock`, the same in each of the trial's episodes), which
+    the features do not show and :class:`MPCToldTheShock` labels."""
     scale, n = CityScale.of(city), city.n_regions
-    cols: dict[str, list[np.ndarray]] = {"x": [], "share": [], "region_reward": [], "reward": []}
+    cols: dict[str, list[np.ndarray]] = {"x": [], "share": [], "region_reward": [], "reward": [], "action": []}
     system, policy = FleetSystem(city), MPCForecast()
+    shocks = np.random.default_rng(seed_of(seed, 10**6))  # which trials are shocked, and how
+    agent = None
     for e in range(episodes):
-        system.reset(demo_seed(seed, e))
-        policy.reset(system, np.random.default_rng(demo_seed(seed, e)))
+        if learner is not None and e % trial_episodes == 0:  # a new trial: fresh memory, maybe a shock
+            shocked = shock_prob > 0 and shocks.random() < shock_prob
+            trial_city = meta.random_shock(city, shocks) if shocked else city
+            system, policy = (FleetSystem(trial_city), MPCToldTheShock()) if shocked else (FleetSystem(city), MPCForecast())
+            agent = meta.MetaAgent(learner, trial_city, lookahead)
+        system.reset(seed_of(seed, e))
+        policy.reset(system, np.random.default_rng(seed_of(seed, e)))
+        if agent is not None:
+            agent.new_episode()
+        sample = (e + 1) % trial_episodes != 0  # the trial's last episode is the deterministic one
         rows: dict[str, list[np.ndarray]] = {k: [] for k in cols}
         while not system.done:
             idle = system.sim.idle
@@ -83,8 +132,17 @@ def collect_city(city: City, episodes: int, seed: int, lookahead: int) -> dict[s
             target = np.where(target < 0, idle, target)  # no wish: what is there
             share = target / target.sum() if target.sum() > 0 else np.full(n, 1.0 / n)
             rows["x"].append(task_features(system, scale, lookahead))
-            out = system.step(target.astype(np.int64))
+            if agent is None:
+                played, step_target = share, target.astype(np.int64)
+            else:
+                with torch.no_grad():
+                    played = agent.act(system, sample)[0][0]
+                step_target = system.targets_from_weights(played)
+            out = system.step(step_target)
+            if agent is not None:
+                agent.observe(out.region_reward)
             rows["share"].append(share)
+            rows["action"].append(played)
             rows["region_reward"].append(out.region_reward * (n / scale.reward))
             rows["reward"].append(np.asarray(out.region_reward.sum() / scale.reward))
         for k, v in rows.items():
@@ -96,9 +154,13 @@ def demo_path(folder: str | Path, city: str) -> Path:
     return Path(folder) / f"{city}.npz"
 
 
-def collect_demos(folder: str | Path, cities: list[str], episodes: int, seed: int, lookahead: int) -> dict[str, float]:
-    """Write ``folder/<city>.npz`` for each city not yet there (resumable, split by city);
-    returns the collection wall seconds of every city's file (recorded in it)."""
+def collect_demos(
+    folder: str | Path, cities: list[str], episodes: int, seed: int, lookahead: int, learner: RecurrentGNN | None = None,
+    trial_episodes: int = 1, seed_of: Callable[[int, int], np.random.SeedSequence] = demo_seed, shock_prob: float = 0.0,
+) -> dict[str, float]:
+    """Write ``folder/<city>.npz`` for each city not yet there (resumable, split by city; with
+    ``learner``, a DAgger round: :func:`collect_city`); returns the collection wall seconds of every
+    city's file (recorded in it)."""
     held = sorted(set(cities) & set(meta.HELD_OUT))
     if held:
         raise DataError(f"demonstrations on held-out {held}: the study tests on them")
@@ -108,7 +170,7 @@ def collect_demos(folder: str | Path, cities: list[str], episodes: int, seed: in
         path = demo_path(folder, city.name)
         if not path.is_file():
             start = time.perf_counter()
-            arrays = collect_city(city, episodes, seed, lookahead)
+            arrays = collect_city(city, episodes, seed, lookahead, learner, trial_episodes, seed_of, shock_prob)
             wall = time.perf_counter() - start
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_suffix(".tmp.npz")
@@ -119,15 +181,19 @@ def collect_demos(folder: str | Path, cities: list[str], episodes: int, seed: in
     return walls
 
 
-def load_demos(folder: str | Path, city: City, lookahead: int) -> CityDemos:
-    """One city's demonstrations, checked against the city and the run's lookahead."""
+def load_demos(folder: str | Path, city: City, lookahead: int, structure: bool = False) -> CityDemos:
+    """One city's demonstrations, checked against the city and the run's lookahead; ``structure``
+    adds the city-structure columns (:func:`~marl_amod.algos.meta.with_structure`: a function of
+    the city and the step, so the files keep only the task features)."""
     path = demo_path(folder, city.name)
     if not path.is_file():
         raise DataError(f"no demonstrations for {city.name} at {path}")
     data = np.load(path)
     if str(data["format"]) != DEMO_FORMAT or int(data["lookahead"]) != lookahead or data["x"].shape[2] != city.n_regions:
         raise DataError(f"{path}: demonstrations of another format, lookahead or city (want lookahead {lookahead}, {city.n_regions} regions)")
-    return CityDemos(*(torch.from_numpy(data[k]) for k in ("x", "share", "region_reward", "reward")))
+    action = data["action"] if "action" in data else data["share"]  # files from before DAgger: MPC-F played its label
+    x = meta.with_structure(data["x"], city, lookahead) if structure else data["x"]
+    return CityDemos(torch.from_numpy(x), *(torch.from_numpy(data[k]) for k in ("share", "region_reward", "reward")), torch.from_numpy(action))
 
 
 def imitation_losses(
@@ -141,7 +207,7 @@ def imitation_losses(
     ce, values, rewards = [], [], []
     for k in range(k_eps):
         idx = torch.as_tensor(episodes[k])
-        x, share, rr, r = demos.x[idx], demos.share[idx], demos.region_reward[idx], demos.reward[idx]  # (B, T, ...)
+        x, share, rr, r, played = demos.x[idx], demos.share[idx], demos.region_reward[idx], demos.reward[idx], demos.action[idx]  # (B, T, ...)
         prev_a, prev_rr, prev_r = torch.zeros(b, n), torch.zeros(b, n), torch.zeros(b)
         for t in range(x.shape[1]):
             alpha, v, memory = model(x[:, t], prev_a, prev_rr, prev_r, memory, graph)
@@ -149,7 +215,7 @@ def imitation_losses(
             ce.append(-(share[:, t] * torch.log(mean.clamp_min(1e-8))).sum(-1))  # (B,)
             values.append(v)
             rewards.append(r[:, t])
-            prev_a, prev_rr, prev_r = share[:, t] * n, rr[:, t], r[:, t]
+            prev_a, prev_rr, prev_r = played[:, t] * n, rr[:, t], r[:, t]
     ret, running = [], torch.zeros(b)
     for rew in reversed(rewards):  # discounted return to the trial's end, as the RL critic's targets
         running = rew + gamma * running
@@ -170,6 +236,16 @@ class Args(meta.Args):
     """gradient steps, each on ``cities_per_update`` cities x ``num_envs`` trials of ``trial_episodes`` episodes"""
     eval_every: int = Field(100, ge=1)
     """updates between validations (meta-RL's adapted validation on ``val_cities``; the best is kept)"""
+    dagger_rounds: int = Field(0, ge=0)
+    """DAgger rounds: the current model drives ``dagger_episodes`` episodes of each training city
+    (trials as deployed), MPC-F labels the states it reached, and they join that city's demonstrations"""
+    dagger_every: int = Field(300, ge=1)
+    """updates between DAgger rounds (round 1 before the run's first update)"""
+    dagger_episodes: int = Field(8, ge=1)
+    """episodes per training city and DAgger round"""
+    dagger_shock_prob: float = Field(0.0, ge=0, le=1)
+    """share of the DAgger trials with a random demand shock, labelled by MPC told the shock
+    (:class:`MPCToldTheShock`): the policy learns to react to what the forecast misses"""
 
     def ignored_keys(self) -> dict[str, str]:
         return {**super().ignored_keys(), "episodes": "imitation takes no env episodes; set updates",
@@ -179,12 +255,34 @@ class Args(meta.Args):
 
 def load_all(args: meta.Args, cities: dict[str, City]) -> dict[str, tuple[CityDemos, DenseGraph]]:
     """The demonstrations and dense graph of every training city."""
-    return {name: (load_demos(args.demos, cities[name], args.lookahead), meta.city_graph(cities[name])) for name in args.cities}
+    return {name: (load_demos(args.demos, cities[name], args.lookahead, args.city_features), meta.city_graph(cities[name])) for name in args.cities}
+
+
+def joined(a: CityDemos, b: CityDemos) -> CityDemos:
+    """One city's episodes of both (demonstrations and DAgger rounds)."""
+    return CityDemos(*(torch.cat([x, y]) for x, y in zip(vars(a).values(), vars(b).values(), strict=True)))
+
+
+def dagger_round(args: Args, model: RecurrentGNN, k: int, data: dict[str, tuple[CityDemos, DenseGraph]], cities: dict[str, City]) -> float:
+    """DAgger round ``k`` (collected unless its files exist: resumable) added to ``data``; its collection wall seconds."""
+    folder = Path(args.run_dir) / "dagger" / f"round{k}"
+    with torch.no_grad():
+        walls = collect_demos(folder, args.cities, args.dagger_episodes, args.seed, args.lookahead, learner=model,
+                              trial_episodes=args.trial_episodes, seed_of=partial(dagger_seed, round=k), shock_prob=args.dagger_shock_prob)  # fmt: skip
+    for name in args.cities:
+        demos, graph = data[name]
+        data[name] = (joined(demos, load_demos(folder, cities[name], args.lookahead, args.city_features)), graph)
+    return sum(walls.values())
 
 
 def draw_trials(demos: CityDemos, args: meta.Args, rng: np.random.Generator) -> np.ndarray:
     """(K, B) demonstration episodes for ``num_envs`` trials of ``trial_episodes`` episodes."""
     return rng.integers(demos.episodes, size=(args.trial_episodes, args.num_envs))
+
+
+def started_rounds(args: Args, step: int) -> int:
+    """DAgger rounds begun before update ``step`` (round k starts at update (k - 1) x ``dagger_every``)."""
+    return min(args.dagger_rounds, -(-step // args.dagger_every))
 
 
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
@@ -195,10 +293,11 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     walls = collect_demos(args.demos, args.cities, args.demo_episodes, args.seed, args.lookahead)
     cities = {name: load_city(name) for name in dict.fromkeys([*args.cities, *args.val_cities])}
     data = load_all(args, cities)
-    model = RecurrentGNN(meta.n_task_features(args.lookahead), args.hidden, args.conv, args.stay_prior)
+    model = RecurrentGNN(meta.n_task_features(args.lookahead, args.city_features), args.hidden, args.conv, args.stay_prior)
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     rng = np.random.default_rng([args.seed, 23])
-    step, prior_wall, best = 0, 0.0, C.BestActor.of(model)
+    step, prior_wall = 0, 0.0
+    best, warm = meta.warm_start(args, model, cities, resume)  # init_actor: continue an imitation (e.g. with DAgger rounds)
     if resume:
         st = C.load_state(resume, "meta-bc")
         model.load_state_dict(st["model"]), opt.load_state_dict(st["opt"])
@@ -213,8 +312,11 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                      best_val=book.best.value, best_actor=book.best.state, wall_s=timer(), city_rng=rng.bit_generator.state)  # fmt: skip
         return C.state_path(args), step
 
+    dagger_wall = sum(dagger_round(args, model, k, data, cities) for k in range(1, started_rounds(args, step) + 1))  # resumed: read back
     with C.interruptible(save):
         while step < args.updates:
+            if step % args.dagger_every == 0 and step // args.dagger_every < args.dagger_rounds:
+                dagger_wall += dagger_round(args, model, step // args.dagger_every + 1, data, cities)
             ces, vls = [], []
             for _ in range(args.cities_per_update):
                 demos, graph = data[args.cities[int(rng.integers(len(args.cities)))]]
@@ -232,5 +334,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     log.close()
     model.load_state_dict(book.best.state)
     extra = {"updates": step, "demonstrations": {"policy": "mpc-forecast", "cities": list(args.cities), "episodes_per_city": args.demo_episodes,
-             "collection_wall_s": round(sum(walls.values()), 1)}}  # fmt: skip
+             "collection_wall_s": round(sum(walls.values()), 1)}, **warm}  # fmt: skip
+    if args.dagger_rounds:
+        extra["dagger"] = {"rounds": started_rounds(args, step), "episodes_per_city": args.dagger_episodes, "shock_prob": args.dagger_shock_prob,
+                           "collection_wall_s": round(dagger_wall, 1)}  # fmt: skip
     return meta.finish(args, model, timer(), 0, config_path, algorithm="meta-bc", extra=extra)

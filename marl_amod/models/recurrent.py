@@ -49,7 +49,7 @@ class RecurrentGNN(nn.Module):
 
     def __init__(self, n_features: int, hidden: int = 64, conv: ConvKind = "sage", stay_prior: bool = False) -> None:
         super().__init__()
-        self.hidden, self.stay_prior = hidden, stay_prior
+        self.hidden, self.stay_prior, self.n_features = hidden, stay_prior, n_features
         self.encode = nn.Sequential(nn.Linear(n_features + N_FEEDBACK, hidden), nn.ReLU())
         self.memory = nn.GRUCell(hidden, hidden)
         self.conv = make_conv(conv, hidden)
