@@ -241,3 +241,19 @@ def test_training_seeds_get_their_own_files_and_start_and_the_table_averages_the
     assert stats["n"] == 3 and stats["mean"] == pytest.approx(110.0) and stats["std"] == pytest.approx(10.0)
     assert stats["vs_behaviour_pct"] == pytest.approx(10.0) and stats["normalised"] == pytest.approx(10.0)
     assert offline_table.over_seeds({"seeds": {"0": cell["seeds"]["0"]}}, 100.0, refs) is None
+
+
+def test_the_table_finds_each_cell_under_the_actor_its_file_names(tmp_path):
+    """offline_table.cell_name: a cell's policy is bc_gnn_... or bc_mlp_... (the card's actor); two are an error."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    import offline_table
+
+    assert offline_table.cell_name(tmp_path, "bc", "nyc_brooklyn", "dtv") is None
+    (tmp_path / "bc_mlp_nyc_brooklyn_dtv.json").write_text("{}")
+    assert offline_table.cell_name(tmp_path, "bc", "nyc_brooklyn", "dtv") == "bc_mlp_nyc_brooklyn_dtv"
+    assert offline_table.cell_name(tmp_path, "cql", "nyc_brooklyn", "dtv") is None
+    (tmp_path / "bc_gnn_nyc_brooklyn_dtv.json").write_text("{}")
+    with pytest.raises(ConfigError, match="two policies"):
+        offline_table.cell_name(tmp_path, "bc", "nyc_brooklyn", "dtv")
