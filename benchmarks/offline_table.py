@@ -6,7 +6,8 @@
 Rows: one per dataset (its card in ``docs/offline/datasets/``: behaviour policy, its score and
 the ED / MPC-Oracle references on the same evaluation seeds). Columns: the behaviour policy,
 online SAC (``policies/sac_gnn_<city>_fast.json``, 29 min on the batched path), and BC / IQL / CQL trained on the dataset
-(``policies/<algo>_gnn_<city>_<dataset>.json``). Every cell is profit (mean +- std over the 10
+(``policies/<algo>_<actor>_<city>_<dataset>.json``, actor ``gnn`` or ``mlp``: the file names the actor the card
+records). Every cell is profit (mean +- std over the 10
 evaluation episodes of ``marl-amod evaluate --seed 0``) and the normalised score (0 = equal
 distribution, 100 = MPC-Oracle). Writes ``docs/offline/table.md`` and ``table.json``.
 
@@ -24,11 +25,21 @@ from pathlib import Path
 import numpy as np
 
 from marl_amod.datasets import normalised_score
+from marl_amod.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parent.parent
 DATASETS = ["inf", "dtv", "prop", "mpc_forecast", "prop_noise"]
 ALGOS = ["bc", "iql", "cql"]
 ONLINE = "sac_gnn_{city}_fast"
+ACTORS = ("gnn", "mlp")  # the centralised actors an offline cell may ship (its file name says which)
+
+
+def cell_name(policies: Path, algo: str, city: str, ds: str) -> str | None:
+    """The file stem of the offline policy of one cell (``bc_mlp_nyc_brooklyn_dtv``), None if none is shipped."""
+    names = [f"{algo}_{actor}_{city}_{ds}" for actor in ACTORS if (policies / f"{algo}_{actor}_{city}_{ds}.json").is_file()]
+    if len(names) > 1:
+        raise ConfigError(f"two policies for one table cell: {', '.join(names)} in {policies}; keep one")
+    return names[0] if names else None
 
 
 def score(card_path: Path, evaluate: bool) -> dict | None:
@@ -69,12 +80,13 @@ def build(city: str, cards: Path, policies: Path, evaluate: bool, seeds: dict | 
         if online:
             row["sac_online"] = {"mean": online["mean"], "std": online["std"], "normalised": normalised_score(online["mean"], refs)}
         for algo in ALGOS:
-            s = score(policies / f"{algo}_gnn_{city}_{ds}.json", evaluate)
+            name = cell_name(policies, algo, city, ds)
+            s = score(policies / f"{name}.json", evaluate) if name else None
             if s is not None:
-                row[algo] = {"mean": s["mean"], "std": s["std"], "normalised": normalised_score(s["mean"], refs),
+                row[algo] = {"policy": f"policies/{name}.pt", "mean": s["mean"], "std": s["std"], "normalised": normalised_score(s["mean"], refs),
                              "vs_behaviour_pct": 100.0 * (s["mean"] / beh["mean"] - 1.0),
                              "training_wall_s": s["card"].get("training_wall_s"), "updates": s["card"].get("updates")}
-                seeded = over_seeds((seeds or {}).get(f"{algo}_gnn_{city}_{ds}"), beh["mean"], refs)
+                seeded = over_seeds((seeds or {}).get(name), beh["mean"], refs)
                 if seeded:
                     row[algo]["seeds"] = seeded
         rows.append(row)

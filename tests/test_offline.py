@@ -241,3 +241,37 @@ def test_training_seeds_get_their_own_files_and_start_and_the_table_averages_the
     assert stats["n"] == 3 and stats["mean"] == pytest.approx(110.0) and stats["std"] == pytest.approx(10.0)
     assert stats["vs_behaviour_pct"] == pytest.approx(10.0) and stats["normalised"] == pytest.approx(10.0)
     assert offline_table.over_seeds({"seeds": {"0": cell["seeds"]["0"]}}, 100.0, refs) is None
+
+
+def test_the_table_finds_each_cell_under_the_actor_its_file_names(tmp_path):
+    """offline_table.cell_name: a cell's policy is bc_gnn_... or bc_mlp_... (the card's actor); two are an error."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    import offline_table
+
+    assert offline_table.cell_name(tmp_path, "bc", "nyc_brooklyn", "dtv") is None
+    (tmp_path / "bc_mlp_nyc_brooklyn_dtv.json").write_text("{}")
+    assert offline_table.cell_name(tmp_path, "bc", "nyc_brooklyn", "dtv") == "bc_mlp_nyc_brooklyn_dtv"
+    assert offline_table.cell_name(tmp_path, "cql", "nyc_brooklyn", "dtv") is None
+    (tmp_path / "bc_gnn_nyc_brooklyn_dtv.json").write_text("{}")
+    with pytest.raises(ConfigError, match="two policies"):
+        offline_table.cell_name(tmp_path, "bc", "nyc_brooklyn", "dtv")
+
+
+def test_sink_margin_keeps_a_receiving_regions_target_under_the_envs_floor():
+    """The env plays floor(w_i M): a clone's share a little below a planner's exact target loses a
+    vehicle at the region that receives; the margin centres that target inside the floor's bin,
+    taking it from the regions that send (whose lower target costs nothing)."""
+    from marl_amod.coordinator.rebalance import floor_targets
+
+    idle = torch.tensor([[4.0, 4.0, 2.0], [0.0, 0.0, 0.0]])  # M = 10; the second step has no idle vehicle
+    x = torch.zeros(2, 3, 13)
+    x[..., 0] = idle * 0.01  # the node features hold idle / 100
+    logged = torch.tensor([[2.0, 3.0, 5.0], [1.0, 1.0, 2.0]]) / 16  # targets u / 2^k: region 2 receives 3
+    shares = O.sink_margin_targets(x, logged, 0.5)
+    assert torch.allclose(shares.sum(-1), torch.ones(2))
+    assert torch.allclose(shares[1], torch.tensor([0.25, 0.25, 0.5]))  # no idle vehicle: the logged share
+    low = lambda y: floor_targets(y[0].double().numpy() + [0.03, 0.0, -0.03], 10)  # noqa: E731 - a clone 0.3 vehicle low at the receiver
+    assert low(logged / logged.sum(-1, keepdim=True))[2] == 4  # without the margin the receiver misses one
+    assert low(shares)[2] == 5 and (low(shares)[:2] <= torch.tensor([2, 3]).numpy()).all()

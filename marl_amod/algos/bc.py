@@ -16,6 +16,7 @@ from pydantic import Field
 from marl_amod.algos import common as C
 from marl_amod.algos import offline as O
 from marl_amod.env.features import n_features as feature_count
+from marl_amod.errors import ConfigError
 from marl_amod.models import LocalActor, build_actor
 
 
@@ -24,6 +25,10 @@ class Args(O.OfflineArgs):
     """hidden units of the actor MLP (the paper's A2C actor size)"""
     run_dir: str = "runs/bc"
     """TensorBoard + CSV logs and the resumable training state"""
+    sink_margin: float = Field(0.0, ge=0)
+    """vehicles added to the logged target of every region that receives vehicles, taken from the
+    others (:func:`~marl_amod.algos.offline.sink_margin_targets`): the env floors the clone's share,
+    and a planner's logged targets leave no margin under it (centralised runs only)"""
 
     def ignored_keys(self) -> dict[str, str]:
         return {**super().ignored_keys(), "central_critic": "BC has no critic", "gamma": "BC has no return"}
@@ -40,6 +45,10 @@ def make_actor(args: O.OfflineArgs, city) -> torch.nn.Module:
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
     """Clone the dataset's behaviour policy; keep the best validation actor; write its card."""
     city, data, local, graph, gen = O.setup(args)
+    if args.sink_margin:
+        if local:
+            raise ConfigError("sink_margin reshapes the global target shares: centralised runs only")
+        data.tensors["action"] = O.sink_margin_targets(data.tensors["x"], data.tensors["action"], args.sink_margin)
     actor = make_actor(args, city)
     opt = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
 

@@ -27,6 +27,7 @@ from pydantic import Field
 
 from marl_amod.algos import common as C
 from marl_amod.datasets import OfflineDataset, normalised_score, read_card
+from marl_amod.env.features import FEATURE_SCALE
 from marl_amod.env.observations import split_local
 from marl_amod.errors import ConfigError, DataError
 from marl_amod.models.dense import DenseGraph
@@ -143,6 +144,30 @@ def imitation_loss(actor: torch.nn.Module, b: Batch, graph: Graph, local: bool, 
     mean = alpha / alpha.sum(-1, keepdim=True)
     y = b["action"] / b["action"].sum(-1, keepdim=True).clamp_min(1e-12)
     return -(y * torch.log(mean.clamp_min(1e-8))).sum(-1)
+
+
+def sink_margin_targets(x: torch.Tensor, action: torch.Tensor, margin: float, scale: float = FEATURE_SCALE) -> torch.Tensor:
+    """Logged target shares (T, N) with ``margin`` vehicles added to every region that receives
+    vehicles (target above its idle count), taken from the other regions' targets in proportion.
+
+    Why: the env plays floor(w_i M) and the coordinator only moves vehicles into regions below
+    their target, so a share a little low at a receiving region loses a vehicle there while a low
+    share elsewhere costs nothing (that region keeps its vehicles unless a receiver needs them).
+    The logged targets of a planner (MPC, DTV, INF) sum to M exactly, so their clone has no margin
+    at all; this one centres the receivers' targets inside the floor's bin. The idle counts and
+    M are read from the node features (idle times ``scale``); steps with no idle vehicle keep the
+    logged share.
+    """
+    idle = torch.round(x[..., 0] / scale)  # (T, N)
+    m = idle.sum(-1, keepdim=True)
+    y = action / action.sum(-1, keepdim=True).clamp_min(1e-12)
+    target = y * m  # the logged targets in vehicles
+    sink = target > idle + 0.5
+    others = torch.where(sink, torch.zeros_like(target), target)
+    extra = torch.minimum(margin * sink.sum(-1, keepdim=True), others.sum(-1, keepdim=True))
+    moved = target + margin * sink - extra * others / others.sum(-1, keepdim=True).clamp_min(1e-12)
+    moved = moved - (moved.sum(-1, keepdim=True) - m) * sink / sink.sum(-1, keepdim=True).clamp_min(1)  # where others ran short
+    return torch.where(m > 0, moved / m.clamp_min(1), y)
 
 
 class Update(Protocol):
