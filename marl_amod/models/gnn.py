@@ -5,7 +5,8 @@ act on every region, so a trained model runs on any city's graph (size-agnostic)
 the regions relabels the outputs (permutation equivariance). That reach is one hop: region i's
 output depends on its own and its neighbours' features only. ``readout`` (off by default, the
 paper's model) appends a pooled summary of the whole fleet to every node before the head
-(:class:`FleetReadout`), which keeps both properties and lets a fleet-wide plan be imitated.
+(:class:`FleetReadout`), which keeps both properties; on the MPC-Forecast clone it moved the
+GNN only slightly towards the MLP (docs/offline/index.md, "BC fidelity" 6).
 
 Shapes: B graphs in a batch, N regions, F node features, E directed edges, H hidden units.
 Every model takes the graph as ``edge_index`` (torch-geometric's scatter kernels) or as a
@@ -63,7 +64,7 @@ class _GraphTrunk(nn.Module):
 
 
 class FleetReadout(nn.Module):
-    """Every node's embedding with a summary of all nodes appended: (B, N, C) -> (B, N, C + k*H).
+    """Every node's embedding with a summary of all nodes appended: (..., N, C) -> (..., N, C + k*H).
 
     The summary pools a learned per-node map relu(W h_j + b) (H units) over the regions by mean
     and/or max (k pools): pooling the raw embeddings would give the head only the fleet's
