@@ -55,6 +55,8 @@ class PolicyCard(BaseModel):
     actor: str
     conv: str
     hidden: int
+    readout: str | None = None
+    """the GNN actor's fleet-wide readout (``readout``); absent: none, the paper's actor"""
     n_features: int
     lookahead: int
     seed: int
@@ -243,7 +245,7 @@ def load_actor(path: str | Path, city: City) -> tuple[torch.nn.Module, dict[str,
                 "MLP and CNN actors are tied to a region count — use a GNN policy"
             )
     try:
-        actor = build_actor(card.actor, city, actor_inputs(card.n_features, card.time_context), card.hidden, card.conv)
+        actor = build_actor(card.actor, city, actor_inputs(card.n_features, card.time_context), card.hidden, card.conv, card.readout or "none")
     except ValueError as exc:
         raise DataError(f"{path}: {exc}") from None
     expected = actor.state_dict()

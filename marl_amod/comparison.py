@@ -172,7 +172,8 @@ def architecture(card: dict[str, Any]) -> str:
     """The actor as trained: the message passing is named only for GNN actors (an MLP or CNN has none)."""
     actor = card.get("actor", "?")
     if actor == "gnn":
-        return f"GNN, {card.get('conv', 'gcn')}"
+        readout = f", {card['readout']} readout" if card.get("readout") else ""
+        return f"GNN, {card.get('conv', 'gcn')}{readout}"
     if actor == "local":
         return "local GNN layer, sage"  # LocalActor is a GNN actor with conv="sage" on local observations
     return actor.upper()

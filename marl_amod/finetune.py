@@ -53,7 +53,7 @@ def finetune_curve(
     if not behaviour:
         raise ConfigError(f"{policy} has no dataset on its card: the study starts from an offline policy (bc, iql, cql)")
     common = {
-        "scenario": trained.get("args", {}).get("scenario") or city.name, "mode": "centralised", "actor": card["actor"], "conv": card["conv"], "hidden": card["hidden"],
+        "scenario": trained.get("args", {}).get("scenario") or city.name, "mode": "centralised", "actor": card["actor"], "conv": card["conv"], "readout": card.get("readout") or "none", "hidden": card["hidden"],
         "lookahead": card["lookahead"], "actor_time": card.get("time_context", False), "episodes": episodes, "num_envs": num_envs, "episodes_per_update": num_envs,
         "eval_every": eval_every, "eval_episodes": eval_episodes, "seed": seed, "gamma": 0.97, "reward_scale": 0.001,
         "final_eval_episodes": 1, "policy_out": "",

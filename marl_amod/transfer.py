@@ -73,7 +73,7 @@ def fine_tune(policy_path: str, scenario: str, episodes: int = K_FINE_TUNE, seed
     card = _card(policy_path)
     with tempfile.TemporaryDirectory(prefix="marl-amod-fine-tune-") as tmp:
         args = a2c.Args(
-            scenario=scenario, actor=card["actor"], conv=card["conv"], hidden=card["hidden"], lookahead=card["lookahead"],
+            scenario=scenario, actor=card["actor"], conv=card["conv"], readout=card.get("readout") or "none", hidden=card["hidden"], lookahead=card["lookahead"],
             actor_time=card.get("time_context", False), init_actor=str(policy_path), episodes=episodes, episodes_per_update=min(per_update, episodes), seed=seed,
             eval_every=episodes, eval_episodes=FINE_TUNE_VALIDATION, final_eval_episodes=1, run_dir=tmp, policy_out=f"{tmp}/fine_tuned.pt",
         )  # fmt: skip

@@ -83,7 +83,8 @@ def test_compare_plots_keep_legends_and_baseline_names_off_the_data(tmp_path: Pa
 @pytest.mark.parametrize(
     ("card", "label"),
     [({"actor": "mlp", "conv": "gcn"}, "MLP"), ({"actor": "cnn", "conv": "gcn"}, "CNN"),
-     ({"actor": "gnn", "conv": "sage"}, "GNN, sage"), ({"actor": "local", "conv": "gcn"}, "local GNN layer, sage")],
+     ({"actor": "gnn", "conv": "sage"}, "GNN, sage"), ({"actor": "local", "conv": "gcn"}, "local GNN layer, sage"),
+     ({"actor": "gnn", "conv": "gcn", "readout": "mean-max"}, "GNN, gcn, mean-max readout")],
 )  # fmt: skip
 def test_compare_table_names_message_passing_only_for_gnn_actors(card: dict, label: str) -> None:
     assert architecture(card) == label

@@ -161,9 +161,9 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     if args.mode == "decentralised":
         actor = LocalActor(n_features, args.hidden)
     else:
-        actor = build_actor(args.actor, city, C.actor_features(n_features, args), args.hidden, args.conv)
+        actor = build_actor(args.actor, city, C.actor_features(n_features, args), args.hidden, args.conv, args.readout)
     critic_in = C.critic_features(n_features, args)
-    critic = LocalValueCritic(critic_in, args.hidden) if local_critic else GNNValueCritic(critic_in, args.hidden, args.conv)
+    critic = LocalValueCritic(critic_in, args.hidden) if local_critic else GNNValueCritic(critic_in, args.hidden, args.conv, args.readout)
     C.warm_start(actor, args, city)  # offline -> online: start from a trained policy
     start = copy.deepcopy(actor).requires_grad_(False) if args.init_actor else None  # before resume: the init actor
     opt_a = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)

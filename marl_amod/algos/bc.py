@@ -39,7 +39,7 @@ def make_actor(args: O.OfflineArgs, city) -> torch.nn.Module:
     f = feature_count(args.lookahead)
     if args.mode == "decentralised":
         return LocalActor(f, args.hidden)
-    return build_actor(args.actor, city, C.actor_features(f, args), args.hidden, args.conv)
+    return build_actor(args.actor, city, C.actor_features(f, args), args.hidden, args.conv, args.readout)
 
 
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:

@@ -25,7 +25,7 @@ from typing import Any, Literal, Protocol
 
 import numpy as np
 import torch
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from marl_amod.algos.rollout import BatchRollout, Mode, Rollout
 from marl_amod.checkpoints import ActorPolicy, actor_inputs, check_torch_file, make_card, save_policy, with_context
@@ -35,6 +35,7 @@ from marl_amod.env.observations import N_CONTEXT
 from marl_amod.errors import DataError, MarlAmodError
 from marl_amod.files import atomic_write, torch_save, write_json
 from marl_amod.models.dense import DenseGraph
+from marl_amod.models.gnn import Readout
 from marl_amod.scenario import City
 
 Progress = Callable[[int, int, dict], None]
@@ -49,6 +50,10 @@ class RunArgs(CommonArgs):
     """centralised actor architecture (decentralised always uses the local GNN actor)"""
     conv: Literal["gcn", "sage"] = "gcn"
     """message passing: gcn (the paper's) or sage (mean aggregation, what the local actor computes)"""
+    readout: Readout = "none"
+    """centralised GNN actor (and A2C's value critic): append a pooled summary of every region
+    (mean and/or max of a learned node map) to each node before the head, so a region's output
+    can depend on the whole fleet, not only its neighbours (none: the paper's one-hop GNN)"""
     central_critic: bool = True
     """decentralised mode only: critic on the global graph (env.state()) instead of sum of local values"""
     episodes: int = Field(1000, ge=1)
@@ -69,6 +74,17 @@ class RunArgs(CommonArgs):
     init_actor: str = ""
     """a policy .pt whose weights start the actor (offline -> online, macro -> SUMO fine-tuning);
     same actor, hidden, conv; the critic and optimisers start fresh (A2C validates the start first)"""
+
+    @model_validator(mode="after")
+    def _readout_applies(self) -> RunArgs:
+        if self.readout == "none":
+            return self
+        if self.mode == "decentralised":
+            raise ValueError("readout pools over every region, but a decentralised actor reads only its local observation "
+                             "(use mode: centralised, or readout: none)")  # fmt: skip
+        if self.actor != "gnn":
+            raise ValueError(f"readout is a GNN actor option; the {self.actor} actor reads every region already (use actor: gnn, or readout: none)")
+        return self
 
     def ignored_keys(self) -> dict[str, str]:
         if self.mode == "centralised":
@@ -279,8 +295,8 @@ def warm_start(actor: torch.nn.Module, args: RunArgs, city: City) -> None:
     theirs, ours = source.state_dict(), actor.state_dict()
     if set(theirs) != set(ours) or any(theirs[k].shape != ours[k].shape for k in ours):
         raise DataError(
-            f"init_actor {args.init_actor} is a {card['actor']}/{card['conv']} actor with hidden {card['hidden']}; "
-            "this run's actor differs (set actor, conv and hidden to match)"
+            f"init_actor {args.init_actor} is a {card['actor']}/{card['conv']} actor with hidden {card['hidden']}, "
+            f"readout {card.get('readout') or 'none'}; this run's actor differs (set actor, conv, hidden and readout to match)"
         )
     actor.load_state_dict(theirs)
 
@@ -383,7 +399,7 @@ def finish_run(
     card = make_card(
         scenario=city.name, n_regions=city.n_regions, algorithm=algorithm, mode=args.mode,
         actor="local" if args.mode == "decentralised" else args.actor,
-        conv="sage" if args.mode == "decentralised" else args.conv,
+        conv="sage" if args.mode == "decentralised" else args.conv, readout=None if args.readout == "none" else args.readout,
         hidden=args.hidden, n_features=n_features(args.lookahead), lookahead=args.lookahead, seed=args.seed, time_context=args.actor_time,
         episodes_trained=episodes_done, eval_episodes=args.final_eval_episodes, eval_seed=args.final_eval_seed,
         profit_mean=profit["mean"], profit_std=profit["std"], served_demand_mean=result["metrics"]["served_demand"]["mean"],

@@ -243,7 +243,7 @@ class Learner:
         self.args, self.edge_index = args, edge_index
         self.local = local = args.mode == "decentralised"
         n_features = feature_count(args.lookahead)
-        self.actor = LocalActor(n_features, args.hidden) if local else build_actor(args.actor, city, n_features, args.hidden, args.conv)
+        self.actor = LocalActor(n_features, args.hidden) if local else build_actor(args.actor, city, n_features, args.hidden, args.conv, args.readout)
         C.warm_start(self.actor, args, city)  # offline -> online: start from a trained policy
         self.twin = TwinQ(C.critic_features(n_features, args), args.hidden, "sage" if local else args.conv)
         # the dense path stacks the twin critics' weights: one batched matmul per layer for both

@@ -2,7 +2,11 @@
 
 One message-passing layer with a residual connection, then a per-node MLP: the same weights
 act on every region, so a trained model runs on any city's graph (size-agnostic) and relabelling
-the regions relabels the outputs (permutation equivariance).
+the regions relabels the outputs (permutation equivariance). That reach is one hop: region i's
+output depends on its own and its neighbours' features only. ``readout`` (off by default, the
+paper's model) appends a pooled summary of the whole fleet to every node before the head
+(:class:`FleetReadout`), which keeps both properties; on the MPC-Forecast clone it moved the
+GNN only slightly towards the MLP (docs/offline/index.md, "BC fidelity" 6).
 
 Shapes: B graphs in a batch, N regions, F node features, E directed edges, H hidden units.
 Every model takes the graph as ``edge_index`` (torch-geometric's scatter kernels) or as a
@@ -13,6 +17,8 @@ Every model takes the graph as ``edge_index`` (torch-geometric's scatter kernels
 
 from __future__ import annotations
 
+from typing import Literal, get_args
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -22,6 +28,8 @@ from marl_amod.models.dense import ConvKind, DenseGraph
 from marl_amod.models.distributions import CONCENTRATION_EPS
 
 Graph = torch.Tensor | DenseGraph  # (2, E) edge_index for torch-geometric, or the dense small-graph form
+Readout = Literal["none", "mean", "max", "mean-max"]
+READOUTS: tuple[str, ...] = get_args(Readout)
 
 
 def batch_edge_index(edge_index: torch.Tensor, batch: int, n: int) -> torch.Tensor:
@@ -55,6 +63,39 @@ class _GraphTrunk(nn.Module):
         return (h + flat).view(b, n, c)
 
 
+class FleetReadout(nn.Module):
+    """Every node's embedding with a summary of all nodes appended: (..., N, C) -> (..., N, C + k*H).
+
+    The summary pools a learned per-node map relu(W h_j + b) (H units) over the regions by mean
+    and/or max (k pools): pooling the raw embeddings would give the head only the fleet's
+    averages, while a learned map before a symmetric pool can represent any function of the set
+    (DeepSets). Mean and max do not grow with the region count, and a pool ignores the regions'
+    order, so the model stays size-agnostic and permutation-equivariant; it is the same on the
+    torch-geometric and dense paths (it acts after the convolution).
+    """
+
+    def __init__(self, channels: int, hidden: int, kind: Readout) -> None:
+        super().__init__()
+        if kind not in READOUTS or kind == "none":
+            raise ValueError(f"unknown readout {kind!r}; use one of {', '.join(READOUTS[1:])} (or 'none': no readout)")
+        self.pools = ("mean", "max") if kind == "mean-max" else (kind,)
+        self.embed = nn.Sequential(nn.Linear(channels, hidden), nn.ReLU())
+        self.out_dim = channels + len(self.pools) * hidden
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        e = self.embed(h)  # (B, N, H)
+        pooled = [e.mean(-2, keepdim=True) if p == "mean" else e.amax(-2, keepdim=True) for p in self.pools]  # (B, 1, H) each
+        return torch.cat([h, *(p.expand_as(e) for p in pooled)], dim=-1)
+
+
+def readout_layer(kind: Readout, channels: int, hidden: int) -> FleetReadout | None:
+    """The readout of a model, or None for ``"none"`` (no module, so the paper's models keep
+    their parameters and old checkpoints load unchanged)."""
+    if kind == "none":
+        return None
+    return FleetReadout(channels, hidden, kind)
+
+
 def mlp_head(in_dim: int, hidden: int, out_dim: int = 1) -> nn.Sequential:
     return nn.Sequential(nn.Linear(in_dim, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, out_dim))
 
@@ -70,31 +111,46 @@ def _batched(x: torch.Tensor) -> tuple[torch.Tensor, bool]:
 
 
 class GNNActor(nn.Module):
-    """Node features (B, N, F) -> Dirichlet concentrations (B, N); unbatched (N, F) -> (N,)."""
+    """Node features (B, N, F) -> Dirichlet concentrations (B, N); unbatched (N, F) -> (N,).
 
-    def __init__(self, n_features: int = 13, hidden: int = 32, conv: ConvKind = "gcn") -> None:
+    ``readout``: append a fleet-wide summary to every node before the head (:class:`FleetReadout`).
+    """
+
+    def __init__(self, n_features: int = 13, hidden: int = 32, conv: ConvKind = "gcn", readout: Readout = "none") -> None:
         super().__init__()
         self.trunk = _GraphTrunk(n_features, conv)
-        self.head = mlp_head(n_features, hidden)
+        self.readout = readout_layer(readout, n_features, hidden)
+        self.head = mlp_head(self.readout.out_dim if self.readout else n_features, hidden)
+
+    def embed(self, x: torch.Tensor, edge_index: Graph) -> torch.Tensor:
+        """(B, N, F) -> what the head reads: (B, N, F), or (B, N, F + k*H) with a readout."""
+        h = self.trunk(x, edge_index)
+        return self.readout(h) if self.readout is not None else h
 
     def forward(self, x: torch.Tensor, edge_index: Graph) -> torch.Tensor:
         x, squeeze = _batched(x)
-        alpha = concentration(self.head(self.trunk(x, edge_index)).squeeze(-1))  # (B, N)
+        alpha = concentration(self.head(self.embed(x, edge_index)).squeeze(-1))  # (B, N)
         return alpha[0] if squeeze else alpha
 
 
 class GNNValueCritic(nn.Module):
-    """State value V(s): per-node embedding summed over regions -> (B,) (unbatched -> ())."""
+    """State value V(s): per-node embedding summed over regions -> (B,) (unbatched -> ()).
 
-    def __init__(self, n_features: int = 13, hidden: int = 32, conv: ConvKind = "gcn") -> None:
+    ``readout`` as :class:`GNNActor`'s: each node's term also sees the fleet-wide summary.
+    """
+
+    def __init__(self, n_features: int = 13, hidden: int = 32, conv: ConvKind = "gcn", readout: Readout = "none") -> None:
         super().__init__()
         self.trunk = _GraphTrunk(n_features, conv)
-        self.node = mlp_head(n_features, hidden, hidden)
+        self.readout = readout_layer(readout, n_features, hidden)
+        self.node = mlp_head(self.readout.out_dim if self.readout else n_features, hidden, hidden)
         self.out = nn.Linear(hidden, 1)
 
     def forward(self, x: torch.Tensor, edge_index: Graph) -> torch.Tensor:
         x, squeeze = _batched(x)
         h = self.trunk(x, edge_index)
+        if self.readout is not None:
+            h = self.readout(h)
         if isinstance(edge_index, DenseGraph):
             # the node MLP's last layer is linear, so it commutes with the sum over regions:
             # W sum_i h_i + N b, one (B, H) x (H, H) product instead of (B*N, H) x (H, H)
