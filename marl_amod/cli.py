@@ -160,16 +160,17 @@ def collect(
     eval_episodes: Annotated[int, typer.Option(min=0, help="card: evaluation episodes of the behaviour and reference scores (0: no card)")] = 10,
     eval_seed: Annotated[int, typer.Option(min=0, help="card: evaluation seed (as marl-amod evaluate --seed)")] = 0,
     noise: Annotated[float, typer.Option(min=0, help="exploratory actions: Dirichlet around the policy's, concentration 1/noise")] = 0.0,
+    lookahead: Annotated[int, typer.Option(min=1, help="look-ahead steps T of the logged features (train with the same)")] = 6,
     data_dir: DataDir = None,
 ) -> None:
     """Roll a behaviour policy through the env and write an offline dataset (format 2) and its card."""
     _use_data_dir(data_dir)
-    _collect_one(scenario, policy, episodes, seed, output, max_wait, eval_episodes, eval_seed, {}, noise)
+    _collect_one(scenario, policy, episodes, seed, output, max_wait, eval_episodes, eval_seed, {}, noise, lookahead)
 
 
 def _collect_one(
     scenario: str, policy: str, episodes: int, seed: int, output: Path, max_wait: int, eval_episodes: int, eval_seed: int,
-    cache: dict, noise: float = 0.0,
+    cache: dict, noise: float = 0.0, lookahead: int = 6,
 ) -> None:
     from marl_amod.datasets import collect as collect_dataset
     from marl_amod.datasets import write_card
@@ -182,7 +183,8 @@ def _collect_one(
     with progress_bar() as bar:
         task = bar.add_task(f"{policy} on {city.name}", total=episodes)
         data = collect_dataset(
-            city, pol, episodes=episodes, seed=seed, max_wait=max_wait, noise=noise, progress=lambda _k: bar.advance(task)
+            city, pol, episodes=episodes, seed=seed, lookahead=lookahead, max_wait=max_wait, noise=noise,
+            progress=lambda _k: bar.advance(task),
         )
     path = save_or_fallback(output, data.save, what="the dataset")
     console.print(f"wrote {len(data)} transitions ({city.n_regions} agents) to {path}")

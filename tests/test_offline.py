@@ -275,3 +275,23 @@ def test_sink_margin_keeps_a_receiving_regions_target_under_the_envs_floor():
     low = lambda y: floor_targets(y[0].double().numpy() + [0.03, 0.0, -0.03], 10)  # noqa: E731 - a clone 0.3 vehicle low at the receiver
     assert low(logged / logged.sum(-1, keepdim=True))[2] == 4  # without the margin the receiver misses one
     assert low(shares)[2] == 5 and (low(shares)[:2] <= torch.tensor([2, 3]).numpy()).all()
+
+
+def test_a_policy_trained_with_a_longer_lookahead_evaluates_with_it(tmp_path, tiny):
+    """collect --lookahead L logs F = 1 + 2L features, BC trains with lookahead L, and the card
+    carries L so `marl-amod evaluate` scores the file as the run did (not with the default 6)."""
+    scenario = tiny[0]
+    data = tmp_path / "la.npz"
+    args = ["collect", "--scenario", scenario, "--policy", "prop", "--episodes", "2", "--lookahead", "9",
+            "--output", str(data), "--eval-episodes", "0"]  # fmt: skip
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    from marl_amod.datasets import OfflineDataset
+
+    assert OfflineDataset.load(data).meta["n_features"] == 19
+    summary = ALGOS["bc"].train(args_for("bc", _args(tmp_path, (scenario, str(data)), lookahead=9, actor="mlp")))
+    assert summary["card"]["lookahead"] == 9 and summary["card"]["n_features"] == 19
+    out = tmp_path / "eval.json"
+    result = CliRunner().invoke(app, ["evaluate", "--scenario", scenario, "--policy", str(tmp_path / "p.pt"), "--episodes", "2", "--output", str(out)])
+    assert result.exit_code == 0, result.output
+    assert json.loads(out.read_text())["metrics"]["profit"]["mean"] == pytest.approx(summary["card"]["profit_mean"])
