@@ -44,10 +44,10 @@ class Target:
 
 
 TARGETS = {
-    "san_francisco": Target("san_francisco", "policies/a2c_gnn_nyc_brooklyn.pt", "policies/a2c_gnn_san_francisco.pt"),
+    "san_francisco": Target("san_francisco", "policies/a2c_gnn_nyc_brooklyn.pt", "policies/a2c_sage_fast32_san_francisco.pt"),
     "nyc_brooklyn": Target("nyc_brooklyn", "policies/a2c_gnn_nyc_man_south.pt", "policies/a2c_sage_fast32_nyc_brooklyn.pt"),
     "shenzhen_downtown_west": Target(
-        "shenzhen_downtown_west", "policies/a2c_gnn_nyc_brooklyn.pt", "policies/a2c_gnn_shenzhen_downtown_west.pt"
+        "shenzhen_downtown_west", "policies/a2c_gnn_nyc_brooklyn.pt", "policies/a2c_sage_fast32_shenzhen_downtown_west.pt"
     ),
     "nyc_brooklyn_event": Target("nyc_brooklyn_event", "policies/a2c_gnn_nyc_man_south.pt", "policies/a2c_sage_fast32_nyc_brooklyn.pt"),
 }
