@@ -110,22 +110,31 @@ def _batched(x: torch.Tensor) -> tuple[torch.Tensor, bool]:
     return (x.unsqueeze(0), True) if x.dim() == 2 else (x, False)
 
 
-class GNNActor(nn.Module):
+class _NodeEmbedding(nn.Module):
+    """The part the actor and the value critic share: the graph trunk, then the optional
+    fleet-wide readout (:class:`FleetReadout`); ``embed_dim`` is what their node MLP reads."""
+
+    def __init__(self, n_features: int, hidden: int, conv: ConvKind, readout: Readout) -> None:
+        super().__init__()
+        self.trunk = _GraphTrunk(n_features, conv)
+        self.readout = readout_layer(readout, n_features, hidden)
+        self.embed_dim = self.readout.out_dim if self.readout else n_features
+
+    def embed(self, x: torch.Tensor, edge_index: Graph) -> torch.Tensor:
+        """(B, N, F) -> what the node MLP reads: (B, N, F), or (B, N, F + k*H) with a readout."""
+        h = self.trunk(x, edge_index)
+        return self.readout(h) if self.readout is not None else h
+
+
+class GNNActor(_NodeEmbedding):
     """Node features (B, N, F) -> Dirichlet concentrations (B, N); unbatched (N, F) -> (N,).
 
     ``readout``: append a fleet-wide summary to every node before the head (:class:`FleetReadout`).
     """
 
     def __init__(self, n_features: int = 13, hidden: int = 32, conv: ConvKind = "gcn", readout: Readout = "none") -> None:
-        super().__init__()
-        self.trunk = _GraphTrunk(n_features, conv)
-        self.readout = readout_layer(readout, n_features, hidden)
-        self.head = mlp_head(self.readout.out_dim if self.readout else n_features, hidden)
-
-    def embed(self, x: torch.Tensor, edge_index: Graph) -> torch.Tensor:
-        """(B, N, F) -> what the head reads: (B, N, F), or (B, N, F + k*H) with a readout."""
-        h = self.trunk(x, edge_index)
-        return self.readout(h) if self.readout is not None else h
+        super().__init__(n_features, hidden, conv, readout)
+        self.head = mlp_head(self.embed_dim, hidden)
 
     def forward(self, x: torch.Tensor, edge_index: Graph) -> torch.Tensor:
         x, squeeze = _batched(x)
@@ -133,24 +142,20 @@ class GNNActor(nn.Module):
         return alpha[0] if squeeze else alpha
 
 
-class GNNValueCritic(nn.Module):
+class GNNValueCritic(_NodeEmbedding):
     """State value V(s): per-node embedding summed over regions -> (B,) (unbatched -> ()).
 
     ``readout`` as :class:`GNNActor`'s: each node's term also sees the fleet-wide summary.
     """
 
     def __init__(self, n_features: int = 13, hidden: int = 32, conv: ConvKind = "gcn", readout: Readout = "none") -> None:
-        super().__init__()
-        self.trunk = _GraphTrunk(n_features, conv)
-        self.readout = readout_layer(readout, n_features, hidden)
-        self.node = mlp_head(self.readout.out_dim if self.readout else n_features, hidden, hidden)
+        super().__init__(n_features, hidden, conv, readout)
+        self.node = mlp_head(self.embed_dim, hidden, hidden)
         self.out = nn.Linear(hidden, 1)
 
     def forward(self, x: torch.Tensor, edge_index: Graph) -> torch.Tensor:
         x, squeeze = _batched(x)
-        h = self.trunk(x, edge_index)
-        if self.readout is not None:
-            h = self.readout(h)
+        h = self.embed(x, edge_index)
         if isinstance(edge_index, DenseGraph):
             # the node MLP's last layer is linear, so it commutes with the sum over regions:
             # W sum_i h_i + N b, one (B, H) x (H, H) product instead of (B*N, H) x (H, H)
