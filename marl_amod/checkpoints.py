@@ -263,6 +263,15 @@ def load_actor(path: str | Path, city: City) -> tuple[torch.nn.Module, dict[str,
     return actor, card.to_dict()
 
 
+def architecture_args(card: Mapping[str, Any]) -> dict[str, Any]:
+    """The run arguments that rebuild a card's actor: a run warm-started from the policy
+    (fine-tuning, transfer) must set exactly these, or its actor's shapes differ."""
+    return {
+        "actor": card["actor"], "conv": card["conv"], "readout": card.get("readout") or "none", "hidden": card["hidden"],
+        "lookahead": card["lookahead"], "actor_time": card.get("time_context", False),
+    }  # fmt: skip
+
+
 def actor_inputs(n_node_features: int, time_context: bool) -> int:
     """Input columns of an actor: the node features F, plus the 3 time values with ``time_context``."""
     return n_node_features + ob.N_CONTEXT if time_context else n_node_features

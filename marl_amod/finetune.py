@@ -29,7 +29,7 @@ import numpy as np
 
 from marl_amod.algos import a2c
 from marl_amod.algos.common import evaluate_actor, read_curve
-from marl_amod.checkpoints import load_actor, read_card
+from marl_amod.checkpoints import architecture_args, load_actor, read_card
 from marl_amod.errors import ConfigError
 from marl_amod.evaluation import evaluate
 from marl_amod.files import write_json
@@ -53,8 +53,7 @@ def finetune_curve(
     if not behaviour:
         raise ConfigError(f"{policy} has no dataset on its card: the study starts from an offline policy (bc, iql, cql)")
     common = {
-        "scenario": trained.get("args", {}).get("scenario") or city.name, "mode": "centralised", "actor": card["actor"], "conv": card["conv"], "readout": card.get("readout") or "none", "hidden": card["hidden"],
-        "lookahead": card["lookahead"], "actor_time": card.get("time_context", False), "episodes": episodes, "num_envs": num_envs, "episodes_per_update": num_envs,
+        "scenario": trained.get("args", {}).get("scenario") or city.name, "mode": "centralised", **architecture_args(card), "episodes": episodes, "num_envs": num_envs, "episodes_per_update": num_envs,
         "eval_every": eval_every, "eval_episodes": eval_episodes, "seed": seed, "gamma": 0.97, "reward_scale": 0.001,
         "final_eval_episodes": 1, "policy_out": "",
     }  # fmt: skip

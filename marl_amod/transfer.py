@@ -68,13 +68,12 @@ def fine_tune(policy_path: str, scenario: str, episodes: int = K_FINE_TUNE, seed
     import tempfile
 
     from marl_amod.algos import a2c
-    from marl_amod.checkpoints import ActorPolicy, load_actor
+    from marl_amod.checkpoints import ActorPolicy, architecture_args, load_actor
 
     card = _card(policy_path)
     with tempfile.TemporaryDirectory(prefix="marl-amod-fine-tune-") as tmp:
         args = a2c.Args(
-            scenario=scenario, actor=card["actor"], conv=card["conv"], readout=card.get("readout") or "none", hidden=card["hidden"], lookahead=card["lookahead"],
-            actor_time=card.get("time_context", False), init_actor=str(policy_path), episodes=episodes, episodes_per_update=min(per_update, episodes), seed=seed,
+            scenario=scenario, **architecture_args(card), init_actor=str(policy_path), episodes=episodes, episodes_per_update=min(per_update, episodes), seed=seed,
             eval_every=episodes, eval_episodes=FINE_TUNE_VALIDATION, final_eval_episodes=1, run_dir=tmp, policy_out=f"{tmp}/fine_tuned.pt",
         )  # fmt: skip
         summary = a2c.train(args)

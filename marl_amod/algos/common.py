@@ -31,7 +31,6 @@ from marl_amod.algos.rollout import BatchRollout, Mode, Rollout
 from marl_amod.checkpoints import ActorPolicy, actor_inputs, check_torch_file, make_card, save_policy, with_context
 from marl_amod.config import CommonArgs
 from marl_amod.env.features import n_features
-from marl_amod.env.observations import N_CONTEXT
 from marl_amod.errors import DataError, MarlAmodError
 from marl_amod.files import atomic_write, torch_save, write_json
 from marl_amod.models.dense import DenseGraph
@@ -113,7 +112,7 @@ def actor_features(n_features: int, args: RunArgs) -> int:
 
 def critic_features(n_features: int, args: RunArgs) -> int:
     """Node features a critic reads: F, plus the time context with ``critic_time``."""
-    return n_features + N_CONTEXT if args.critic_time else n_features
+    return actor_inputs(n_features, args.critic_time)
 
 
 def with_time(x: torch.Tensor, ctx: torch.Tensor | None, use: bool) -> torch.Tensor:
