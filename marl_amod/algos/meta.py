@@ -66,6 +66,7 @@ from marl_amod.algos.rollout import train_seed
 from marl_amod.baselines.base import WeightPolicy
 from marl_amod.batch_system import BatchFleetSystem
 from marl_amod.env.features import state_features
+from marl_amod.errors import DataError
 from marl_amod.models.dense import DenseGraph
 from marl_amod.models.distributions import dirichlet
 from marl_amod.models.recurrent import RecurrentGNN
@@ -401,8 +402,6 @@ def widened(start: RecurrentGNN, model: RecurrentGNN) -> dict[str, torch.Tensor]
     state = start.state_dict()
     if start.n_features == model.n_features:
         return state
-    from marl_amod.errors import DataError
-
     ours = model.state_dict()
     if start.n_features > model.n_features or set(state) != set(ours) or start.stay_prior != model.stay_prior or start.hidden != model.hidden:
         raise DataError(f"init_actor reads {start.n_features} features, hidden {start.hidden}; this run's model cannot extend it")
@@ -571,8 +570,6 @@ def load_meta(path: str | Path, like: RecurrentGNN | None = None) -> tuple[Recur
     """The recurrent model of a meta-RL policy file and its card (the weights checked against it,
     and against ``like``'s shapes when given: a warm start)."""
     from marl_amod.checkpoints import _card_of, _read_blob
-    from marl_amod.errors import DataError
-
     path = Path(path)
     blob = _read_blob(path)
     card = _card_of(path, blob["card"]).to_dict()
