@@ -11,6 +11,7 @@ import torch
 import yaml
 from typer.testing import CliRunner
 
+from marl_amod.algos import common as C
 from marl_amod.algos import offline as O
 from marl_amod.algos.registry import ALGOS, args_for
 from marl_amod.cli import app
@@ -59,7 +60,7 @@ def test_bc_learns_the_logged_actions(tmp_path, tiny):
     b = O.Batch(data.tensors)
     torch.manual_seed(0)
     gap = lambda actor: (torch.nn.functional.normalize(actor(b["x"], ei), p=1, dim=-1) - b["action"]).abs().sum(-1).mean().item()  # noqa: E731
-    before = gap(bc.make_actor(args, city))
+    before = gap(C.make_actor(args, city))
     bc.train(args)
     from marl_amod.checkpoints import load_actor
 

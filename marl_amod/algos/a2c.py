@@ -30,7 +30,7 @@ from pydantic import Field, model_validator
 from marl_amod.algos import common as C
 from marl_amod.algos.rollout import Obs, train_seed
 from marl_amod.env.features import n_features as feature_count
-from marl_amod.models import GNNValueCritic, LocalActor, LocalValueCritic, build_actor, dirichlet, gamma, gamma_log_prob
+from marl_amod.models import GNNValueCritic, LocalValueCritic, dirichlet, gamma, gamma_log_prob
 from marl_amod.models.gnn import Graph
 from marl_amod.scenario import load_city
 
@@ -158,10 +158,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     graph = C.make_graph(city, args)
     n_features = feature_count(args.lookahead)
     local_critic = args.mode == "decentralised" and not args.central_critic
-    if args.mode == "decentralised":
-        actor = LocalActor(n_features, args.hidden)
-    else:
-        actor = build_actor(args.actor, city, C.actor_features(n_features, args), args.hidden, args.conv, args.readout)
+    actor = C.make_actor(args, city)
     critic_in = C.critic_features(n_features, args)
     critic = LocalValueCritic(critic_in, args.hidden) if local_critic else GNNValueCritic(critic_in, args.hidden, args.conv, args.readout)
     C.warm_start(actor, args, city)  # offline -> online: start from a trained policy

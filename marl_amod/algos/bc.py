@@ -15,9 +15,7 @@ from pydantic import Field
 
 from marl_amod.algos import common as C
 from marl_amod.algos import offline as O
-from marl_amod.env.features import n_features as feature_count
 from marl_amod.errors import ConfigError
-from marl_amod.models import LocalActor, build_actor
 
 
 class Args(O.OfflineArgs):
@@ -34,14 +32,6 @@ class Args(O.OfflineArgs):
         return {**super().ignored_keys(), "central_critic": "BC has no critic", "gamma": "BC has no return"}
 
 
-def make_actor(args: O.OfflineArgs, city) -> torch.nn.Module:
-    """The GNN actor: the paper's on the global graph, or the local (SAGE) one for decentralised runs."""
-    f = feature_count(args.lookahead)
-    if args.mode == "decentralised":
-        return LocalActor(f, args.hidden)
-    return build_actor(args.actor, city, C.actor_features(f, args), args.hidden, args.conv, args.readout)
-
-
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
     """Clone the dataset's behaviour policy; keep the best validation actor; write its card."""
     city, data, local, graph, gen = O.setup(args)
@@ -49,7 +39,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         if local:
             raise ConfigError("sink_margin reshapes the global target shares: centralised runs only")
         data.tensors["action"] = O.sink_margin_targets(data.tensors["x"], data.tensors["action"], args.sink_margin)
-    actor = make_actor(args, city)
+    actor = C.make_actor(args, city)
     opt = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
 
     def update(b: O.Batch, step: int) -> dict[str, float]:

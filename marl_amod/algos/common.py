@@ -33,6 +33,7 @@ from marl_amod.config import CommonArgs
 from marl_amod.env.features import n_features
 from marl_amod.errors import DataError, MarlAmodError
 from marl_amod.files import atomic_write, torch_save, write_json
+from marl_amod.models import LocalActor, build_actor
 from marl_amod.models.dense import DenseGraph
 from marl_amod.models.gnn import Readout
 from marl_amod.scenario import City
@@ -108,6 +109,15 @@ def make_graph(city: City, args: RunArgs) -> torch.Tensor | DenseGraph:
 def actor_features(n_features: int, args: RunArgs) -> int:
     """Input columns of a centralised actor: F, plus the time context with ``actor_time``."""
     return actor_inputs(n_features, args.actor_time)
+
+
+def make_actor(args: RunArgs, city: City) -> torch.nn.Module:
+    """The run's actor: the local (SAGE) GNN on each agent's observation for decentralised runs,
+    else ``args.actor`` on the global graph (reading the time context too with ``actor_time``)."""
+    f = n_features(args.lookahead)
+    if args.mode == "decentralised":
+        return LocalActor(f, args.hidden)
+    return build_actor(args.actor, city, actor_features(f, args), args.hidden, args.conv, args.readout)
 
 
 def critic_features(n_features: int, args: RunArgs) -> int:

@@ -26,7 +26,6 @@ from pydantic import Field
 
 from marl_amod.algos import common as C
 from marl_amod.algos import offline as O
-from marl_amod.algos.bc import make_actor
 from marl_amod.algos.sac import policy_sample
 from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import TwinQ, dirichlet
@@ -63,7 +62,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     """Learn from the dataset with CQL; keep the best validation actor; write its card."""
     city, data, local, graph, gen = O.setup(args)
     n, k = city.n_regions, args.n_actions
-    actor = make_actor(args, city)
+    actor = C.make_actor(args, city)
     critic = TwinQ(feature_count(args.lookahead), args.critic_hidden, "sage" if local else args.conv)
     critic_targ = copy.deepcopy(critic).requires_grad_(False)
     opt_a = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)

@@ -26,7 +26,6 @@ from pydantic import Field
 
 from marl_amod.algos import common as C
 from marl_amod.algos import offline as O
-from marl_amod.algos.bc import make_actor
 from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import GNNValueCritic, TwinQ
 
@@ -63,7 +62,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     city, data, local, graph, gen = O.setup(args)
     f = feature_count(args.lookahead)
     conv = "sage" if local else args.conv
-    actor = make_actor(args, city)
+    actor = C.make_actor(args, city)
     q = TwinQ(f, args.critic_hidden, conv)
     q_targ = copy.deepcopy(q).requires_grad_(False)
     v = GNNValueCritic(f, args.critic_hidden, conv)

@@ -41,7 +41,7 @@ from torch.distributions import Dirichlet
 from marl_amod.algos import common as C
 from marl_amod.algos.rollout import Obs, train_seed
 from marl_amod.env.features import n_features as feature_count
-from marl_amod.models import LocalActor, TwinQ, build_actor, dirichlet, gamma, gamma_log_prob
+from marl_amod.models import TwinQ, dirichlet, gamma, gamma_log_prob
 from marl_amod.models.dense import DenseGraph
 from marl_amod.models.gnn import Graph, StackedTwinQ
 from marl_amod.scenario import City, load_city
@@ -243,7 +243,7 @@ class Learner:
         self.args, self.edge_index = args, edge_index
         self.local = local = args.mode == "decentralised"
         n_features = feature_count(args.lookahead)
-        self.actor = LocalActor(n_features, args.hidden) if local else build_actor(args.actor, city, n_features, args.hidden, args.conv, args.readout)
+        self.actor = C.make_actor(args, city)  # (SAC's actor reads no time context: actor_time is not a SAC key)
         C.warm_start(self.actor, args, city)  # offline -> online: start from a trained policy
         self.twin = TwinQ(C.critic_features(n_features, args), args.hidden, "sage" if local else args.conv)
         # the dense path stacks the twin critics' weights: one batched matmul per layer for both
