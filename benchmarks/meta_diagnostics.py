@@ -37,16 +37,17 @@ VAL_CITIES = ("porto", "nyc_man_north", "shenzhen_north", "washington_dc")
 
 def gap(policy: str, demos: str, episodes: int = 8) -> None:
     model, card = meta.load_meta(policy)
-    structure, lookahead = meta.reads_structure(model, card["lookahead"]), card["lookahead"]
+    lookahead = card["lookahead"]
+    structure, place = meta.features_read(model, lookahead)
     trials = np.arange(episodes).reshape(-1, 4).T  # (K = 4, B) as the trials of training
     for name in VAL_CITIES:
         city, graph = load_city(name), meta.city_graph(load_city(name))
         own = mi.collect_city(city, episodes, 99, lookahead, learner=model, trial_episodes=4,
                               seed_of=lambda s, e: np.random.SeedSequence([s, e, 777]))  # fmt: skip
         if structure:
-            own["x"] = meta.with_structure(own["x"], city, lookahead)
+            own["x"] = meta.with_structure(own["x"], city, lookahead, place)
         mine = mi.CityDemos(*(torch.from_numpy(own[k]) for k in ("x", "share", "region_reward", "reward", "action")))
-        stored = mi.load_demos(demos, city, lookahead, structure)
+        stored = mi.load_demos(demos, city, lookahead, structure, place)
         theirs = mi.CityDemos(*(v[-episodes:] for v in vars(stored).values()))
         row = []
         for d in (theirs, mine):

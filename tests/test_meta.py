@@ -75,23 +75,56 @@ def test_structure_features_tell_where_trips_go_and_what_moves_cost():
     np.testing.assert_allclose(meta.with_structure(base, city, lookahead)[0, 0], live, rtol=1e-6)
 
 
-def test_a_policy_extended_to_the_structure_features_starts_as_the_same_policy():
-    """Widening a warm start: the new input columns start at zero weight, so the actions and
-    values are the old model's until training uses them."""
+def test_place_features_tell_where_a_region_lies_relative_to_its_city():
+    """The place columns: mean rebalancing time to and from the other regions over the city's
+    mean, the region's shares of the day's requests out and in and of the initial fleet (x N);
+    stored task features gain them with the structure columns, as the agent reads them live."""
+    city = load_city("synthetic")
+    n, lookahead = city.n_regions, 2
+    place = meta.place_table(city)
+    assert place.shape == (n, meta.N_PLACE)
+    np.testing.assert_allclose(place.mean(0), 1.0, rtol=1e-5)  # relative to the city: a typical region reads 1
+    to = city.reb_time.sum(1) / (n - 1)
+    np.testing.assert_allclose(place[:, 0], to / to.mean(), rtol=1e-5)
+    np.testing.assert_allclose(place[:, 1], city.reb_time.sum(0) / (n - 1) / to.mean(), rtol=1e-5)
+    day = city.forecast_rate[: city.horizon].sum(0)
+    np.testing.assert_allclose(place[:, 3], day.sum(0) * n / day.sum(), rtol=1e-5)
+    np.testing.assert_allclose(place[:, 4], city.initial_vehicles * n / city.initial_vehicles.sum(), rtol=1e-5)
+    system = FleetSystem(city)
+    system.reset(np.random.SeedSequence(1))
+    system.step(system.sim.idle.copy())
+    live = meta.task_features(system, meta.CityScale.of(city), lookahead, structure=True, place=True)
+    assert live.shape == (n, meta.n_task_features(lookahead, structure=True, place=True))
+    np.testing.assert_allclose(live[:, -meta.N_PLACE :], place)
+    base = meta.task_features(system, meta.CityScale.of(city), lookahead)[None, None]
+    np.testing.assert_allclose(meta.with_structure(base, city, lookahead, place=True)[0, 0], live, rtol=1e-6)
+    with pytest.raises(ConfigError, match="city_features"):
+        meta.n_task_features(lookahead, place=True)
+
+
+@pytest.mark.parametrize("place, readout", [(False, "none"), (True, "mean-max")])
+def test_a_policy_extended_to_more_features_or_a_readout_starts_as_the_same_policy(place, readout):
+    """Widening a warm start: the new input columns and the readout's columns of the heads start
+    at zero weight, so the actions and values are the old model's until training uses them."""
+    from marl_amod.errors import DataError
     from marl_amod.models.dense import DenseGraph
 
     torch.manual_seed(0)
     old = RecurrentGNN(meta.n_task_features(2), hidden=8, stay_prior=True)
-    new = RecurrentGNN(meta.n_task_features(2, structure=True), hidden=8, stay_prior=True)
+    new = RecurrentGNN(meta.n_task_features(2, structure=True, place=place), hidden=8, stay_prior=True, readout=readout)
     new.load_state_dict(meta.widened(old, new))
-    assert meta.reads_structure(new, 2) and not meta.reads_structure(old, 2)
+    assert meta.features_read(new, 2) == (True, place) and meta.features_read(old, 2) == (False, False)
     graph = DenseGraph(torch.tensor([[0, 1, 1, 2], [1, 0, 2, 1]]), 3)
     x = torch.rand(2, 3, new.n_features)
     feedback = (torch.rand(2, 3), torch.rand(2, 3), torch.rand(2), torch.rand(2, 3, 8))
     for a, b in zip(old(x[..., : old.n_features], *feedback, graph), new(x, *feedback, graph), strict=True):
         torch.testing.assert_close(a, b)
-    from marl_amod.errors import DataError
-
+    if readout != "none":  # the readout is there to be used: its columns get a gradient
+        alpha, value, _ = new(x, *feedback, graph)
+        (alpha.log().sum() + value.sum()).backward()
+        assert new.actor[0].weight.grad[:, 16:].abs().sum() > 0 and new.critic[0].weight.grad[:, 16:].abs().sum() > 0
+        with pytest.raises(DataError, match="cannot extend"):  # a readout is not dropped
+            meta.widened(new, RecurrentGNN(new.n_features, hidden=8, stay_prior=True))
     with pytest.raises(DataError, match="cannot extend"):
         meta.widened(old, RecurrentGNN(meta.n_task_features(2, structure=True), hidden=4, stay_prior=True))
 

@@ -156,6 +156,17 @@ def test_dagger_rounds_join_the_demonstrations_and_resume_from_disk(tasks, tmp_p
     assert rec["transfer"]["target_episodes"] == 0 and np.isfinite(rec["metrics"]["profit"]["mean"])
     rec["normalised_score"] = 0.0  # (its 1 round + the start's 2) x 2 episodes x 2 cities
     assert "| 10 training cities + 4 MPC-F demos + 12 DAgger |" in study_markdown({"targets": {"synthetic": {"meta-rl": rec}}})
+    # and once more, with the place features, a fleet readout and the first run's DAgger rounds joined
+    last = more.model_copy(update={"init_actor": str(tmp_path / "bc2.pt"), "run_dir": str(tmp_path / "bc3"), "dagger_rounds": 0,
+                                   "place_features": True, "readout": "mean-max", "more_demos": [str(rounds / f"round{k}") for k in (1, 2)],
+                                   "policy_out": str(tmp_path / "bc3.pt")})  # fmt: skip
+    cities = {name: load_city(name) for name in tasks}
+    assert all(demos.episodes == 2 + 2 * 2 and demos.x.shape[-1] == meta.n_task_features(6, True, True) for demos, _ in mi.load_all(last, cities).values())
+    card = ALGOS["meta-bc"].train(last)["card"]
+    assert card["n_features"] == meta.n_task_features(6, True, True) and card["args"]["readout"] == "mean-max"
+    model, _ = meta.load_meta(tmp_path / "bc3.pt")
+    assert model.readout is not None
+    assert np.isfinite(run_strategy("meta-rl", "synthetic", episodes=1, meta_policy=str(tmp_path / "bc3.pt"), adapt_episodes=1)["metrics"]["profit"]["mean"])
 
 
 def test_shocked_dagger_trials_are_labelled_by_mpc_told_the_shock(tasks):

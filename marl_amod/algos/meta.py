@@ -17,7 +17,8 @@ units (:class:`CityScale`):
   in vehicles per region: what the operator saw happen (a shock the forecast misses shows here);
 * a last column is the step fraction t / horizon; with ``city_features`` the city's structure
   follows (:func:`structure_table`: expected requests into each region, trip and rebalancing
-  times, the cost of driving), which a single-city policy memorises and MPC-Forecast plans with;
+  times, the cost of driving), which a single-city policy memorises and MPC-Forecast plans with,
+  and with ``place_features`` where each region lies in its city (:func:`place_table`);
 * the reward is the step's profit divided by the city's expected fare revenue per step
   (``forecast_rate * price`` over the episode, / horizon): about 0.5-1 per step in every city;
   the memory also reads each region's own reward (its trips' profit minus its rebalancing cost)
@@ -66,9 +67,10 @@ from marl_amod.algos.rollout import train_seed
 from marl_amod.baselines.base import WeightPolicy
 from marl_amod.batch_system import BatchFleetSystem
 from marl_amod.env.features import state_features
-from marl_amod.errors import DataError
+from marl_amod.errors import ConfigError, DataError
 from marl_amod.models.dense import DenseGraph
 from marl_amod.models.distributions import dirichlet
+from marl_amod.models.gnn import Readout
 from marl_amod.models.recurrent import RecurrentGNN
 from marl_amod.scenario import City, load_city
 from marl_amod.scenario.events import DemandEvent, apply_events
@@ -102,10 +104,13 @@ class CityScale:
         return cls(vehicles=per_region, requests=revenue / max(requests, 1e-9) * per_region, reward=revenue / city.horizon)
 
 
-def task_features(system: FleetSystem | BatchFleetSystem, scale: CityScale, lookahead: int, structure: bool = False) -> np.ndarray:
+def task_features(
+    system: FleetSystem | BatchFleetSystem, scale: CityScale, lookahead: int, structure: bool = False, place: bool = False
+) -> np.ndarray:
     """(..., N, 2T + 4) float32: the paper's features in per-city units, the step's served and
     unserved requests out of each region (vehicles per region), then t / horizon; with
-    ``structure`` the T + 3 columns of :func:`structure_table` after them."""
+    ``structure`` the T + 3 columns of :func:`structure_table` after them, and with ``place`` the
+    ``N_PLACE`` of :func:`place_table` after those."""
     sim = system.sim
     raw = state_features(system.city, sim.t, sim.idle, sim.arrivals, lookahead, scale=1.0).astype(np.float64)  # idle, supply x T, value x T
     raw[..., : 1 + lookahead] /= scale.vehicles
@@ -116,14 +121,27 @@ def task_features(system: FleetSystem | BatchFleetSystem, scale: CityScale, look
     cols = [raw, np.stack([served, unserved, step], axis=-1)]
     if structure:
         cols.append(np.broadcast_to(structure_table(system.city, lookahead)[sim.t], (*sim.idle.shape, lookahead + 3)))
+    if place:
+        cols.append(np.broadcast_to(place_table(system.city), (*sim.idle.shape, N_PLACE)))
     return np.concatenate(cols, axis=-1).astype(np.float32)
 
 
 N_STRUCTURE = 3  # + T: columns of structure_table
+N_PLACE = 5  # columns of place_table
 
 
-def n_task_features(lookahead: int, structure: bool = False) -> int:
-    return 4 + 2 * lookahead + (lookahead + N_STRUCTURE if structure else 0)
+def n_task_features(lookahead: int, structure: bool = False, place: bool = False) -> int:
+    if place and not structure:
+        raise ConfigError("place_features extend city_features: set city_features too")
+    return 4 + 2 * lookahead + (lookahead + N_STRUCTURE if structure else 0) + (N_PLACE if place else 0)
+
+
+def features_read(model: RecurrentGNN, lookahead: int) -> tuple[bool, bool]:
+    """(structure, place): which optional columns ``model``'s input has after the task features."""
+    for options in ((False, False), (True, False), (True, True)):
+        if model.n_features == n_task_features(lookahead, *options):
+            return options
+    raise DataError(f"a recurrent GNN reading {model.n_features} features is none of the task-feature sets of lookahead {lookahead}")
 
 
 _STRUCTURE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -158,16 +176,38 @@ def structure_table(city: City, lookahead: int) -> np.ndarray:
     return per_city[lookahead]
 
 
-def with_structure(x: np.ndarray, city: City, lookahead: int) -> np.ndarray:
-    """Task features (..., N, 2T + 4) -> with the structure columns (..., N, 3T + 7): the step is
-    read back from the last column, t / horizon (stored demonstrations gain them at load)."""
+def place_table(city: City) -> np.ndarray:
+    """(N, N_PLACE) float32: where each region lies in its city, static and size-agnostic (each
+    relative to the city's average, so 1 is a typical region in any city): the mean rebalancing
+    time to the other regions and from them, the region's share of the day's requests out and
+    in, and its share of the initial fleet (shares x N). MPC-Forecast's plan depends on a region's
+    place; a network that treats regions alike (one set of weights for every city) can only learn
+    it from features (docs/offline "BC fidelity" 6: with a fleet readout these took a one-hop
+    clone of MPC-Forecast half-way to the MLP one)."""
+    per_city = _STRUCTURE.setdefault(city, {})
+    if "place" not in per_city:
+        n = city.n_regions
+        others = max(n - 1, 1)
+        to, came = city.reb_time.sum(1) / others, city.reb_time.sum(0) / others  # the diagonal is 0
+        mean = max(float(to.mean()), 1e-9)
+        day = city.forecast_rate[: city.horizon].sum(axis=0)  # (N, N) expected requests over the episode
+        total = max(float(day.sum()), 1e-9)
+        fleet = max(float(city.initial_vehicles.sum()), 1e-9)
+        cols = [to / mean, came / mean, day.sum(1) * n / total, day.sum(0) * n / total, city.initial_vehicles * n / fleet]
+        per_city["place"] = np.stack(cols, axis=-1).astype(np.float32)
+        per_city["place"].setflags(write=False)
+    return per_city["place"]
+
+
+def with_structure(x: np.ndarray, city: City, lookahead: int, place: bool = False) -> np.ndarray:
+    """Task features (..., N, 2T + 4) -> with the structure columns (..., N, 3T + 7), and with
+    ``place`` the place columns: the step is read back from the last column, t / horizon (stored
+    demonstrations gain them at load)."""
     t = np.rint(x[..., 0, -1] * city.horizon).astype(np.int64)  # (...)
-    return np.concatenate([x, structure_table(city, lookahead)[t]], axis=-1)
-
-
-def reads_structure(model: RecurrentGNN, lookahead: int) -> bool:
-    """Whether ``model``'s input is the task features with the structure columns."""
-    return model.n_features == n_task_features(lookahead, structure=True)
+    cols = [x, structure_table(city, lookahead)[t]]
+    if place:
+        cols.append(np.broadcast_to(place_table(city), (*x.shape[:-1], N_PLACE)))
+    return np.concatenate(cols, axis=-1)
 
 
 # --------------------------------------------------------------------------------------------
@@ -203,7 +243,7 @@ class MetaAgent:
 
     def __init__(self, model: RecurrentGNN, city: City, lookahead: int, num_trials: int = 1) -> None:
         self.model, self.city, self.lookahead, self.num_trials = model, city, lookahead, num_trials
-        self.scale, self.structure = CityScale.of(city), reads_structure(model, lookahead)
+        self.scale, (self.structure, self.place) = CityScale.of(city), features_read(model, lookahead)
         self.graph = city_graph(city)
         self.memory = model.initial_memory(city.n_regions, num_trials)  # a new trial: nothing known yet
         self.new_episode()
@@ -216,7 +256,7 @@ class MetaAgent:
     def act(self, system: FleetSystem | BatchFleetSystem, sample: bool) -> tuple[np.ndarray, torch.Tensor, torch.Tensor, torch.Tensor]:
         """(weights (B, N), log pi (B,), entropy (B,), value (B,)) and the memory moves one step."""
         b, n = self.num_trials, self.city.n_regions
-        x = torch.as_tensor(task_features(system, self.scale, self.lookahead, self.structure)).reshape(b, n, -1)
+        x = torch.as_tensor(task_features(system, self.scale, self.lookahead, self.structure, self.place)).reshape(b, n, -1)
         alpha, v, self.memory = self.model(x, self.prev_action, self.prev_region_reward, self.prev_reward, self.memory, self.graph)
         dist = dirichlet(alpha)
         if sample:
@@ -293,6 +333,12 @@ class Args(C.RunArgs):
     """the policy also reads the city's structure (:func:`structure_table`: expected requests into
     each region, trip and rebalancing times, the cost of driving): what a single-city policy
     memorises and a policy for many cities must be told"""
+    place_features: bool = False
+    """with ``city_features``, also where each region lies in its city (:func:`place_table`:
+    rebalancing times to and from the rest, its shares of the day's demand and of the fleet)"""
+    readout: Readout = "none"
+    """a fleet-wide pool (mean and/or max) appended to each region's memory and messages before the
+    heads (:class:`~marl_amod.models.gnn.FleetReadout`)"""
     stay_prior: bool = False
     """the actor outputs log-ratios to the idle vehicles' distribution (:class:`RecurrentGNN`): untrained, it keeps vehicles where they are"""
     episodes: int = Field(20000, ge=1)
@@ -321,6 +367,9 @@ class Args(C.RunArgs):
     A2C's noisy signal accumulates"""
     demos: str = "runs/meta_demos"
     """folder of the MPC-Forecast demonstrations (:func:`.meta_imitation.collect_demos`), read when ``bc_coef`` > 0"""
+    more_demos: list[str] = []
+    """folders of more labelled episodes joined to ``demos`` (an earlier run's DAgger rounds,
+    ``<run_dir>/dagger/round<k>``): a run continuing a DAgger run keeps the states its rounds reached"""
     val_cities: list[str] = Field(default_factory=lambda: ["porto", "nyc_man_north", "shenzhen_north", "washington_dc"], min_length=1)
     """training cities whose adapted profit (``eval_episodes`` trials each, validation seeds) picks the best model"""
     eval_every: int = Field(600, ge=1)
@@ -334,9 +383,13 @@ class Args(C.RunArgs):
                 "actor_time": "the recurrent actor reads t / horizon already"}  # fmt: skip
 
 
-def check_tasks(args: Args) -> None:
-    from marl_amod.errors import ConfigError
+def make_model(args: Args) -> RecurrentGNN:
+    """The run's recurrent GNN (its inputs: the task features and the optional column sets)."""
+    n_features = n_task_features(args.lookahead, args.city_features, args.place_features)
+    return RecurrentGNN(n_features, args.hidden, args.conv, args.stay_prior, args.readout)
 
+
+def check_tasks(args: Args) -> None:
     leaked = sorted(set(args.cities) & set(HELD_OUT)) + ([args.scenario] if args.scenario in args.cities else [])
     if leaked:
         raise ConfigError(f"meta-RL training cities include held-out {sorted(set(leaked))}; the study tests on them")
@@ -388,7 +441,7 @@ def warm_start(args: Args, model: RecurrentGNN, cities: dict[str, City], resume:
     validate it first, so it is kept unless training beats it; (the best so far, the card's ``warm_start``)."""
     if not args.init_actor:
         return C.BestActor.of(model), {}
-    start, card = load_meta(args.init_actor, like=None if reads_structure(model, args.lookahead) else model)
+    start, card = load_meta(args.init_actor, like=None if args.city_features or args.readout != "none" else model)
     warm = {"warm_start": {k: card.get(k) for k in ("algorithm", "updates", "training_wall_s", "demonstrations", "dagger")} | {"policy": args.init_actor}}
     if resume:  # the resumed state brings its own model and best
         return C.BestActor.of(model), warm
@@ -397,18 +450,24 @@ def warm_start(args: Args, model: RecurrentGNN, cities: dict[str, City], resume:
 
 
 def widened(start: RecurrentGNN, model: RecurrentGNN) -> dict[str, torch.Tensor]:
-    """``start``'s weights for ``model``; where ``model`` reads more features (the structure columns
-    after the task features), their input weights start at zero: the same policy, free to use them."""
-    state = start.state_dict()
-    if start.n_features == model.n_features:
-        return state
-    ours = model.state_dict()
-    if start.n_features > model.n_features or set(state) != set(ours) or start.stay_prior != model.stay_prior or start.hidden != model.hidden:
-        raise DataError(f"init_actor reads {start.n_features} features, hidden {start.hidden}; this run's model cannot extend it")
+    """``start``'s weights for ``model``, which may read more: more features (the structure and
+    place columns after the task features) or a fleet readout before the heads. What is new
+    enters through zero weights (the input columns of the encoder, the readout's columns of each
+    head's first layer; the readout's own map keeps ``model``'s initialisation), so the widened
+    model starts as the same policy, free to use them."""
+    state, ours = start.state_dict(), model.state_dict()
+    new = set(ours) - set(state)
+    if (start.n_features > model.n_features or set(state) - set(ours) or start.stay_prior != model.stay_prior
+            or start.hidden != model.hidden or (new and start.readout is not None) or any(not k.startswith("readout.") for k in new)):  # fmt: skip
+        raise DataError(f"init_actor reads {start.n_features} features, hidden {start.hidden}, readout {start.readout_kind}; "
+                        "this run's model cannot extend it")  # fmt: skip
     weight = state["encode.0.weight"]  # (H, F + feedback): the new columns go between the features and the feedback
     zeros = weight.new_zeros(weight.shape[0], model.n_features - start.n_features)
     state["encode.0.weight"] = torch.cat([weight[:, : start.n_features], zeros, weight[:, start.n_features :]], dim=1)
-    return state
+    for head in ("actor.0.weight", "critic.0.weight"):  # (H, 2H [+ kH]): the readout's columns come last
+        weight = state[head]
+        state[head] = torch.cat([weight, weight.new_zeros(weight.shape[0], ours[head].shape[1] - weight.shape[1])], dim=1)
+    return state | {k: ours[k] for k in new}
 
 
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
@@ -418,7 +477,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     C.seed_everything(args.seed)
     cities = {name: load_city(name) for name in dict.fromkeys([*args.cities, *args.val_cities])}
     systems = {name: BatchFleetSystem(cities[name], args.num_envs) for name in args.cities}  # reused: the coordinator caches per city
-    model = RecurrentGNN(n_task_features(args.lookahead, args.city_features), args.hidden, args.conv, args.stay_prior)
+    model = make_model(args)
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     rng = np.random.default_rng([args.seed, 17])  # which city (and shock) each draw gets
 
@@ -576,15 +635,15 @@ def load_meta(path: str | Path, like: RecurrentGNN | None = None) -> tuple[Recur
     if card["algorithm"] not in META_ALGOS:
         raise DataError(f"{path} is a {card['algorithm']} policy, not a meta-RL one")
 
-    model = RecurrentGNN(card["n_features"], card["hidden"], card["conv"], card["args"].get("stay_prior", False))
+    model = RecurrentGNN(card["n_features"], card["hidden"], card["conv"], card["args"].get("stay_prior", False), card["args"].get("readout", "none"))
     try:
         model.load_state_dict(blob["state_dict"])
     except RuntimeError as exc:
         raise DataError(f"{path}: weights do not fit its card: {str(exc).splitlines()[0]}") from None
     theirs, ours = model.state_dict(), (like.state_dict() if like is not None else None)
     if ours is not None and (set(theirs) != set(ours) or any(theirs[k].shape != ours[k].shape for k in ours) or model.stay_prior != like.stay_prior):
-        raise DataError(f"{path} is a recurrent GNN with {card['n_features']} features, hidden {card['hidden']}, {card['conv']}; "
-                        "this run's differs (set lookahead, hidden, conv and stay_prior to match)")  # fmt: skip
+        raise DataError(f"{path} is a recurrent GNN with {card['n_features']} features, hidden {card['hidden']}, {card['conv']}, "
+                        f"readout {model.readout_kind}; this run's differs (set lookahead, hidden, conv, stay_prior and readout to match)")  # fmt: skip
     model.eval()
     return model, card
 

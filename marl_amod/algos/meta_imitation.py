@@ -34,10 +34,10 @@ resumed run reads them back.
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -181,10 +181,10 @@ def collect_demos(
     return walls
 
 
-def load_demos(folder: str | Path, city: City, lookahead: int, structure: bool = False) -> CityDemos:
+def load_demos(folder: str | Path, city: City, lookahead: int, structure: bool = False, place: bool = False) -> CityDemos:
     """One city's demonstrations, checked against the city and the run's lookahead; ``structure``
-    adds the city-structure columns (:func:`~marl_amod.algos.meta.with_structure`: a function of
-    the city and the step, so the files keep only the task features)."""
+    (and ``place``) add the city-structure (and place) columns (:func:`~marl_amod.algos.meta.with_structure`:
+    a function of the city and the step, so the files keep only the task features)."""
     path = demo_path(folder, city.name)
     if not path.is_file():
         raise DataError(f"no demonstrations for {city.name} at {path}")
@@ -192,7 +192,7 @@ def load_demos(folder: str | Path, city: City, lookahead: int, structure: bool =
     if str(data["format"]) != DEMO_FORMAT or int(data["lookahead"]) != lookahead or data["x"].shape[2] != city.n_regions:
         raise DataError(f"{path}: demonstrations of another format, lookahead or city (want lookahead {lookahead}, {city.n_regions} regions)")
     action = data["action"] if "action" in data else data["share"]  # files from before DAgger: MPC-F played its label
-    x = meta.with_structure(data["x"], city, lookahead) if structure else data["x"]
+    x = meta.with_structure(data["x"], city, lookahead, place) if structure else data["x"]
     return CityDemos(torch.from_numpy(x), *(torch.from_numpy(data[k]) for k in ("share", "region_reward", "reward")), torch.from_numpy(action))
 
 
@@ -254,8 +254,17 @@ class Args(meta.Args):
 
 
 def load_all(args: meta.Args, cities: dict[str, City]) -> dict[str, tuple[CityDemos, DenseGraph]]:
-    """The demonstrations and dense graph of every training city."""
-    return {name: (load_demos(args.demos, cities[name], args.lookahead, args.city_features), meta.city_graph(cities[name])) for name in args.cities}
+    """The demonstrations (and ``more_demos``) and dense graph of every training city."""
+    data = {}
+    for name in args.cities:
+        demos = [load_run_demos(folder, cities[name], args) for folder in [args.demos, *args.more_demos]]
+        data[name] = (functools.reduce(joined, demos), meta.city_graph(cities[name]))
+    return data
+
+
+def load_run_demos(folder: str | Path, city: City, args: meta.Args) -> CityDemos:
+    """One city's episodes in ``folder`` with the columns the run's model reads."""
+    return load_demos(folder, city, args.lookahead, args.city_features, args.place_features)
 
 
 def joined(a: CityDemos, b: CityDemos) -> CityDemos:
@@ -268,10 +277,10 @@ def dagger_round(args: Args, model: RecurrentGNN, k: int, data: dict[str, tuple[
     folder = Path(args.run_dir) / "dagger" / f"round{k}"
     with torch.no_grad():
         walls = collect_demos(folder, args.cities, args.dagger_episodes, args.seed, args.lookahead, learner=model,
-                              trial_episodes=args.trial_episodes, seed_of=partial(dagger_seed, round=k), shock_prob=args.dagger_shock_prob)  # fmt: skip
+                              trial_episodes=args.trial_episodes, seed_of=functools.partial(dagger_seed, round=k), shock_prob=args.dagger_shock_prob)  # fmt: skip
     for name in args.cities:
         demos, graph = data[name]
-        data[name] = (joined(demos, load_demos(folder, cities[name], args.lookahead, args.city_features)), graph)
+        data[name] = (joined(demos, load_run_demos(folder, cities[name], args)), graph)
     return sum(walls.values())
 
 
@@ -293,7 +302,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     walls = collect_demos(args.demos, args.cities, args.demo_episodes, args.seed, args.lookahead)
     cities = {name: load_city(name) for name in dict.fromkeys([*args.cities, *args.val_cities])}
     data = load_all(args, cities)
-    model = RecurrentGNN(meta.n_task_features(args.lookahead, args.city_features), args.hidden, args.conv, args.stay_prior)
+    model = meta.make_model(args)
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     rng = np.random.default_rng([args.seed, 23])
     step, prior_wall = 0, 0.0

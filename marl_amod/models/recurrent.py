@@ -25,7 +25,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from marl_amod.models.dense import DenseGraph
-from marl_amod.models.gnn import ConvKind, Graph, batch_edge_index, concentration, make_conv, mlp_head
+from marl_amod.models.gnn import ConvKind, Graph, Readout, batch_edge_index, concentration, make_conv, mlp_head, readout_layer
 
 N_FEEDBACK = 3  # previous action share, previous region reward, previous team reward
 STAY_FLOOR = 0.1  # x 1/N: what a region without idle vehicles gets in the stay prior
@@ -45,16 +45,24 @@ class RecurrentGNN(nn.Module):
     The untrained policy then asks for what is there (no move, no cost) instead of a random
     distribution, and a demonstrator that mostly keeps vehicles where they are and moves a few
     (MPC-Forecast) differs from it by small log-ratios instead of an exact copy of the idle counts.
+
+    ``readout`` (:class:`~marl_amod.models.gnn.FleetReadout`, after the message passing): both heads
+    also see a pool over all regions (mean and/or max of a learned map of (memory, neighbours)):
+    MPC-Forecast plans for the whole fleet, one hop of messages shows a region only its neighbours.
     """
 
-    def __init__(self, n_features: int, hidden: int = 64, conv: ConvKind = "sage", stay_prior: bool = False) -> None:
+    def __init__(
+        self, n_features: int, hidden: int = 64, conv: ConvKind = "sage", stay_prior: bool = False, readout: Readout = "none"
+    ) -> None:
         super().__init__()
-        self.hidden, self.stay_prior, self.n_features = hidden, stay_prior, n_features
+        self.hidden, self.stay_prior, self.n_features, self.readout_kind = hidden, stay_prior, n_features, readout
         self.encode = nn.Sequential(nn.Linear(n_features + N_FEEDBACK, hidden), nn.ReLU())
         self.memory = nn.GRUCell(hidden, hidden)
         self.conv = make_conv(conv, hidden)
-        self.actor = mlp_head(2 * hidden, hidden)
-        self.critic = mlp_head(2 * hidden, hidden)
+        self.readout = readout_layer(readout, 2 * hidden, hidden)  # None for "none": old files load unchanged
+        head_in = self.readout.out_dim if self.readout is not None else 2 * hidden
+        self.actor = mlp_head(head_in, hidden)
+        self.critic = mlp_head(head_in, hidden)
 
     def initial_memory(self, n_regions: int, *lead: int) -> torch.Tensor:
         """(*lead, N, H) zeros: the memory at the start of a trial (a new city)."""
@@ -77,6 +85,8 @@ class RecurrentGNN(nn.Module):
             edges = batch_edge_index(graph, math.prod(lead), n) if lead else graph
             mixed = self.conv(memory.reshape(-1, self.hidden), edges).reshape(*lead, n, self.hidden)
         z = torch.cat([memory, F.relu(mixed)], dim=-1)  # (..., N, 2H): own memory, neighbours' memories
+        if self.readout is not None:
+            z = self.readout(z)  # (..., N, 2H + kH): and the whole fleet's
         if self.stay_prior:
             idle = x[..., 0].clamp_min(0)  # (..., N) idle vehicles per region, in per-city units
             share = idle / idle.sum(-1, keepdim=True).clamp_min(1e-9)
