@@ -2,7 +2,16 @@
 
 from marl_amod.models.cnn import CNNActor
 from marl_amod.models.distributions import dirichlet, dirichlet_log_prob_from_gammas, dirichlet_mean, gamma, gamma_log_prob
-from marl_amod.models.gnn import READOUTS, FleetReadout, GNNActor, GNNQCritic, GNNValueCritic, RegionIdentity, TwinQ, batch_edge_index
+from marl_amod.models.gnn import (
+    READOUTS,
+    FleetReadout,
+    GNNActor,
+    GNNQCritic,
+    GNNValueCritic,
+    RegionIdentity,
+    TwinQ,
+    batch_edge_index,
+)
 from marl_amod.models.local import LocalActor, LocalValueCritic, local_from_global
 from marl_amod.models.mlp import MLPActor
 
