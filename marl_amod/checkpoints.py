@@ -57,6 +57,9 @@ class PolicyCard(BaseModel):
     hidden: int
     readout: str | None = None
     """the GNN actor's fleet-wide readout (``readout``); absent: none, the paper's actor"""
+    agent_id: bool | None = None
+    """the GNN actor appends a one-hot region identity to every node (``agent_id``): it runs only
+    on cities of ``n_regions`` regions; absent: no identity, the paper's actor"""
     n_features: int
     lookahead: int
     seed: int
@@ -237,6 +240,11 @@ def load_actor(path: str | Path, city: City) -> tuple[torch.nn.Module, dict[str,
     card, state = _card_of(path, blob["card"]), blob["state_dict"]
     if card.n_features != n_features(card.lookahead):
         raise DataError(f"{path}: card says lookahead {card.lookahead} but {card.n_features} features (expected {n_features(card.lookahead)})")
+    if card.agent_id and card.n_regions != city.n_regions:
+        raise DataError(
+            f"{path}: trained with agent_id (a one-hot identity of each of {card.n_regions} regions); {city.name} has "
+            f"{city.n_regions}: a region-identity policy runs only on a city of its training city's size and order"
+        )
     if card.actor in REGION_BOUND:
         trained = _trained_regions(card.actor, card, state)
         if trained != city.n_regions:
@@ -245,7 +253,9 @@ def load_actor(path: str | Path, city: City) -> tuple[torch.nn.Module, dict[str,
                 "MLP and CNN actors are tied to a region count — use a GNN policy"
             )
     try:
-        actor = build_actor(card.actor, city, actor_inputs(card.n_features, card.time_context), card.hidden, card.conv, card.readout or "none")
+        actor = build_actor(
+            card.actor, city, actor_inputs(card.n_features, card.time_context), card.hidden, card.conv, card.readout or "none", bool(card.agent_id)
+        )
     except ValueError as exc:
         raise DataError(f"{path}: {exc}") from None
     expected = actor.state_dict()
@@ -267,7 +277,8 @@ def architecture_args(card: Mapping[str, Any]) -> dict[str, Any]:
     """The run arguments that rebuild a card's actor: a run warm-started from the policy
     (fine-tuning, transfer) must set exactly these, or its actor's shapes differ."""
     return {
-        "actor": card["actor"], "conv": card["conv"], "readout": card.get("readout") or "none", "hidden": card["hidden"],
+        "actor": card["actor"], "conv": card["conv"], "readout": card.get("readout") or "none",
+        "agent_id": bool(card.get("agent_id")), "hidden": card["hidden"],
         "lookahead": card["lookahead"], "actor_time": card.get("time_context", False),
     }  # fmt: skip
 

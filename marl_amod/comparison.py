@@ -173,7 +173,8 @@ def architecture(card: dict[str, Any]) -> str:
     actor = card.get("actor", "?")
     if actor == "gnn":
         readout = f", {card['readout']} readout" if card.get("readout") else ""
-        return f"GNN, {card.get('conv', 'gcn')}{readout}"
+        region_id = ", region id" if card.get("agent_id") else ""
+        return f"GNN, {card.get('conv', 'gcn')}{readout}{region_id}"
     if actor == "local":
         return "local GNN layer, sage"  # LocalActor is a GNN actor with conv="sage" on local observations
     return actor.upper()

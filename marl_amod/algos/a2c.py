@@ -160,7 +160,10 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     local_critic = args.mode == "decentralised" and not args.central_critic
     actor = C.make_actor(args, city)
     critic_in = C.critic_features(n_features, args)
-    critic = LocalValueCritic(critic_in, args.hidden) if local_critic else GNNValueCritic(critic_in, args.hidden, args.conv, args.readout)
+    if local_critic:
+        critic = LocalValueCritic(critic_in, args.hidden)
+    else:
+        critic = GNNValueCritic(critic_in, args.hidden, args.conv, args.readout, city.n_regions if args.agent_id else 0)
     C.warm_start(actor, args, city)  # offline -> online: start from a trained policy
     start = copy.deepcopy(actor).requires_grad_(False) if args.init_actor else None  # before resume: the init actor
     opt_a = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)

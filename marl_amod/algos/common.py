@@ -54,6 +54,11 @@ class RunArgs(CommonArgs):
     """centralised GNN actor (and A2C's value critic): append a pooled summary of every region
     (mean and/or max of a learned node map) to each node before the head, so a region's output
     can depend on the whole fleet, not only its neighbours (none: the paper's one-hop GNN)"""
+    agent_id: bool = False
+    """centralised GNN actor (and A2C's value critic): append a one-hot of the region index to
+    every node's input (the agent-ID input of parameter-shared MARL policies), so a region's
+    output can depend on where it is; ties the policy to the training city's size and region
+    order (the card records it; evaluating it on a city of another size is an error)"""
     central_critic: bool = True
     """decentralised mode only: critic on the global graph (env.state()) instead of sum of local values"""
     episodes: int = Field(1000, ge=1)
@@ -76,14 +81,17 @@ class RunArgs(CommonArgs):
     same actor, hidden, conv; the critic and optimisers start fresh (A2C validates the start first)"""
 
     @model_validator(mode="after")
-    def _readout_applies(self) -> RunArgs:
-        if self.readout == "none":
-            return self
-        if self.mode == "decentralised":
-            raise ValueError("readout pools over every region, but a decentralised actor reads only its local observation "
-                             "(use mode: centralised, or readout: none)")  # fmt: skip
-        if self.actor != "gnn":
-            raise ValueError(f"readout is a GNN actor option; the {self.actor} actor reads every region already (use actor: gnn, or readout: none)")
+    def _gnn_options_apply(self) -> RunArgs:
+        why = {"readout": "pools over every region", "agent_id": "sizes a one-hot for the whole city's regions"}
+        for key, off in (("readout", "none"), ("agent_id", False)):
+            if getattr(self, key) == off:
+                continue
+            if self.mode == "decentralised":
+                raise ValueError(f"{key} {why[key]}, but a decentralised actor reads only its local observation "
+                                 f"(use mode: centralised, or {key}: {str(off).lower()})")  # fmt: skip
+            if self.actor != "gnn":
+                raise ValueError(f"{key} is a GNN actor option; the {self.actor} actor reads every region, each in its place, "
+                                 f"already (use actor: gnn, or {key}: {str(off).lower()})")  # fmt: skip
         return self
 
     def ignored_keys(self) -> dict[str, str]:
@@ -117,7 +125,7 @@ def make_actor(args: RunArgs, city: City) -> torch.nn.Module:
     f = n_features(args.lookahead)
     if args.mode == "decentralised":
         return LocalActor(f, args.hidden)
-    return build_actor(args.actor, city, actor_features(f, args), args.hidden, args.conv, args.readout)
+    return build_actor(args.actor, city, actor_features(f, args), args.hidden, args.conv, args.readout, args.agent_id)
 
 
 def critic_features(n_features: int, args: RunArgs) -> int:
@@ -305,7 +313,8 @@ def warm_start(actor: torch.nn.Module, args: RunArgs, city: City) -> None:
     if set(theirs) != set(ours) or any(theirs[k].shape != ours[k].shape for k in ours):
         raise DataError(
             f"init_actor {args.init_actor} is a {card['actor']}/{card['conv']} actor with hidden {card['hidden']}, "
-            f"readout {card.get('readout') or 'none'}; this run's actor differs (set actor, conv, hidden and readout to match)"
+            f"readout {card.get('readout') or 'none'}, agent_id {bool(card.get('agent_id'))}; this run's actor differs "
+            "(set actor, conv, hidden, readout and agent_id to match)"
         )
     actor.load_state_dict(theirs)
 
@@ -409,6 +418,7 @@ def finish_run(
         scenario=city.name, n_regions=city.n_regions, algorithm=algorithm, mode=args.mode,
         actor="local" if args.mode == "decentralised" else args.actor,
         conv="sage" if args.mode == "decentralised" else args.conv, readout=None if args.readout == "none" else args.readout,
+        agent_id=args.agent_id or None,
         hidden=args.hidden, n_features=n_features(args.lookahead), lookahead=args.lookahead, seed=args.seed, time_context=args.actor_time,
         episodes_trained=episodes_done, eval_episodes=args.final_eval_episodes, eval_seed=args.final_eval_seed,
         profit_mean=profit["mean"], profit_std=profit["std"], served_demand_mean=result["metrics"]["served_demand"]["mean"],

@@ -6,7 +6,11 @@ the regions relabels the outputs (permutation equivariance). That reach is one h
 output depends on its own and its neighbours' features only. ``readout`` (off by default, the
 paper's model) appends a pooled summary of the whole fleet to every node before the head
 (:class:`FleetReadout`), which keeps both properties; on the MPC-Forecast clone it moved the
-GNN only slightly towards the MLP (docs/offline/index.md, "BC fidelity" 6).
+GNN only slightly towards the MLP (docs/offline/index.md, "BC fidelity" 6). ``agent_ids`` (off
+by default) appends a one-hot of the region index to every node's input (:class:`RegionIdentity`,
+the agent-ID input of parameter-shared MARL policies): a region's output can then depend on
+where it is, not only on what it sees, which gives up both properties (the model is tied to
+one city's size and region order).
 
 Shapes: B graphs in a batch, N regions, F node features, E directed edges, H hidden units.
 Every model takes the graph as ``edge_index`` (torch-geometric's scatter kernels) or as a
@@ -88,6 +92,32 @@ class FleetReadout(nn.Module):
         return torch.cat([h, *(p.expand_as(e) for p in pooled)], dim=-1)
 
 
+class RegionIdentity(nn.Module):
+    """Every node's input with a one-hot of its region index appended: (..., N, F) -> (..., N, F + N).
+
+    A shared-weight GNN sees a corner and the centre of a grid alike unless their features
+    differ, while a planner's move depends on place (where the demand wave is headed); this is
+    the agent-ID input parameter-shared MARL policies take (EPyMARL's ``obs_agent_id``, MAPPO).
+    The one-hot is rebuilt on each call (no buffer), so the state dict holds no extra entry.
+    """
+
+    def __init__(self, n_regions: int) -> None:
+        super().__init__()
+        if n_regions < 1:
+            raise ValueError(f"a region identity needs the region count (got {n_regions})")
+        self.n_regions = n_regions
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        n = x.shape[-2]
+        if n != self.n_regions:
+            raise ValueError(f"the model appends a {self.n_regions}-region identity; this graph has {n} regions")
+        eye = torch.eye(n, dtype=x.dtype, device=x.device)
+        return torch.cat([x, eye.expand(*x.shape[:-2], n, n)], dim=-1)
+
+    def extra_repr(self) -> str:
+        return f"n_regions={self.n_regions}"
+
+
 def readout_layer(kind: Readout, channels: int, hidden: int) -> FleetReadout | None:
     """The readout of a model, or None for ``"none"`` (no module, so the paper's models keep
     their parameters and old checkpoints load unchanged)."""
@@ -111,17 +141,24 @@ def _batched(x: torch.Tensor) -> tuple[torch.Tensor, bool]:
 
 
 class _NodeEmbedding(nn.Module):
-    """The part the actor and the value critic share: the graph trunk, then the optional
-    fleet-wide readout (:class:`FleetReadout`); ``embed_dim`` is what their node MLP reads."""
+    """The part the actor and the value critic share: the optional region identity on the input
+    (:class:`RegionIdentity`, ``agent_ids`` = N regions, 0: none), the graph trunk, then the
+    optional fleet-wide readout (:class:`FleetReadout`); ``embed_dim`` is what their node MLP reads."""
 
-    def __init__(self, n_features: int, hidden: int, conv: ConvKind, readout: Readout) -> None:
+    def __init__(self, n_features: int, hidden: int, conv: ConvKind, readout: Readout, agent_ids: int = 0) -> None:
         super().__init__()
-        self.trunk = _GraphTrunk(n_features, conv)
-        self.readout = readout_layer(readout, n_features, hidden)
-        self.embed_dim = self.readout.out_dim if self.readout else n_features
+        # None when off: no module, so the models without it print and load as before
+        self.region_id = RegionIdentity(agent_ids) if agent_ids else None
+        channels = n_features + agent_ids
+        self.trunk = _GraphTrunk(channels, conv)
+        self.readout = readout_layer(readout, channels, hidden)
+        self.embed_dim = self.readout.out_dim if self.readout else channels
 
     def embed(self, x: torch.Tensor, edge_index: Graph) -> torch.Tensor:
-        """(B, N, F) -> what the node MLP reads: (B, N, F), or (B, N, F + k*H) with a readout."""
+        """(B, N, F) -> what the node MLP reads: (B, N, C), C = F (+ N with the region identity)
+        (+ k*H with a readout)."""
+        if self.region_id is not None:
+            x = self.region_id(x)
         h = self.trunk(x, edge_index)
         return self.readout(h) if self.readout is not None else h
 
@@ -130,10 +167,14 @@ class GNNActor(_NodeEmbedding):
     """Node features (B, N, F) -> Dirichlet concentrations (B, N); unbatched (N, F) -> (N,).
 
     ``readout``: append a fleet-wide summary to every node before the head (:class:`FleetReadout`).
+    ``agent_ids``: the region count N of the one city it runs on, to append a one-hot region
+    identity to every node's input (:class:`RegionIdentity`); 0 (default): none.
     """
 
-    def __init__(self, n_features: int = 13, hidden: int = 32, conv: ConvKind = "gcn", readout: Readout = "none") -> None:
-        super().__init__(n_features, hidden, conv, readout)
+    def __init__(
+        self, n_features: int = 13, hidden: int = 32, conv: ConvKind = "gcn", readout: Readout = "none", agent_ids: int = 0
+    ) -> None:
+        super().__init__(n_features, hidden, conv, readout, agent_ids)
         self.head = mlp_head(self.embed_dim, hidden)
 
     def forward(self, x: torch.Tensor, edge_index: Graph) -> torch.Tensor:
@@ -145,11 +186,14 @@ class GNNActor(_NodeEmbedding):
 class GNNValueCritic(_NodeEmbedding):
     """State value V(s): per-node embedding summed over regions -> (B,) (unbatched -> ()).
 
-    ``readout`` as :class:`GNNActor`'s: each node's term also sees the fleet-wide summary.
+    ``readout`` and ``agent_ids`` as :class:`GNNActor`'s: each node's term also sees the
+    fleet-wide summary, and its own region index.
     """
 
-    def __init__(self, n_features: int = 13, hidden: int = 32, conv: ConvKind = "gcn", readout: Readout = "none") -> None:
-        super().__init__(n_features, hidden, conv, readout)
+    def __init__(
+        self, n_features: int = 13, hidden: int = 32, conv: ConvKind = "gcn", readout: Readout = "none", agent_ids: int = 0
+    ) -> None:
+        super().__init__(n_features, hidden, conv, readout, agent_ids)
         self.node = mlp_head(self.embed_dim, hidden, hidden)
         self.out = nn.Linear(hidden, 1)
 
