@@ -125,3 +125,22 @@ def test_selection_without_critic_weights_or_with_bad_settings_is_refused(traine
     critic = TwinQ(13, 4, "gcn")  # weights of another shape than the card's critic (hidden 8)
     with pytest.raises(DataError, match="do not fit"):
         load_critic(write_policy(tmp_path / "odd.pt", actor.state_dict(), card, critic.state_dict()))
+
+
+def test_selection_plays_the_same_on_the_simulator_and_through_the_envs_observations(trained):
+    """Seeded by what the policy observes, the selected action is the same whether the policy reads
+    the fleet or the agents' PettingZoo observations."""
+    from marl_amod.env.parallel import AmodParallelEnv
+
+    city, iql, _, _ = trained
+    policy = load_policy(iql, city)
+    env = AmodParallelEnv(city)
+    obs, _ = env.reset(seed=5)
+    steps = 0
+    while env.agents:
+        actions = policy(obs)
+        via_env = np.array([actions[a][0] for a in policy.agents], dtype=np.float32)
+        assert np.array_equal(via_env, policy.weights(env.system).astype(np.float32))
+        obs, *_ = env.step(actions)
+        steps += 1
+    assert steps >= 2  # every step of an episode compared
