@@ -1,7 +1,10 @@
 """Q-guided action selection on an offline cell: does playing the critic's best candidate beat the mean?
 
-    python benchmarks/offline_selection.py                       # MPC-Forecast: IQL and CQL, training seeds 0 1 2
-    python benchmarks/offline_selection.py --report              # then score the validation-chosen setting on the report seeds
+    python benchmarks/offline_selection.py                       # MPC-Forecast: IQL and CQL, training seeds 0 1 2 (4 min)
+    python benchmarks/offline_selection.py --configs configs/iql/nyc_brooklyn_mpc_forecast_expectile09.yaml \
+        --candidates 8 32 --concentrations 1000 10000 --report  # a sharper IQL critic, then the chosen setting on the report seeds
+
+The page's table (docs/offline/index.md, "BC fidelity" 8) is what the script prints at the end.
 
 For each config (default: IQL and CQL on the MPC-Forecast dataset) and training seed this trains
 the config again with its critic shipped in the file (``runs/selection/<stem>_s<seed>.pt``; seed s
@@ -43,6 +46,7 @@ REPORT = 0
 def train(config: Path, seed: int) -> Path:
     """The config's seed-``seed`` run with its critic in the policy file (trained once, then reused)."""
     from offline_seeds import seed_path  # the sibling script (benchmarks/ is on sys.path when this one runs)
+
     from marl_amod.algos.registry import load_train_config, run_training
 
     algo, args = load_train_config(config)
@@ -103,6 +107,25 @@ def setting_name(selection: dict[str, Any] | None) -> str:
     return "mean" if selection is None else f"n{selection['candidates']}_c{selection['concentration']:g}"
 
 
+def summary(table: dict[str, Any]) -> str:
+    """The page's table: validation profit per setting (mean over training seeds, k$), each config a column pair."""
+    runs = [r for r in table.values() if isinstance(r, dict) and "validation" in r]
+    configs = sorted({r["config"] for r in runs}, key=lambda c: ("cql" in c, c))
+    settings = sorted({k.split("@")[0] for r in runs for k in r["validation"]}, key=lambda s: (s != "mean", len(s), s))
+    head = "| setting | " + " | ".join(f"{Path(c).parent.name} {Path(c).stem.removeprefix('nyc_brooklyn_mpc_forecast').strip('_') or ''}".strip() + f", {v}+" for c in configs for v in VALIDATION) + " |"
+    lines = [head, "|---" * (1 + 2 * len(configs)) + "|"]
+    for setting in settings:
+        cells = []
+        for config, v in itertools.product(configs, VALIDATION):
+            vals = [r["validation"][f"{setting}@{v}"]["profit"] for r in runs if r["config"] == config and f"{setting}@{v}" in r["validation"]]
+            cells.append(f"{np.mean(vals) / 1000:.2f}k" if vals else "-")
+        lines.append(f"| {setting} | " + " | ".join(cells) + " |")
+    prefers = {c: [round(r["critic_prefers_logged"], 2) for r in runs if r["config"] == c] for c in configs}
+    lines.append("")
+    lines.append("critic scores the logged action above the actor's mean (held-out transitions, per seed): " + "; ".join(f"{Path(c).parent.name} {Path(c).stem}: {v}" for c, v in prefers.items()))
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--configs", type=Path, nargs="+", default=CONFIGS)
@@ -112,6 +135,8 @@ def main() -> None:
     ap.add_argument("--report", action="store_true", help="score the validation-chosen setting (and the mean) on the report seeds")
     ap.add_argument("--out", type=Path, default=ROOT / "docs/offline/selection.json")
     args = ap.parse_args()
+    from marl_amod.algos.registry import load_train_config
+
     torch.set_num_threads(1)
     table: dict[str, Any] = json.loads(args.out.read_text()) if args.out.is_file() else {}
     grid = [None] + [{"candidates": n, "concentration": c, "seed": 0} for n, c in itertools.product(args.candidates, args.concentrations)]
@@ -121,8 +146,6 @@ def main() -> None:
 
     behaviour = table.setdefault("_behaviour", {})
     for config in args.configs:
-        from marl_amod.algos.registry import load_train_config
-
         data_card = json.loads(Path(load_train_config(config)[1].dataset).with_suffix(".json").read_text())
         for seed in (*VALIDATION, REPORT):
             key = f"{data_card['policy']}@{seed}"
@@ -132,7 +155,7 @@ def main() -> None:
                 print(f"behaviour {key}: {m['profit']:,.0f}", flush=True)
         for seed in args.seeds:
             policy = train(config, seed)
-            run = table.setdefault(f"{policy.stem}", {"config": str(config.relative_to(ROOT)), "seed": seed, "validation": {}})
+            run = table.setdefault(f"{policy.stem}", {"config": str(config.resolve().relative_to(ROOT)), "seed": seed, "validation": {}})
             card = json.loads(policy.with_suffix(".json").read_text())
             run.update(policy=str(policy), start=card["args"]["init_actor"], kept=card["kept"], best_validation=card["best_validation"], report_mean=card["profit_mean"])
             if "critic_prefers_logged" not in run:
@@ -165,6 +188,7 @@ def main() -> None:
                     report[setting_name(selection)] = profit(Path(run["policy"]), selection, REPORT)
                     print(f"{Path(run['policy']).stem} {setting_name(selection)}@report: {report[setting_name(selection)]['profit']:,.0f}", flush=True)
     save()
+    print(summary(table))
 
 
 if __name__ == "__main__":
