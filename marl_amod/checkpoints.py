@@ -8,7 +8,8 @@ save, a copied file) instead of reporting another policy's numbers. The ``.pt`` 
 card and is the authority.
 
 ``load_policy(path, city)`` returns an :class:`ActorPolicy` that runs the actor deterministically
-(the Dirichlet mean), so ``marl-amod evaluate --policy policies/x.pt`` treats a trained policy
+(the Dirichlet mean; or, where the card asks for ``selection``, the best of sampled candidates by
+the twin Q critic the file carries: :mod:`marl_amod.selection`), so ``marl-amod evaluate --policy policies/x.pt`` treats a trained policy
 exactly like a baseline; it is also a callable on the env's observations. A file that is empty, truncated, not a checkpoint, damaged, or whose
 sizes do not fit the city is a :class:`DataError` naming the file and the problem.
 """
@@ -34,6 +35,7 @@ from marl_amod.errors import ConfigError, DataError
 from marl_amod.files import atomic_write, write_json
 from marl_amod.models.distributions import dirichlet_mean
 from marl_amod.scenario import City
+from marl_amod.selection import QSelector, Selection
 from marl_amod.system import FleetSystem
 
 FORMAT = "marl_amod.policy/2"
@@ -81,6 +83,11 @@ class PolicyCard(BaseModel):
     """the validated training arguments (after the config's extends: and defaults)"""
     git_commit: str | None = None
     """the code's commit when trained (with +dirty if the tree had changes)"""
+    critic: dict[str, Any] | None = None
+    """the twin Q critic whose weights the file carries beside the actor's (IQL, CQL):
+    n_features, hidden, conv; absent: the file has the actor only"""
+    selection: Selection | None = None
+    """Q-guided action selection (:mod:`marl_amod.selection`); absent: the Dirichlet mean"""
 
     def to_dict(self) -> dict[str, Any]:
         return self.model_dump(exclude_none=True)
@@ -135,15 +142,20 @@ def card_markdown(path: Path, card: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def write_policy(path: str | Path, state_dict: dict[str, torch.Tensor], card: PolicyCard | dict[str, Any]) -> Path:
-    """Write ``path`` (.pt: weights + card), then its .json and .md views, each atomically.
+def write_policy(
+    path: str | Path, state_dict: dict[str, torch.Tensor], card: PolicyCard | dict[str, Any], critic_state: dict[str, torch.Tensor] | None = None
+) -> Path:
+    """Write ``path`` (.pt: weights + card, and the critic's weights when given), then its .json
+    and .md views, each atomically.
 
     The views name the SHA-256 of the .pt bytes, so a reader can tell a view from another run.
     """
     card = card if isinstance(card, PolicyCard) else PolicyCard.model_validate(card)
     path = Path(path).with_suffix(".pt")
     path.parent.mkdir(parents=True, exist_ok=True)
-    blob = {"format": FORMAT, "card": card.to_dict(), "state_dict": {k: v.detach().cpu().clone() for k, v in state_dict.items()}}
+    blob = {"format": FORMAT, "card": card.to_dict(), "state_dict": _detached(state_dict)}
+    if critic_state is not None:
+        blob["critic_state_dict"] = _detached(critic_state)
     buffer = io.BytesIO()
     torch.save(blob, buffer)
     data = buffer.getvalue()
@@ -154,9 +166,14 @@ def write_policy(path: str | Path, state_dict: dict[str, torch.Tensor], card: Po
     return path
 
 
-def save_policy(path: str | Path, actor: torch.nn.Module, card: PolicyCard | dict[str, Any]) -> Path:
-    """Write an actor's policy file and its card views (see :func:`write_policy`)."""
-    return write_policy(path, actor.state_dict(), card)
+def _detached(state: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    return {k: v.detach().cpu().clone() for k, v in state.items()}
+
+
+def save_policy(path: str | Path, actor: torch.nn.Module, card: PolicyCard | dict[str, Any], critic: torch.nn.Module | None = None) -> Path:
+    """Write an actor's policy file (with ``critic``'s weights when given) and its card views
+    (see :func:`write_policy`)."""
+    return write_policy(path, actor.state_dict(), card, None if critic is None else critic.state_dict())
 
 
 # --------------------------------------------------------------------------------------------
@@ -273,6 +290,25 @@ def load_actor(path: str | Path, city: City) -> tuple[torch.nn.Module, dict[str,
     return actor, card.to_dict()
 
 
+def load_critic(path: str | Path) -> tuple[torch.nn.Module, dict[str, Any]]:
+    """The twin Q critic a policy file carries (IQL, CQL); returns (critic in eval mode, card).
+    A file without one is a DataError: only the actor was saved, so nothing can score actions."""
+    from marl_amod.models import TwinQ
+
+    path = Path(path)
+    blob = _read_blob(path)
+    card, state = _card_of(path, blob["card"]), blob.get("critic_state_dict")
+    if card.critic is None or not isinstance(state, dict):
+        raise DataError(f"{path} carries no critic weights (only IQL and CQL policies trained with them do): "
+                        "Q-guided selection needs them; retrain the policy, or drop selection")  # fmt: skip
+    try:
+        critic = TwinQ(card.critic["n_features"], card.critic["hidden"], card.critic["conv"])
+        critic.load_state_dict(state)
+    except (KeyError, ValueError, RuntimeError) as exc:
+        raise DataError(f"{path}: its critic weights do not fit its card's critic {card.critic}: {str(exc).splitlines()[0]}") from None
+    return critic.eval(), card.to_dict()
+
+
 def architecture_args(card: Mapping[str, Any]) -> dict[str, Any]:
     """The run arguments that rebuild a card's actor: a run warm-started from the policy
     (fine-tuning, transfer) must set exactly these, or its actor's shapes differ."""
@@ -305,8 +341,11 @@ class ActorPolicy(WeightPolicy):
     ``time_context`` actor reads as well.
     """
 
-    def __init__(self, actor: torch.nn.Module, city: City, lookahead: int = 6, name: str = "actor", time_context: bool = False) -> None:
-        self.actor, self.lookahead, self.name, self.time_context = actor, lookahead, name, time_context
+    def __init__(
+        self, actor: torch.nn.Module, city: City, lookahead: int = 6, name: str = "actor", time_context: bool = False,
+        selector: QSelector | None = None,
+    ) -> None:
+        self.actor, self.lookahead, self.name, self.time_context, self.selector = actor, lookahead, name, time_context, selector
         self.edge_index = torch.tensor(np.array(city.edge_index), dtype=torch.long)
         self.agents = ob.agent_names(city.n_regions)
 
@@ -324,13 +363,25 @@ class ActorPolicy(WeightPolicy):
     def _mean(self, features: np.ndarray, ctx: np.ndarray) -> np.ndarray:
         x = torch.as_tensor(features)
         alpha = self.actor(with_context(x, ctx) if self.time_context else x, self.edge_index)  # (N,)
-        return dirichlet_mean(alpha).numpy().astype(np.float64)
+        mean = dirichlet_mean(alpha).numpy().astype(np.float64)
+        return mean if self.selector is None else self.selector(features, mean)
 
 
-def load_policy(path: str | Path, city: City | str | None = None) -> WeightPolicy:
+def _selection(raw: Selection | dict[str, Any] | None) -> Selection | None:
+    try:
+        return None if raw is None else Selection.model_validate(raw)
+    except ValidationError as exc:
+        what = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
+        raise ConfigError(f"selection: {what}") from None
+
+
+def load_policy(path: str | Path, city: City | str | None = None, selection: Selection | dict[str, Any] | None = None) -> WeightPolicy:
     """A deterministic policy from a checkpoint, for ``city`` (a City or a scenario name; default:
     the scenario on its card). It runs on the simulator and as a callable on env observations; a
-    meta-RL policy (algorithm "meta") runs its adaptation episodes in ``city`` first."""
+    meta-RL policy (algorithm "meta") runs its adaptation episodes in ``city`` first.
+
+    ``selection`` (default: the card's) picks each action among candidates by the file's critic
+    (:mod:`marl_amod.selection`); ``{"candidates": 0, ...}`` turns a card's selection off."""
     card = _card_of(Path(path), _read_blob(Path(path))["card"])
     if not isinstance(city, City):
         from marl_amod.scenario import load_city
@@ -341,4 +392,6 @@ def load_policy(path: str | Path, city: City | str | None = None) -> WeightPolic
 
         return meta.load_policy(path, city)
     actor, card = load_actor(path, city)
-    return ActorPolicy(actor, city, card["lookahead"], name=Path(path).stem, time_context=card["time_context"])
+    chosen = _selection(selection if selection is not None else card.get("selection"))
+    selector = QSelector(load_critic(path)[0], city, chosen) if chosen is not None and chosen.candidates else None
+    return ActorPolicy(actor, city, card["lookahead"], name=Path(path).stem, time_context=card["time_context"], selector=selector)

@@ -37,6 +37,7 @@ from marl_amod.models import LocalActor, build_actor
 from marl_amod.models.dense import DenseGraph
 from marl_amod.models.gnn import Readout
 from marl_amod.scenario import City
+from marl_amod.selection import QSelector, Selection
 
 Progress = Callable[[int, int, dict], None]
 
@@ -212,15 +213,17 @@ class Timer:
 # Validation and the best actor
 # --------------------------------------------------------------------------------------------
 def evaluate_actor(
-    actor: torch.nn.Module, city: City, episodes: int, seed: int, lookahead: int = 6, time_context: bool = False
+    actor: torch.nn.Module, city: City, episodes: int, seed: int, lookahead: int = 6, time_context: bool = False,
+    selector: QSelector | None = None,
 ) -> dict[str, Any]:
-    """Deterministic (Dirichlet mean) evaluation with the same loop and JSON as the baselines."""
+    """Deterministic (Dirichlet mean, or Q-guided with ``selector``) evaluation with the same loop
+    and JSON as the baselines."""
     from marl_amod.evaluation import evaluate
 
     was_training = actor.training
     actor.eval()
     try:
-        return evaluate(ActorPolicy(actor, city, lookahead, time_context=time_context), city, episodes, seed)
+        return evaluate(ActorPolicy(actor, city, lookahead, time_context=time_context, selector=selector), city, episodes, seed)
     finally:
         actor.train(was_training)
 
@@ -406,13 +409,28 @@ def interruptible(save: Callable[[], tuple[Path, int]]) -> Iterator[None]:
 # --------------------------------------------------------------------------------------------
 # The end of a run: final evaluation and the policy card
 # --------------------------------------------------------------------------------------------
+@dataclass
+class CriticSpec:
+    """A twin Q critic that ships in the policy file beside the actor (IQL, CQL): its weights,
+    what rebuilds it (n_features, hidden, conv: the card's ``critic``), and the ``selection`` the
+    policy plays with (None: the Dirichlet mean), applied to the final evaluation too."""
+
+    critic: torch.nn.Module
+    card: dict[str, Any]
+    selection: Selection | None = None
+
+
 def finish_run(
     args: RunArgs, algorithm: str, actor: torch.nn.Module, city: City, wall_s: float, episodes_done: int, config_path: str | None = None,
-    extra: dict[str, Any] | None = None,
+    extra: dict[str, Any] | None = None, critic: CriticSpec | None = None,
 ) -> dict[str, Any]:
     """Final evaluation on the report seeds, then the policy file and its card (written once);
-    ``extra`` adds algorithm-specific card fields (an offline run's dataset)."""
-    result = evaluate_actor(actor, city, args.final_eval_episodes, args.final_eval_seed, args.lookahead, args.actor_time)
+    ``extra`` adds algorithm-specific card fields (an offline run's dataset); ``critic`` ships a
+    Q critic in the file (and its selection, which the final evaluation then plays)."""
+    selector = None
+    if critic is not None and critic.selection is not None and critic.selection.candidates:
+        selector = QSelector(critic.critic, city, critic.selection)
+    result = evaluate_actor(actor, city, args.final_eval_episodes, args.final_eval_seed, args.lookahead, args.actor_time, selector)
     profit = result["metrics"]["profit"]
     card = make_card(
         scenario=city.name, n_regions=city.n_regions, algorithm=algorithm, mode=args.mode,
@@ -424,10 +442,11 @@ def finish_run(
         profit_mean=profit["mean"], profit_std=profit["std"], served_demand_mean=result["metrics"]["served_demand"]["mean"],
         training_wall_s=round(wall_s, 1), torch_threads=torch.get_num_threads(),
         config=config_path, args=args.model_dump(mode="json"), **(extra or {}),
+        **({} if critic is None else {"critic": critic.card, "selection": critic.selection}),
     ).to_dict()
     summary: dict[str, Any] = {"card": card, "result": result}
     if args.policy_out:
-        summary["policy"] = str(save_policy(args.policy_out, actor, card))
+        summary["policy"] = str(save_policy(args.policy_out, actor, card, None if critic is None else critic.critic))
     run_dir = Path(args.run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     write_json(run_dir / "final_eval.json", result)

@@ -11,7 +11,9 @@ min Q - alpha log pi; its first ``bc_steps`` updates are behaviour cloning inste
 warm start), so the critic's first, poor estimates do not drag it off the data.
 
 Critics read the global graph; the actor is centralised or local (decentralised, per-agent
-Gamma: :func:`marl_amod.algos.sac.policy_sample`). The horizon ends every return.
+Gamma: :func:`marl_amod.algos.sac.policy_sample`). The horizon ends every return. The policy file
+carries the twin Q critic the actor follows, so the policy can also play by it (``selection``:
+:mod:`marl_amod.selection`).
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import TwinQ, dirichlet
 
 
-class Args(O.OfflineArgs):
+class Args(O.CriticArgs):
     hidden: int = Field(32, ge=1)
     """hidden units of the actor MLP"""
     critic_hidden: int = Field(128, ge=1)
@@ -63,7 +65,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     city, data, local, graph, gen = O.setup(args)
     n, k = city.n_regions, args.n_actions
     actor = C.make_actor(args, city)
-    critic = TwinQ(feature_count(args.lookahead), args.critic_hidden, "sage" if local else args.conv)
+    conv = "sage" if local else args.conv
+    critic = TwinQ(feature_count(args.lookahead), args.critic_hidden, conv)
     critic_targ = copy.deepcopy(critic).requires_grad_(False)
     opt_a = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
     opt_c = torch.optim.Adam(critic.parameters(), lr=args.lr_critic)
@@ -111,4 +114,5 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         return {"loss/q": loss_bellman.item(), "loss/cql": penalty.item(), "loss/policy": loss_pi.item()}
 
     parts = {"actor": actor, "critic": critic, "critic_targ": critic_targ, "opt_a": opt_a, "opt_c": opt_c}
-    return O.fit(args, "cql", city, data, actor, update, parts, gen, resume=resume, progress=progress, config_path=config_path)
+    return O.fit(args, "cql", city, data, actor, update, parts, gen, resume=resume, progress=progress, config_path=config_path,
+                 critic=(critic, args.critic_hidden, conv))  # fmt: skip

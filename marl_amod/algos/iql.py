@@ -13,6 +13,8 @@ Read top to bottom: Args, then ``train``. IQL never queries Q at actions outside
 Critics read the global graph with the action as a node feature (as SAC's); the actor is the
 paper's GNN (centralised) or the local one (decentralised, per-agent Gamma; see
 :mod:`marl_amod.algos.offline`). The horizon ends every return (done = termination or truncation).
+The policy file carries the target twin Q (what the advantage weights read), so the policy can
+also play by it (``selection``: :mod:`marl_amod.selection`).
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import GNNValueCritic, TwinQ
 
 
-class Args(O.OfflineArgs):
+class Args(O.CriticArgs):
     hidden: int = Field(32, ge=1)
     """hidden units of the actor MLP"""
     critic_hidden: int = Field(128, ge=1)
@@ -99,4 +101,5 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         return {"loss/v": loss_v.item(), "loss/q": loss_q.item(), "loss/policy": loss_pi.item(), "adv_weight": weight.mean().item()}
 
     parts = {"actor": actor, "q": q, "q_targ": q_targ, "v": v, "opt_a": opt_a, "opt_q": opt_q, "opt_v": opt_v}
-    return O.fit(args, "iql", city, data, actor, update, parts, gen, resume=resume, progress=progress, config_path=config_path)
+    return O.fit(args, "iql", city, data, actor, update, parts, gen, resume=resume, progress=progress, config_path=config_path,
+                 critic=(q_targ, args.critic_hidden, conv))  # fmt: skip

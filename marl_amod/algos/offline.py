@@ -27,12 +27,13 @@ from pydantic import Field
 
 from marl_amod.algos import common as C
 from marl_amod.datasets import OfflineDataset, normalised_score, read_card
-from marl_amod.env.features import FEATURE_SCALE
+from marl_amod.env.features import FEATURE_SCALE, n_features
 from marl_amod.env.observations import split_local
 from marl_amod.errors import ConfigError, DataError
 from marl_amod.models.dense import DenseGraph
 from marl_amod.models.gnn import Graph
 from marl_amod.scenario import City
+from marl_amod.selection import Selection
 
 
 class OfflineArgs(C.RunArgs):
@@ -62,6 +63,16 @@ class OfflineArgs(C.RunArgs):
 
     def ignored_keys(self) -> dict[str, str]:
         return {**super().ignored_keys(), "episodes": "offline runs take no env episodes; set updates"}
+
+
+class CriticArgs(OfflineArgs):
+    """What the offline learners with a Q critic (IQL, CQL) add: the critic ships in the policy
+    file, and the policy may play by it."""
+
+    selection: Selection | None = None
+    """Q-guided action selection (:mod:`marl_amod.selection`): the policy plays the best of the
+    actor's mean and ``candidates`` draws around it by the shipped critic (the final evaluation
+    too; validation stays on the mean). None: the Dirichlet mean, as every shipped policy"""
 
 
 def setup(args: OfflineArgs) -> tuple[City, Data, bool, DenseGraph, torch.Generator]:
@@ -178,9 +189,11 @@ class Update(Protocol):
 def fit(
     args: OfflineArgs, algorithm: str, city: City, data: Data, actor: torch.nn.Module, update: Update,
     parts: dict[str, Any], gen: torch.Generator, *, resume: str | None, progress: C.Progress | None, config_path: str | None,
+    critic: tuple[torch.nn.Module, int, str] | None = None,
 ) -> dict[str, Any]:
     """Run ``update`` for ``args.updates`` steps with validation, resume and the card; ``parts``
-    are the networks and optimisers whose state a resumed run restores (by name)."""
+    are the networks and optimisers whose state a resumed run restores (by name); ``critic``
+    (a TwinQ, its hidden units and conv) ships in the policy file with ``args.selection``."""
     if not resume:
         C.warm_start(actor, args, city)
     step, prior_wall, best = 0, 0.0, C.BestActor.of(actor)
@@ -222,7 +235,11 @@ def fit(
     if args.keep == "best":
         actor.load_state_dict(best.state)
     extra = {**_dataset_fields(data, step), "kept": args.keep, "best_validation": best.value}
-    return C.finish_run(args, algorithm, actor, city, timer(), 0, config_path, extra=extra)
+    spec = None
+    if critic is not None:
+        net, hidden, conv = critic
+        spec = C.CriticSpec(net, {"n_features": n_features(args.lookahead), "hidden": hidden, "conv": conv}, getattr(args, "selection", None))
+    return C.finish_run(args, algorithm, actor, city, timer(), 0, config_path, extra=extra, critic=spec)
 
 
 def _dataset_fields(data: Data, step: int) -> dict[str, Any]:
