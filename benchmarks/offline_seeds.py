@@ -48,9 +48,20 @@ def seed_args(args: Any, seed: int) -> Any:
     return args.model_copy(update=update)
 
 
+def essential(cls: type, values: dict[str, Any]) -> dict[str, Any]:
+    """``values`` (run arguments as JSON) without where a run writes and without the arguments at
+    their default: an option added to the run arguments after a run was recorded (off by default)
+    leaves that run the same experiment, so it is not retrained."""
+    from pydantic_core import to_jsonable_python
+
+    defaults = {k: to_jsonable_python(f.get_default(call_default_factory=True))
+                for k, f in cls.model_fields.items() if not f.is_required()}  # fmt: skip
+    return {k: v for k, v in values.items() if k not in RUN_KEYS and not (k in defaults and defaults[k] == v)}
+
+
 def comparable(args: Any) -> dict[str, Any]:
-    """The arguments that make two runs the same experiment (all but where they write)."""
-    return {k: v for k, v in args.model_dump(mode="json").items() if k not in RUN_KEYS}
+    """The arguments that make two runs the same experiment (all but where they write and the defaults)."""
+    return essential(type(args), args.model_dump(mode="json"))
 
 
 def run_one(config: Path, seed: int, done: dict[str, Any], retrain: bool = False) -> dict[str, Any] | None:
@@ -62,13 +73,14 @@ def run_one(config: Path, seed: int, done: dict[str, Any], retrain: bool = False
     args = seed_args(base, seed)
     key = Path(base.policy_out).stem
     same = comparable(args)
-    if not retrain and done.get(key, {}).get("args") == same and str(seed) in done[key]["seeds"]:
+    recorded = essential(type(args), done[key]["args"]) if key in done else None
+    if not retrain and recorded == same and str(seed) in done[key]["seeds"]:
         return None
     card_path = Path(args.policy_out).with_suffix(".json")
     card = json.loads(card_path.read_text()) if card_path.is_file() else None
     start = Path(args.init_actor) if args.init_actor else None
     stale = start is not None and card is not None and start.stat().st_mtime > card_path.stat().st_mtime  # its start was retrained
-    if retrain or stale or card is None or {k: v for k, v in card.get("args", {}).items() if k not in RUN_KEYS} != same:
+    if retrain or stale or card is None or essential(type(args), card.get("args", {})) != same:
         t = time.time()
         card = run_training(algo, args, config_path=str(config))["card"]
         print(f"{key} seed {seed}: trained in {time.time() - t:.0f} s", flush=True)
@@ -82,7 +94,7 @@ def record(path: Path, entry: dict[str, Any]) -> None:
     """Add one seed's result to ``path`` (a config whose arguments changed starts its cell afresh)."""
     table = json.loads(path.read_text()) if path.is_file() else {}
     cell = table.get(entry["key"])
-    if cell is None or cell["args"] != entry["args"]:
+    if cell is None or cell["args"] != entry["args"]:  # both from comparable(): defaults left out
         cell = {"config": entry["config"], "args": entry["args"], "seeds": {}}
     cell["seeds"][str(entry["seed"])] = entry["result"]
     table[entry["key"]] = dict(sorted(cell.items()))

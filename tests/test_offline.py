@@ -236,6 +236,12 @@ def test_training_seeds_get_their_own_files_and_start_and_the_table_averages_the
     (tmp_path / "seeds" / "bc_x_s2.pt").write_bytes(b"")
     assert offline_seeds.seed_args(args, 2).init_actor == str(tmp_path / "seeds" / "bc_x_s2.pt")
     assert offline_seeds.comparable(one) == offline_seeds.comparable(args)  # the same experiment
+    # a run recorded before an option existed (absent) or with it spelled out at its default is the
+    # same experiment; a non-default value is not
+    recorded = {**args.model_dump(mode="json"), "readout": "none"}
+    del recorded["selection"]
+    assert offline_seeds.essential(type(args), recorded) == offline_seeds.comparable(args)
+    assert offline_seeds.essential(type(args), {**recorded, "readout": "mean"}) != offline_seeds.comparable(args)
     cell = {"seeds": {str(s): {"profit_mean": p, "profit_std": 10.0} for s, p in enumerate((100.0, 110.0, 120.0))}}
     refs = {"equal-distribution": {"mean": 100.0}, "mpc-oracle": {"mean": 200.0}}
     stats = offline_table.over_seeds(cell, 100.0, refs)
