@@ -14,7 +14,8 @@ records it in ``docs/offline/seeds.json`` keyed by the policy's file stem.
 A config that starts from another policy (``init_actor``, the BC start of CQL and of the
 conservative IQL) starts seed s from that policy's seed-s run where it has been trained (train the
 start's seeds first: then the seeds are independent end to end), else from the config's own start
-(the shipped BC policy: the seeds then vary the improvement step only); each result records its start.
+(the shipped BC policy: the seeds then vary the improvement step only); each result records its start, and a
+run whose start was retrained since (its card's `start_sha256`) is trained again.
 Each (config, seed) already in the file with the same arguments is skipped, so an interrupted
 sweep resumes; each run is one offline training (minutes), so run the sweep in pieces.
 """
@@ -64,6 +65,16 @@ def comparable(args: Any) -> dict[str, Any]:
     return essential(type(args), args.model_dump(mode="json"))
 
 
+def started_elsewhere(card: dict[str, Any], start: str | None) -> bool:
+    """Whether the policy of ``card`` was trained from another version of ``start`` than the file
+    there now (its start was retrained since), by content: the card's ``start_sha256``. Cards
+    written before it was recorded count as current (file times say nothing after a clone)."""
+    from marl_amod.checkpoints import file_sha256
+
+    recorded = card.get("start_sha256")
+    return bool(start) and recorded is not None and Path(start).is_file() and file_sha256(start) != recorded
+
+
 def run_one(config: Path, seed: int, done: dict[str, Any], retrain: bool = False) -> dict[str, Any] | None:
     """Train (or reuse) one seed of ``config``; None when ``done`` already has it with these arguments
     (``retrain``: train it anyway, e.g. when the policy it starts from was retrained)."""
@@ -78,8 +89,7 @@ def run_one(config: Path, seed: int, done: dict[str, Any], retrain: bool = False
         return None
     card_path = Path(args.policy_out).with_suffix(".json")
     card = json.loads(card_path.read_text()) if card_path.is_file() else None
-    start = Path(args.init_actor) if args.init_actor else None
-    stale = start is not None and card is not None and start.stat().st_mtime > card_path.stat().st_mtime  # its start was retrained
+    stale = card is not None and started_elsewhere(card, args.init_actor)
     if retrain or stale or card is None or essential(type(args), card.get("args", {})) != same:
         t = time.time()
         card = run_training(algo, args, config_path=str(config))["card"]

@@ -112,6 +112,11 @@ def git_commit() -> str | None:
     return f"{sha}+dirty" if dirty.strip() else sha
 
 
+def file_sha256(path: str | Path) -> str:
+    """The SHA-256 of a file's bytes (a card's ``pt_sha256``; a warm-started run's ``start_sha256``)."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
 def make_card(**fields: Any) -> PolicyCard:
     """A card for a policy trained now: env version and commit filled in."""
     return PolicyCard(env_version=env_version(), git_commit=git_commit(), **fields)
@@ -234,7 +239,7 @@ def read_card(path: str | Path) -> dict[str, Any]:
 
     card = read_json(view)
     expected = card.pop("pt_sha256", None)
-    if expected is not None and path.is_file() and hashlib.sha256(path.read_bytes()).hexdigest() != expected:
+    if expected is not None and path.is_file() and file_sha256(path) != expected:
         raise DataError(f"{view} describes another version of {path.name} (an interrupted save or a copied file): retrain, or delete the .json")
     return card
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -122,6 +123,7 @@ def test_online_runs_warm_start_from_an_offline_policy(tmp_path, tiny):
     summary = a2c.train(a2c.Args(scenario=tiny[0], hidden=8, episodes=2, episodes_per_update=2, eval_every=2, eval_episodes=1,
                                  final_eval_episodes=1, run_dir=str(tmp_path / "a2c"), init_actor=str(tmp_path / "p.pt")))
     assert summary["card"]["args"]["init_actor"] == str(tmp_path / "p.pt")
+    assert summary["card"]["start_sha256"] == hashlib.sha256((tmp_path / "p.pt").read_bytes()).hexdigest()  # the start, by content
 
 
 class _FreeAlpha(torch.nn.Module):
@@ -242,6 +244,15 @@ def test_training_seeds_get_their_own_files_and_start_and_the_table_averages_the
     del recorded["selection"]
     assert offline_seeds.essential(type(args), recorded) == offline_seeds.comparable(args)
     assert offline_seeds.essential(type(args), {**recorded, "readout": "mean"}) != offline_seeds.comparable(args)
+    # a start retrained since is told by content, not by file times
+    start = tmp_path / "start.pt"
+    start.write_bytes(b"one")
+    from marl_amod.checkpoints import file_sha256
+
+    card = {"start_sha256": file_sha256(start)}
+    assert not offline_seeds.started_elsewhere(card, str(start)) and not offline_seeds.started_elsewhere({}, str(start))
+    start.write_bytes(b"two")
+    assert offline_seeds.started_elsewhere(card, str(start))
     cell = {"seeds": {str(s): {"profit_mean": p, "profit_std": 10.0} for s, p in enumerate((100.0, 110.0, 120.0))}}
     refs = {"equal-distribution": {"mean": 100.0}, "mpc-oracle": {"mean": 200.0}}
     stats = offline_table.over_seeds(cell, 100.0, refs)

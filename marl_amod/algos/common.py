@@ -28,7 +28,7 @@ import torch
 from pydantic import Field, model_validator
 
 from marl_amod.algos.rollout import BatchRollout, Mode, Rollout
-from marl_amod.checkpoints import ActorPolicy, actor_inputs, check_torch_file, make_card, save_policy, with_context
+from marl_amod.checkpoints import ActorPolicy, actor_inputs, check_torch_file, file_sha256, make_card, save_policy, with_context
 from marl_amod.config import CommonArgs
 from marl_amod.env.features import n_features
 from marl_amod.errors import DataError, MarlAmodError
@@ -442,6 +442,8 @@ def finish_run(
         profit_mean=profit["mean"], profit_std=profit["std"], served_demand_mean=result["metrics"]["served_demand"]["mean"],
         training_wall_s=round(wall_s, 1), torch_threads=torch.get_num_threads(),
         config=config_path, args=args.model_dump(mode="json"), **(extra or {}),
+        # which start it was trained from, by content (a retrained start makes this policy stale)
+        **({"start_sha256": file_sha256(args.init_actor)} if args.init_actor and Path(args.init_actor).is_file() else {}),
         **({} if critic is None else {"critic": critic.card, "selection": critic.selection}),
     ).to_dict()
     summary: dict[str, Any] = {"card": card, "result": result}
