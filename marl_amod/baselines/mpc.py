@@ -299,6 +299,8 @@ class MPCForecast(MPCPolicy):
             raise ConfigError(f"forecast demand_scale must be a finite number > 0, got {demand_scale}")
         self.noise = noise
         self.demand_scale = float(demand_scale)
+        if self.demand_scale != 1.0:  # results, datasets and cards say which teacher it was
+            self.name = f"{MPCForecast.name}+scale{self.demand_scale:g}"
 
     def forecast(self, system: FleetSystem, steps: np.ndarray) -> np.ndarray:
         rate = system.city.forecast_rate
