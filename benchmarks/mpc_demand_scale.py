@@ -45,7 +45,9 @@ def main() -> None:
         raise SystemExit(f"{args.output} holds another sweep; give another --output")
     done = {"scenario": city.name, "episodes": args.episodes, "seed": args.seed, "variants": done.get("variants", {})}
     ref_key = f"h{args.horizons[0]}_s1"
-    variants = [(args.horizons[0], 1.0)] + [(h, s) for h in args.horizons for s in args.scales if (h, s) != (args.horizons[0], 1.0)]
+    variants = [(args.horizons[0], 1.0)] + [
+        (h, s) for h in args.horizons for s in args.scales if (h, s) != (args.horizons[0], 1.0)
+    ]
     for horizon, scale in variants:
         key = f"h{horizon}_s{scale:g}"
         if key in done["variants"]:
@@ -54,7 +56,9 @@ def main() -> None:
         res = evaluate("mpc-forecast", city, args.episodes, args.seed, horizon=horizon, demand_scale=scale)
         profit = [ep["profit"] for ep in res["per_episode"]]
         done["variants"][key] = {
-            "horizon": horizon, "demand_scale": scale, "profit": profit,
+            "horizon": horizon,
+            "demand_scale": scale,
+            "profit": profit,
             "served": [ep["served_demand"] for ep in res["per_episode"]],
             "reb_cost": [ep["rebalancing_cost"] for ep in res["per_episode"]],
             "seconds": time.perf_counter() - start,
