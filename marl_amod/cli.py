@@ -33,6 +33,34 @@ DataDir = Annotated[
 ]
 
 
+PolicyOptions = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--policy-option",
+        help="KEY=VALUE for the policy, e.g. demand_scale=1.2 or horizon=10 for mpc-forecast; repeat for more",
+        show_default=False,
+    ),
+]
+
+
+def parse_policy_options(items: list[str] | None) -> dict[str, object]:
+    """``["demand_scale=1.2", "horizon=10"]`` -> ``{"demand_scale": 1.2, "horizon": 10}`` (values read as YAML scalars)."""
+    import yaml
+
+    from marl_amod.evaluation import SYSTEM_OPTIONS
+
+    options: dict[str, object] = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        key = key.strip()
+        if not sep or not key.isidentifier():
+            raise ConfigError(f"--policy-option takes KEY=VALUE, got {item!r}")
+        if key in SYSTEM_OPTIONS:
+            raise ConfigError(f"{key} is the system's, not the policy's: use --{key.replace('_', '-')}")
+        options[key] = yaml.safe_load(value)
+    return options
+
+
 def _use_data_dir(data_dir: Path | None) -> None:
     if data_dir is not None:
         os.environ[ENV_VAR] = str(data_dir)
@@ -119,6 +147,7 @@ def evaluate(
     max_wait: Annotated[int, typer.Option(min=0, help="steps a request waits before leaving")] = 0,
     objective: Annotated[str, typer.Option(help="dispatch objective: profit or revenue")] = "profit",
     solver: Annotated[str, typer.Option(help="fast (greedy + OR-Tools) or cvxpy")] = "fast",
+    policy_option: PolicyOptions = None,
     data_dir: DataDir = None,
 ) -> None:
     """Run policies for whole episodes and print (and save) their metrics."""
@@ -127,6 +156,7 @@ def evaluate(
     from marl_amod.scenario import load_city
 
     _use_data_dir(data_dir)
+    options = parse_policy_options(policy_option)
     if output is not None:
         output = check_destination(output, what="--output")  # before the run, not after it
     city = load_city(scenario)
@@ -137,7 +167,7 @@ def evaluate(
             results.append(
                 run_eval(
                     name, city, episodes, seed, max_wait=max_wait, objective=objective, solver=solver,
-                    progress=lambda _k, task=task: bar.advance(task),
+                    progress=lambda _k, task=task: bar.advance(task), **options,
                 )
             )
     console.print(metrics_table(results, f"{city.name}: {episodes} episodes, seed {seed}"))
@@ -161,16 +191,18 @@ def collect(
     eval_seed: Annotated[int, typer.Option(min=0, help="card: evaluation seed (as marl-amod evaluate --seed)")] = 0,
     noise: Annotated[float, typer.Option(min=0, help="exploratory actions: Dirichlet around the policy's, concentration 1/noise")] = 0.0,
     lookahead: Annotated[int, typer.Option(min=1, help="look-ahead steps T of the logged features (train with the same)")] = 6,
+    policy_option: PolicyOptions = None,
     data_dir: DataDir = None,
 ) -> None:
     """Roll a behaviour policy through the env and write an offline dataset (format 2) and its card."""
     _use_data_dir(data_dir)
-    _collect_one(scenario, policy, episodes, seed, output, max_wait, eval_episodes, eval_seed, {}, noise, lookahead)
+    options = parse_policy_options(policy_option)
+    _collect_one(scenario, policy, episodes, seed, output, max_wait, eval_episodes, eval_seed, {}, noise, lookahead, options)
 
 
 def _collect_one(
     scenario: str, policy: str, episodes: int, seed: int, output: Path, max_wait: int, eval_episodes: int, eval_seed: int,
-    cache: dict, noise: float = 0.0, lookahead: int = 6,
+    cache: dict, noise: float = 0.0, lookahead: int = 6, policy_options: dict | None = None,
 ) -> None:
     from marl_amod.datasets import collect as collect_dataset
     from marl_amod.datasets import write_card
@@ -179,9 +211,9 @@ def _collect_one(
 
     output = check_destination(output, what="--output")  # before the run, not after it
     city = load_city(scenario)
-    pol = make_policy(policy, city)
+    pol = make_policy(policy, city, **(policy_options or {}))
     with progress_bar() as bar:
-        task = bar.add_task(f"{policy} on {city.name}", total=episodes)
+        task = bar.add_task(f"{pol.name} on {city.name}", total=episodes)
         data = collect_dataset(
             city, pol, episodes=episodes, seed=seed, lookahead=lookahead, max_wait=max_wait, noise=noise,
             progress=lambda _k: bar.advance(task),

@@ -75,12 +75,27 @@ def test_several_policies_give_one_comparison(tmp_path):
     assert data["results"][0]["metrics"]["rebalancing_cost"]["mean"] == 0
 
 
+def test_policy_options_reach_the_policy(tmp_path):
+    """--policy-option KEY=VALUE builds the policy with that option (read as a YAML scalar)."""
+    plain, _ = run_eval(tmp_path, "--policy", "mpc-forecast", "--policy-option", "horizon=4")
+    scaled, output = run_eval(
+        tmp_path, "--policy", "mpc-forecast", "--policy-option", "horizon=4", "--policy-option", "demand_scale=1.5"
+    )
+    assert plain["policy"] == "mpc-forecast" and scaled["policy"] == "mpc-forecast+scale1.5"
+    assert scaled["metrics"]["rebalancing_cost"] != plain["metrics"]["rebalancing_cost"]
+    assert "mpc-forecast+scale1.5" in output
+
+
 @pytest.mark.parametrize(
     "args, message",
     [
         (["--policy", "teleport"], "unknown policy"),
         (["--scenario", "atlantis"], "unknown scenario"),
         (["--objective", "fun"], "objective"),
+        (["--policy", "mpc-forecast", "--policy-option", "demand_scale=0"], "demand_scale"),
+        (["--policy", "mpc-forecast", "--policy-option", "demand_scale"], "KEY=VALUE"),
+        (["--policy", "mpc-forecast", "--policy-option", "max_wait=2"], "--max-wait"),
+        (["--policy", "equal-distribution", "--policy-option", "demand_scale=1.2"], "demand_scale"),
     ],
 )
 def test_user_errors_exit_2_with_one_clear_line(args, message, capsys):

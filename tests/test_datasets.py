@@ -142,6 +142,15 @@ def test_cli_collect_writes_a_dataset_and_its_card(tmp_path):
     assert read_card(out)["behaviour_score"]["mean"] > 0
 
 
+def test_cli_collect_passes_policy_options_and_names_the_teacher(tmp_path):
+    out = tmp_path / "data.npz"
+    args = ["collect", "--policy", "mpc-forecast", "--policy-option", "demand_scale=1.3", "--policy-option", "horizon=4",
+            "--episodes", "1", "--output", str(out), "--eval-episodes", "0"]  # fmt: skip
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 0, result.output
+    assert OfflineDataset.load(out).meta["policy"] == "mpc-forecast+scale1.3"
+
+
 def test_noisy_collection_logs_exploratory_actions_around_the_policy(tiny_city):
     plain = collect(tiny_city, make_policy("prop", tiny_city), episodes=1, seed=0)
     noisy = collect(tiny_city, make_policy("prop", tiny_city), episodes=1, seed=0, noise=0.05)

@@ -8,7 +8,7 @@ import pytest
 from marl_amod.baselines import EqualDistribution
 from marl_amod.baselines.base import round_preserving_sum, target_from_flows
 from marl_amod.baselines.mpc import CvxpyMPC, MPCForecast, MPCOracle, lp_matrices, plan_data, solve_scipy
-from marl_amod.errors import SolverError
+from marl_amod.errors import ConfigError, SolverError
 from marl_amod.evaluation import evaluate
 from marl_amod.policies import make_policy
 from marl_amod.scenario import City
@@ -183,3 +183,46 @@ def test_mpc_offers_requests_still_waiting_to_the_next_step(tiny_city):
     no_wait = FleetSystem(tiny_city)
     no_wait.reset(0)
     np.testing.assert_array_equal(oracle.believed_demand(no_wait), oracle.forecast(no_wait, np.arange(3)))
+
+
+def _forecast_plan(system: FleetSystem, scale: float, horizon: int = 6):
+    """The LP solved by hand on ``scale`` x the expected demand (what demand_scale promises)."""
+    city, sim = system.city, system.sim
+    steps = sim.t + np.arange(horizon)
+    rate = city.forecast_rate[np.minimum(steps, city.forecast_rate.shape[0] - 1)]
+    rate = rate * (steps < city.forecast_rate.shape[0])[:, None, None]
+    return solve_scipy(plan_data(city, sim.t, sim.idle, sim.arrivals, scale * rate, horizon))
+
+
+@pytest.mark.parametrize("steps", [0, 2])
+def test_mpc_forecast_demand_scale_plans_on_scaled_expected_demand(small_city, steps):
+    system = _mid_episode(small_city, steps=steps)
+    plans = {}
+    for scale in (1.0, 1.5):
+        policy = make_policy("mpc-forecast", small_city, horizon=6, **({} if scale == 1.0 else {"demand_scale": scale}))
+        policy.reset(system, np.random.default_rng(0))
+        plans[scale] = policy.plan(system)
+        expected = _forecast_plan(system, scale)
+        assert plans[scale].objective == pytest.approx(expected.objective)
+        np.testing.assert_allclose(plans[scale].x.sum(axis=(1, 2)), expected.x.sum(axis=(1, 2)), atol=1e-6)
+    assert plans[1.5].x.sum() > plans[1.0].x.sum() + 1  # plans to serve more of the (larger) demand
+
+
+def test_mpc_forecast_demand_scale_moves_more_vehicles_at_the_start_of_the_day(small_city):
+    system = FleetSystem(small_city)
+    system.reset(3)
+    moved = {}
+    for scale in (1.0, 1.5):
+        policy = MPCForecast(horizon=6, demand_scale=scale)
+        policy.reset(system, np.random.default_rng(0))
+        y0 = policy.plan(system).y[0]
+        moved[scale] = y0.sum() - np.trace(y0)
+    assert moved[1.5] > moved[1.0] + 1
+
+
+def test_mpc_forecast_demand_scale_names_the_policy_and_rejects_bad_values():
+    assert MPCForecast().name == "mpc-forecast" and MPCForecast(demand_scale=1.0).name == "mpc-forecast"
+    assert MPCForecast(demand_scale=1.25).name == "mpc-forecast+scale1.25"
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ConfigError, match="demand_scale"):
+            MPCForecast(demand_scale=bad)
