@@ -11,7 +11,7 @@
   regions and halved hotspots, inside the event window and outside, and the requests left
   unserved at the surge: does the memory notice the shock?
 
-    python benchmarks/meta_diagnostics.py gap [--policy policies/meta_rl_cities.pt]
+    python benchmarks/meta_diagnostics.py gap [--policy policies/meta_rl_all_cities.pt]
     python benchmarks/meta_diagnostics.py k --ks 0,1,3,10 [--validation]
     python benchmarks/meta_diagnostics.py event
 """
@@ -111,7 +111,7 @@ def event(policy: str, surge: tuple[int, ...] = (8, 10), hotspots: tuple[int, ..
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("what", choices=["gap", "k", "event"])
-    parser.add_argument("--policy", default="policies/meta_rl_cities.pt")
+    parser.add_argument("--policy", default="policies/meta_rl_all_cities.pt")
     parser.add_argument("--demos", default="runs/meta_demos")
     parser.add_argument("--ks", default="0,1,2,3,4,5,6,8,10")
     parser.add_argument("--validation", action="store_true", help="k: the training cities' validation return instead")

@@ -136,7 +136,8 @@ def test_dagger_rounds_join_the_demonstrations_and_resume_from_disk(tasks, tmp_p
     args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
                    cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=4, eval_every=2,
                    eval_episodes=2, final_eval_episodes=1, dagger_rounds=2, dagger_every=2, dagger_episodes=2,
-                   run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
+                   lr=0.01, lr_final=0.001, run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
+    assert mi.lr_at(args, 0) == 0.01 and mi.lr_at(args, 2) == pytest.approx(0.01 * 0.1**0.5) and mi.lr_at(args, 9) == pytest.approx(0.001)
     card = ALGOS["meta-bc"].train(args.model_copy(update={"updates": 2}))["card"]
     rounds = tmp_path / "bc" / "dagger"
     assert card["dagger"]["rounds"] == 1 and sorted(p.name for p in rounds.iterdir()) == ["round1"]
@@ -144,6 +145,8 @@ def test_dagger_rounds_join_the_demonstrations_and_resume_from_disk(tasks, tmp_p
     card = ALGOS["meta-bc"].train(args, resume=str(tmp_path / "bc" / "state.pt"))["card"]  # round 1 read back, round 2 collected
     assert card["dagger"]["rounds"] == 2 and (rounds / "round2" / "large.npz").is_file() and card["updates"] == 4
     assert (rounds / "round1" / "small.npz").stat().st_mtime_ns == stamp
+    # the step decays over the 4 updates of the resumed run, not over the first run's 2: update 3 (0-based) took lr_at(3)
+    assert torch.load(tmp_path / "bc" / "state.pt", weights_only=False)["opt"]["param_groups"][0]["lr"] == pytest.approx(0.01 * 0.1**0.75)
     # continuing a shipped imitation, extended to the city-structure features: validated first, named on the card
     more = args.model_copy(update={"init_actor": str(tmp_path / "bc.pt"), "run_dir": str(tmp_path / "bc2"), "updates": 1, "dagger_rounds": 1,
                                    "city_features": True, "policy_out": str(tmp_path / "bc2.pt")})  # fmt: skip

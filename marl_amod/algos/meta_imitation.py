@@ -236,6 +236,10 @@ class Args(meta.Args):
     """gradient steps, each on ``cities_per_update`` cities x ``num_envs`` trials of ``trial_episodes`` episodes"""
     eval_every: int = Field(100, ge=1)
     """updates between validations (meta-RL's adapted validation on ``val_cities``; the best is kept)"""
+    lr_final: float | None = Field(None, gt=0)
+    """with it, the step decays geometrically from ``lr`` to this over ``updates``: one run from
+    scratch takes the large steps of the first imitation, then the small ones its later stages
+    used; a function of the update, so a resumed run continues it (a time-limited run stops on its way)"""
     dagger_rounds: int = Field(0, ge=0)
     """DAgger rounds: the current model drives ``dagger_episodes`` episodes of each training city
     (trials as deployed), MPC-F labels the states it reached, and they join that city's demonstrations"""
@@ -289,6 +293,13 @@ def draw_trials(demos: CityDemos, args: meta.Args, rng: np.random.Generator) -> 
     return rng.integers(demos.episodes, size=(args.trial_episodes, args.num_envs))
 
 
+def lr_at(args: Args, step: int) -> float:
+    """The step size of update ``step`` (``lr_final``: geometric decay over ``updates``)."""
+    if args.lr_final is None:
+        return args.lr
+    return args.lr * (args.lr_final / args.lr) ** (min(step, args.updates) / args.updates)
+
+
 def started_rounds(args: Args, step: int) -> int:
     """DAgger rounds begun before update ``step`` (round k starts at update (k - 1) x ``dagger_every``)."""
     return min(args.dagger_rounds, -(-step // args.dagger_every))
@@ -332,6 +343,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                 ce, vl = imitation_losses(model, demos, draw_trials(demos, args, rng), graph, args.gamma)
                 ces.append(ce), vls.append(vl)
             ce, vl = torch.stack(ces).mean(), torch.stack(vls).mean()
+            for group in opt.param_groups:
+                group["lr"] = lr_at(args, step)
             opt.zero_grad()
             (ce + args.value_coef * vl).backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), args.max_grad_norm)
