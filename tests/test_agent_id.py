@@ -1,4 +1,4 @@
-"""The GNN's region identity (agent_id): place-dependent outputs, dense == torch-geometric, files, configs."""
+"""The GNN's region identity (agent_id): place-dependent outputs, files, configs (dense == torch-geometric: test_dense.py)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,7 @@ from marl_amod.checkpoints import architecture_args, load_actor, save_policy
 from marl_amod.comparison import architecture
 from marl_amod.errors import ConfigError, DataError
 from marl_amod.evaluation import evaluate
-from marl_amod.models import GNNActor, GNNValueCritic, build_actor
-from marl_amod.models.dense import DenseGraph
+from marl_amod.models import GNNActor, build_actor
 from marl_amod.scenario import load_city
 
 
@@ -31,22 +30,6 @@ def test_regions_with_the_same_input_differ_only_with_the_region_identity(tiny_c
     alpha = GNNActor(13, 16, conv, agent_ids=n)(x, ei)
     gaps = (alpha[:, None] - alpha[None, :]).abs() + torch.eye(n)
     assert bool((gaps > 1e-6).all())  # pairwise distinct
-
-
-@pytest.mark.parametrize("readout", ["none", "mean-max"])
-@pytest.mark.parametrize("conv", ["gcn", "sage"])
-def test_region_identity_gives_the_same_outputs_on_the_dense_path(small_city, conv, readout):
-    torch.manual_seed(2)
-    ei = torch.tensor(small_city.edge_index)
-    dense = DenseGraph(ei, small_city.n_regions)
-    x = torch.rand(5, small_city.n_regions, 16) * 3
-    n = small_city.n_regions
-    actor, critic = GNNActor(16, 32, conv, readout, n), GNNValueCritic(16, 32, conv, readout, n)  # type: ignore[arg-type]
-    torch.testing.assert_close(actor(x, dense), actor(x, ei), atol=1e-5, rtol=1e-5)
-    torch.testing.assert_close(actor(x[0], dense), actor(x[0], ei), atol=1e-5, rtol=1e-5)  # unbatched
-    torch.testing.assert_close(critic(x, dense), critic(x, ei), atol=1e-5, rtol=1e-5)
-    actor(x, dense).sum().backward()
-    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in actor.parameters())
 
 
 def test_region_identity_widens_the_input_and_adds_no_state_dict_entry():

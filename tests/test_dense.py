@@ -55,6 +55,25 @@ def test_dense_models_equal_the_graph_models_with_the_same_weights(kind: str) ->
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in actor.parameters())
 
 
+@pytest.mark.parametrize("agent_id", [False, True])
+@pytest.mark.parametrize("readout", ["none", "mean", "max", "mean-max"])
+@pytest.mark.parametrize("kind", ["gcn", "sage"])
+def test_gnn_options_give_the_same_outputs_on_both_paths(kind: str, readout: str, agent_id: bool) -> None:
+    """The fleet readout and the region identity act around the graph layer, so every option
+    combination of the actor and the value critic agrees across the paths, gradients included."""
+    edge_index, n = _graphs()[1]
+    torch.manual_seed(2)
+    dense = DenseGraph(edge_index, n)
+    x = torch.rand(5, n, 13) * 3
+    ids = n if agent_id else 0
+    actor, critic = GNNActor(13, 32, kind, readout, ids), GNNValueCritic(13, 32, kind, readout, ids)  # type: ignore[arg-type]
+    torch.testing.assert_close(actor(x, dense), actor(x, edge_index), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(actor(x[0], dense), actor(x[0], edge_index), atol=1e-5, rtol=1e-5)  # unbatched
+    torch.testing.assert_close(critic(x, dense), critic(x, edge_index), atol=1e-5, rtol=1e-5)
+    actor(x, dense).sum().backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in actor.parameters())
+
+
 def test_graph_operator_rejects_unknown_kind() -> None:
     with pytest.raises(ValueError, match="unknown conv"):
         graph_operator("gat", torch.zeros(2, 0, dtype=torch.long), 3)  # type: ignore[arg-type]

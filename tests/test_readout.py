@@ -1,4 +1,4 @@
-"""The GNN's fleet-wide readout: whole-fleet reach, equivariance, dense == torch-geometric, files, configs."""
+"""The GNN's fleet-wide readout: whole-fleet reach, equivariance, files, configs (dense == torch-geometric: test_dense.py)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,6 @@ from marl_amod.checkpoints import load_actor, save_policy
 from marl_amod.errors import ConfigError, DataError
 from marl_amod.evaluation import evaluate
 from marl_amod.models import GNNActor, GNNValueCritic, build_actor
-from marl_amod.models.dense import DenseGraph
 from marl_amod.scenario import load_city
 
 READOUTS = ["mean", "max", "mean-max"]
@@ -56,21 +55,6 @@ def test_readout_models_are_permutation_equivariant_and_size_agnostic(tiny_city,
     torch.testing.assert_close(actor(x[:, perm], ei_p), actor(x, ei)[:, perm])
     torch.testing.assert_close(critic(x[:, perm], ei_p), critic(x, ei))
     assert actor(torch.rand(16, 13), torch.tensor(small_city.edge_index)).shape == (16,)  # same weights, another city
-
-
-@pytest.mark.parametrize("readout", READOUTS)
-@pytest.mark.parametrize("conv", ["gcn", "sage"])
-def test_readout_models_give_the_same_outputs_on_the_dense_path(small_city, conv, readout):
-    torch.manual_seed(2)
-    ei = torch.tensor(small_city.edge_index)
-    dense = DenseGraph(ei, small_city.n_regions)
-    x = torch.rand(5, small_city.n_regions, 13) * 3
-    actor, critic = GNNActor(13, 32, conv, readout), GNNValueCritic(13, 32, conv, readout)  # type: ignore[arg-type]
-    torch.testing.assert_close(actor(x, dense), actor(x, ei), atol=1e-5, rtol=1e-5)
-    torch.testing.assert_close(actor(x[0], dense), actor(x[0], ei), atol=1e-5, rtol=1e-5)  # unbatched
-    torch.testing.assert_close(critic(x, dense), critic(x, ei), atol=1e-5, rtol=1e-5)
-    actor(x, dense).sum().backward()
-    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in actor.parameters())
 
 
 def test_no_readout_keeps_the_papers_parameters():
