@@ -6,9 +6,10 @@ demonstrations, ``runs/meta_demos`` by default, with the structure and place col
 the loss, its backward pass, the clipping and the Adam step, both ways in one process on the same
 draws, alternating, so the machine's load hits both alike (the ratio is what to read):
 
-* ``per city``: :func:`~marl_amod.algos.meta_imitation.imitation_losses` once per city, averaged
-  (the path before the padded batch);
-* ``padded``: :func:`~marl_amod.algos.meta_imitation.cities_losses` (what training runs).
+* ``per city``: :func:`~marl_amod.algos.meta_imitation.cities_losses` with ``padded=False``:
+  :func:`~marl_amod.algos.meta_imitation.imitation_losses` once per city, averaged (the path
+  before the padded batch; ``pad_cities: false``);
+* ``padded``: ``padded=True``, one padded batch (the default, ``pad_cities: true``).
 
 It also prints the largest difference of the two losses over the timed updates (float rounding).
 
@@ -36,16 +37,10 @@ from marl_amod.config import load_config  # noqa: E402
 from marl_amod.scenario import load_city  # noqa: E402
 
 
-def per_city(model: meta.RecurrentGNN, draws: list, gamma: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """The update's losses one city after another."""
-    losses = [mi.imitation_losses(model, demos, episodes, graph, gamma) for demos, episodes, graph in draws]
-    return torch.stack([c for c, _ in losses]).mean(), torch.stack([v for _, v in losses]).mean()
-
-
-def timed_update(loss_fn, model: meta.RecurrentGNN, opt: torch.optim.Optimizer, draws: list, args: mi.Args) -> tuple[float, float]:
+def timed_update(padded: bool, model: meta.RecurrentGNN, opt: torch.optim.Optimizer, draws: list, args: mi.Args) -> tuple[float, float]:
     """(seconds, loss) of one whole update as training does it."""
     start = time.perf_counter()
-    ce, vl = loss_fn(model, draws, args.gamma)
+    ce, vl = mi.cities_losses(model, draws, args.gamma, padded)
     loss = ce + args.value_coef * vl
     opt.zero_grad()
     loss.backward()
@@ -82,7 +77,7 @@ def main() -> None:
             for _ in range(run.cities_per_update):
                 demos, graph = data[run.cities[int(rng.integers(len(run.cities)))]]
                 draws.append((demos, mi.draw_trials(demos, run, rng), graph))
-            (t_old, l_old), (t_new, l_new) = (timed_update(fn, model, opt, draws, run) for fn in (per_city, mi.cities_losses))
+            (t_old, l_old), (t_new, l_new) = (timed_update(padded, model, opt, draws, run) for padded in (False, True))
             if i >= 2:
                 times["per city"].append(t_old), times["padded"].append(t_new)
                 diff = max(diff, abs(l_old - l_new))
