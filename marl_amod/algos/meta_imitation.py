@@ -316,9 +316,9 @@ class Args(meta.Args):
     """share of the DAgger trials with a random demand shock, labelled by MPC told the shock
     (:class:`MPCToldTheShock`): the policy learns to react to what the forecast misses"""
     pad_cities: bool = True
-    """an update's cities padded into one batch (the same losses to float rounding): 1.1x faster
-    at hidden 64 x 16 trials per city, 1.5-1.7x at 4 trials; False: one city after another (no
-    faster at hidden 128 x 16 trials, where the padded tensors outgrow the cache)"""
+    """an update's cities padded into one batch (the same losses to float rounding): 1.12-1.16x
+    faster at hidden 64 x 16 trials per city, 1.4-1.8x at 4 trials (``benchmarks/meta_update.py``);
+    False: one city after another, as fast at hidden 128 x 16 trials (0.97x padded)"""
 
     def ignored_keys(self) -> dict[str, str]:
         return {**super().ignored_keys(), "episodes": "imitation takes no env episodes; set updates",
