@@ -147,6 +147,25 @@ def test_recurrent_gnn_is_size_agnostic_batched_and_its_memory_changes_the_actio
         assert not torch.allclose(alpha, again)
 
 
+@pytest.mark.parametrize("stay_prior, readout", [(True, "mean-max"), (False, "max")])
+def test_recurrent_gnn_on_padded_cities_is_each_city_on_its_own(stay_prior, readout):
+    """Cities of 6 and 16 regions in one (C, B, N_max) batch: each city's concentrations, value and
+    memory are those of the city alone, whatever the padding holds; the padding's alpha is 0."""
+    from marl_amod.models.dense import DenseGraph, PaddedGraphs
+
+    torch.manual_seed(0)
+    model = RecurrentGNN(n_features=5, hidden=8, stay_prior=stay_prior, readout=readout)
+    graphs = [DenseGraph(torch.as_tensor(np.array(c.edge_index)), c.n_regions) for c in (grid_city(rows=2, cols=3), grid_city(rows=4, cols=4))]
+    padded = PaddedGraphs(graphs)
+    x, a, rr, r, mem = torch.rand(2, 3, 16, 5), torch.rand(2, 3, 16), torch.rand(2, 3, 16), torch.rand(2, 3), torch.rand(2, 3, 16, 8)
+    alpha, v, memory = model(x, a, rr, r, mem, padded)  # the padding holds random numbers, not zeros
+    assert padded.n == 16 and (alpha[0, :, 6:] == 0).all()
+    for c, g in enumerate(graphs):
+        n = g.n
+        one, w, m = model(x[c, :, :n], a[c, :, :n], rr[c, :, :n], r[c], mem[c, :, :n], g)
+        torch.testing.assert_close(alpha[c, :, :n], one), torch.testing.assert_close(v[c], w), torch.testing.assert_close(memory[c, :, :n], m)
+
+
 def test_the_stay_prior_starts_from_the_idle_vehicles_distribution():
     """With a zero actor output the stay-prior policy's mean is the idle share (mixed with the floor):
     played on a city, it asks for (nearly) what is there; the actor then scales it per region."""

@@ -196,3 +196,31 @@ def test_shocked_dagger_trials_are_labelled_by_mpc_told_the_shock(tasks):
         differ += int(np.abs(plain - want).sum() > 0)
         system.step(system.targets_from_weights(played.astype(np.float64)))
     assert differ > 0
+
+
+@pytest.mark.parametrize("readout", ["none", "mean-max"])
+def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp_path, readout):
+    """One update's cities of different sizes (6 and 9 regions; one drawn twice, one with a shorter
+    trial) in one padded batch give the mean of the per-city losses and the same gradients: the
+    padding reaches no message, pool, stay prior, value or cross-entropy."""
+    mi.collect_demos(tmp_path / "d", tasks, episodes=3, seed=0, lookahead=6)
+    cities = [load_city(t) for t in tasks]
+    demos = [mi.load_demos(tmp_path / "d", c, 6, structure=True, place=True) for c in cities]
+    graphs = [meta.city_graph(c) for c in cities]
+    short = mi.CityDemos(*(v[:, :4] for v in vars(demos[1]).values()))  # a city with 4 decisions per episode
+    rng = np.random.default_rng(0)
+    draws = [(d, rng.integers(3, size=(2, 4)), g) for d, g in [(demos[0], graphs[0]), (demos[1], graphs[1]), (demos[0], graphs[0]), (short, graphs[1])]]
+    torch.manual_seed(0)
+    model = RecurrentGNN(meta.n_task_features(6, structure=True, place=True), hidden=8, stay_prior=True, readout=readout)
+
+    def loss_and_grads(ce, vl):
+        return [ce, vl, *torch.autograd.grad(ce + 0.5 * vl, list(model.parameters()))]
+
+    one_by_one = [mi.imitation_losses(model, d, e, g, gamma=0.97) for d, e, g in draws]
+    want = loss_and_grads(torch.stack([c for c, _ in one_by_one]).mean(), torch.stack([v for _, v in one_by_one]).mean())
+    got = loss_and_grads(*mi.cities_losses(model, draws, gamma=0.97))
+    assert demos[0].x.shape[2] != demos[1].x.shape[2] and want[0] > 0 and want[1] > 0
+    for a, b in zip(got, want, strict=True):
+        torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-4)
+    with pytest.raises(ValueError, match="same"):
+        mi.Trials.padded([mi.Trials.of_city(demos[0], draws[0][1]), mi.Trials.of_city(short, draws[3][1])])

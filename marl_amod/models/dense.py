@@ -14,10 +14,16 @@ The functions take the torch-geometric modules themselves, so a model trained on
 runs on the other with the same parameters (outputs agree to float rounding, tested to 1e-5).
 Give a model a :class:`DenseGraph` instead of ``edge_index`` and it takes this path; the
 operators are built once per city and reused every forward pass.
+
+:class:`PaddedGraphs` puts C cities of different sizes in one batch (C, B, N_max, C_in): each
+city's operator sits in the top-left block of an (N_max, N_max) zero matrix, so messages never
+cross cities and neither reach nor leave the padding; its ``mask`` tells the model which regions
+are real (:class:`~marl_amod.models.recurrent.RecurrentGNN` reads it).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Literal
 
 import torch
@@ -75,4 +81,35 @@ class DenseGraph:
 
     def conv(self, conv: nn.Module, x: torch.Tensor) -> torch.Tensor:
         """``conv`` (GCNConv or mean SAGEConv) on x (..., N, C) through this graph's operator."""
+        return dense_conv(conv, x, self.operator("gcn" if isinstance(conv, GCNConv) else "sage"))
+
+
+class PaddedGraphs:
+    """C city graphs as one padded batch: pass it where :class:`DenseGraph` goes, with inputs
+    (C, B, N_max, ...) (city, trial, region): one matmul per layer for every city at once.
+
+    Why: the cities of a meta-training update differ in size; one after another they cost C
+    forward passes of small tensors, padded together one. Region j of city c is real when
+    ``mask[c, 0, j]``; the padding's rows and columns of the operator are zero, so a padded
+    region's state never reaches a real one (a model must still mask its pools and outputs).
+    """
+
+    def __init__(self, graphs: Sequence[DenseGraph]) -> None:
+        self.graphs = list(graphs)
+        self.n = max(g.n for g in self.graphs)
+        sizes = torch.tensor([g.n for g in self.graphs])
+        self.mask = (torch.arange(self.n) < sizes[:, None]).unsqueeze(1)  # (C, 1, N_max): broadcasts over the trials
+        self._ops: dict[str, torch.Tensor] = {}
+
+    def operator(self, kind: ConvKind) -> torch.Tensor:
+        """(C, 1, N_max, N_max): each city's operator in its top-left block, zeros elsewhere."""
+        if kind not in self._ops:
+            block = torch.zeros(len(self.graphs), 1, self.n, self.n)
+            for c, g in enumerate(self.graphs):
+                block[c, 0, : g.n, : g.n] = g.operator(kind)
+            self._ops[kind] = block
+        return self._ops[kind]
+
+    def conv(self, conv: nn.Module, x: torch.Tensor) -> torch.Tensor:
+        """``conv`` on x (C, B, N_max, C_in) through the block operators."""
         return dense_conv(conv, x, self.operator("gcn" if isinstance(conv, GCNConv) else "sage"))

@@ -86,10 +86,20 @@ class FleetReadout(nn.Module):
         self.embed = nn.Sequential(nn.Linear(channels, hidden), nn.ReLU())
         self.out_dim = channels + len(self.pools) * hidden
 
-    def forward(self, h: torch.Tensor) -> torch.Tensor:
+    def forward(self, h: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """``mask`` (..., N) bool (cities padded to one size): the pools read the real regions only."""
         e = self.embed(h)  # (B, N, H)
-        pooled = [e.mean(-2, keepdim=True) if p == "mean" else e.amax(-2, keepdim=True) for p in self.pools]  # (B, 1, H) each
+        pooled = [self._pool(e, p, mask) for p in self.pools]  # (B, 1, H) each
         return torch.cat([h, *(p.expand_as(e) for p in pooled)], dim=-1)
+
+    @staticmethod
+    def _pool(e: torch.Tensor, kind: str, mask: torch.Tensor | None) -> torch.Tensor:
+        if mask is None:
+            return e.mean(-2, keepdim=True) if kind == "mean" else e.amax(-2, keepdim=True)
+        m = mask.unsqueeze(-1)  # (..., N, 1)
+        if kind == "mean":
+            return (e * m).sum(-2, keepdim=True) / m.sum(-2, keepdim=True)
+        return e.masked_fill(~m, float("-inf")).amax(-2, keepdim=True)
 
 
 class RegionIdentity(nn.Module):

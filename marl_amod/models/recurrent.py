@@ -13,7 +13,12 @@ region's action sees its neighbours' memories too. The same weights act on every
 
 Shapes: B trials in lockstep (optional leading axes), N regions, F features, H hidden units.
 The graph is ``edge_index`` (2, E) or a :class:`~marl_amod.models.dense.DenseGraph` (one matmul
-per layer over the whole batch, what meta-training uses).
+per layer over the whole batch, what meta-training uses), or for cities of different sizes in one
+batch (C, B, N_max, F) a :class:`~marl_amod.models.dense.PaddedGraphs`: the padded regions'
+memories run on whatever the padding holds but are never read (no messages, masked pools and
+stay prior, left out of the value's mean); their concentration comes back 0. Running the
+per-region layers on the real rows only (an index_select and index_copy per layer) measured no
+faster, so they run on the padding too.
 """
 
 from __future__ import annotations
@@ -24,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from marl_amod.models.dense import DenseGraph
+from marl_amod.models.dense import DenseGraph, PaddedGraphs
 from marl_amod.models.gnn import ConvKind, Graph, Readout, batch_edge_index, concentration, make_conv, mlp_head, readout_layer
 
 N_FEEDBACK = 3  # previous action share, previous region reward, previous team reward
@@ -70,29 +75,39 @@ class RecurrentGNN(nn.Module):
 
     def forward(
         self, x: torch.Tensor, prev_action: torch.Tensor, prev_region_reward: torch.Tensor, prev_reward: torch.Tensor,
-        memory: torch.Tensor, graph: Graph,
+        memory: torch.Tensor, graph: Graph | PaddedGraphs,
     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """x (..., N, F), prev_action (..., N), prev_region_reward (..., N), prev_reward (...),
-        memory (..., N, H) -> alpha (..., N), value (...), memory (..., N, H)."""
+        memory (..., N, H) -> alpha (..., N), value (...), memory (..., N, H). With
+        :class:`PaddedGraphs` whatever the padding holds is ignored; its alpha comes back 0."""
         *lead, n, _ = x.shape
         team = prev_reward.reshape(*lead, 1, 1).expand(*lead, n, 1)
         inputs = torch.cat([x, prev_action.unsqueeze(-1), prev_region_reward.unsqueeze(-1), team], dim=-1)  # (..., N, F + 3)
         flat = self.encode(inputs).reshape(-1, self.hidden)
         memory = self.memory(flat, memory.reshape(-1, self.hidden)).reshape(*lead, n, self.hidden)  # (..., N, H)
-        if isinstance(graph, DenseGraph):
+        mask = graph.mask if isinstance(graph, PaddedGraphs) else None  # (C, 1, N): the real regions
+        if isinstance(graph, DenseGraph | PaddedGraphs):
             mixed = graph.conv(self.conv, memory)
         else:  # torch-geometric: the batch as one graph of B copies
             edges = batch_edge_index(graph, math.prod(lead), n) if lead else graph
             mixed = self.conv(memory.reshape(-1, self.hidden), edges).reshape(*lead, n, self.hidden)
         z = torch.cat([memory, F.relu(mixed)], dim=-1)  # (..., N, 2H): own memory, neighbours' memories
         if self.readout is not None:
-            z = self.readout(z)  # (..., N, 2H + kH): and the whole fleet's
+            z = self.readout(z, mask)  # (..., N, 2H + kH): and the whole fleet's
+        actor, per_region = self.actor(z).squeeze(-1), self.critic(z).squeeze(-1)  # (..., N) each
+        regions = n if mask is None else mask.sum(-1, keepdim=True)  # each city's own N
         if self.stay_prior:
             idle = x[..., 0].clamp_min(0)  # (..., N) idle vehicles per region, in per-city units
+            if mask is not None:
+                idle = idle.masked_fill(~mask, 0.0)
             share = idle / idle.sum(-1, keepdim=True).clamp_min(1e-9)
-            stay = (1 - STAY_FLOOR) * share + STAY_FLOOR / n
-            alpha = STAY_CONCENTRATION * n * stay * torch.exp(self.actor(z).squeeze(-1).clamp(-10, 10))  # (..., N)
+            stay = (1 - STAY_FLOOR) * share + STAY_FLOOR / regions
+            alpha = STAY_CONCENTRATION * regions * stay * torch.exp(actor.clamp(-10, 10))  # (..., N)
         else:
-            alpha = concentration(self.actor(z).squeeze(-1))  # (..., N)
-        value = self.critic(z).squeeze(-1).mean(-1)  # (...) mean over regions: rewards are per-city scaled, so N-free
+            alpha = concentration(actor)  # (..., N)
+        if mask is None:
+            value = per_region.mean(-1)  # (...) mean over regions: rewards are per-city scaled, so N-free
+        else:
+            alpha = alpha.masked_fill(~mask, 0.0)
+            value = per_region.masked_fill(~mask, 0.0).sum(-1) / regions.squeeze(-1)
         return alpha, value, memory

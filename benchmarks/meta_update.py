@@ -1,0 +1,89 @@
+"""Seconds per meta-imitation update: the update's cities one after another, or padded into one batch.
+
+An update of ``configs/meta/bc_dagger_all.yaml`` draws ``cities_per_update`` training cities and
+``num_envs`` trials of ``trial_episodes`` demonstration episodes of each, as the run does (its
+demonstrations, ``runs/meta_demos`` by default, with the structure and place columns), and times
+the loss, its backward pass, the clipping and the Adam step, both ways in one process on the same
+draws, alternating, so the machine's load hits both alike (the ratio is what to read):
+
+* ``per city``: :func:`~marl_amod.algos.meta_imitation.cities_losses` with ``padded=False``:
+  :func:`~marl_amod.algos.meta_imitation.imitation_losses` once per city, averaged (the path
+  before the padded batch; ``pad_cities: false``);
+* ``padded``: ``padded=True``, one padded batch (the default, ``pad_cities: true``).
+
+It also prints the largest difference of the two losses over the timed updates (float rounding).
+
+    python benchmarks/meta_update.py [--config configs/meta/bc_dagger_all.yaml] [--updates 20] [--hidden 64 128] [--num-envs 16 4]
+
+Every row of the table is one (hidden units, trials per city) setting; the config's by default.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import os
+import time
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from marl_amod.algos import meta  # noqa: E402
+from marl_amod.algos import meta_imitation as mi  # noqa: E402
+from marl_amod.algos.registry import ALGOS  # noqa: E402
+from marl_amod.config import load_config  # noqa: E402
+from marl_amod.scenario import load_city  # noqa: E402
+
+
+def timed_update(padded: bool, model: meta.RecurrentGNN, opt: torch.optim.Optimizer, draws: list, args: mi.Args) -> tuple[float, float]:
+    """(seconds, loss) of one whole update as training does it."""
+    start = time.perf_counter()
+    ce, vl = mi.cities_losses(model, draws, args.gamma, padded)
+    loss = ce + args.value_coef * vl
+    opt.zero_grad()
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(model.parameters(), args.max_grad_norm)
+    opt.step()
+    return time.perf_counter() - start, loss.item()
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--config", default="configs/meta/bc_dagger_all.yaml")
+    p.add_argument("--updates", type=int, default=20, help="timed updates per path (after 2 warm-up ones each)")
+    p.add_argument("--hidden", type=int, nargs="+", default=None, help="hidden units to compare (default: the config's)")
+    p.add_argument("--num-envs", type=int, nargs="+", default=None, help="trials per city to compare (default: the config's)")
+    opts = p.parse_args()
+    _, args = load_config(opts.config, {k: v.args for k, v in ALGOS.items()})
+    torch.set_num_threads(1)
+    cities = {name: load_city(name) for name in args.cities}
+    data = mi.load_all(args, cities)
+    print(f"{opts.config}: {args.cities_per_update} cities x {args.num_envs} trials x {args.trial_episodes} episodes per update, "
+          f"regions {sorted(c.n_regions for c in cities.values())}, {torch.get_num_threads()} torch thread")  # fmt: skip
+    print("| hidden | trials per city | per city (s/update) | padded (s/update) | speed-up | max loss difference |")
+    print("|---|---|---|---|---|---|")
+    for hidden, num_envs in itertools.product(opts.hidden or [args.hidden], opts.num_envs or [args.num_envs]):
+        run = args.model_copy(update={"hidden": hidden, "num_envs": num_envs})
+        torch.manual_seed(0)
+        model = meta.make_model(run)
+        opt = torch.optim.Adam(model.parameters(), lr=0.0)  # lr 0: both paths see the same weights every update
+        rng = np.random.default_rng(0)
+        times: dict[str, list[float]] = {"per city": [], "padded": []}
+        diff = 0.0
+        for i in range(opts.updates + 2):
+            draws = []
+            for _ in range(run.cities_per_update):
+                demos, graph = data[run.cities[int(rng.integers(len(run.cities)))]]
+                draws.append((demos, mi.draw_trials(demos, run, rng), graph))
+            (t_old, l_old), (t_new, l_new) = (timed_update(padded, model, opt, draws, run) for padded in (False, True))
+            if i >= 2:
+                times["per city"].append(t_old), times["padded"].append(t_new)
+                diff = max(diff, abs(l_old - l_new))
+        old, new = np.median(times["per city"]), np.median(times["padded"])
+        print(f"| {hidden} | {num_envs} | {old:.3f} | {new:.3f} | {old / new:.2f}x | {diff:.1e} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
