@@ -318,3 +318,17 @@ def test_mpc_scenarios_rejects_a_bad_scenario_count(bad):
         MPCScenarios(scenarios=bad)
     with pytest.raises(ConfigError):
         solve_scenarios([])
+
+
+def test_mpc_scenarios_add_the_waiting_requests_to_every_scenario(tiny_city):
+    system = FleetSystem(tiny_city, max_wait=2)
+    system.reset(0)
+    system.sim.backlog[0] += 5
+    policy = _MeanScenarios(horizon=3, scenarios=2)
+    policy.reset(system, np.random.default_rng(0))
+    demand = policy.scenario_demand(system)
+    forecast = policy.forecast(system, system.sim.t + np.arange(3))
+    for d in demand:
+        np.testing.assert_allclose(d[1] - forecast[1], system.sim.carried_over())
+        np.testing.assert_allclose(d[[0, 2]], forecast[[0, 2]])
+    assert system.sim.carried_over().sum() > 0
