@@ -84,6 +84,8 @@ def test_policy_options_reach_the_policy(tmp_path):
     assert plain["policy"] == "mpc-forecast" and scaled["policy"] == "mpc-forecast+scale1.5"
     assert scaled["metrics"]["rebalancing_cost"] != plain["metrics"]["rebalancing_cost"]
     assert "mpc-forecast+scale1.5" in output
+    two, _ = run_eval(tmp_path, "--policy", "mpc-scenarios", "--policy-option", "horizon=3", "--policy-option", "scenarios=2")
+    assert two["policy"] == "mpc-scenarios+s2" and two["metrics"]["profit"]["mean"] > 0
 
 
 @pytest.mark.parametrize(
@@ -95,6 +97,7 @@ def test_policy_options_reach_the_policy(tmp_path):
         (["--policy", "mpc-forecast", "--policy-option", "demand_scale=0"], "demand_scale"),
         (["--policy", "mpc-forecast", "--policy-option", "demand_scale"], "KEY=VALUE"),
         (["--policy", "mpc-forecast", "--policy-option", "max_wait=2"], "--max-wait"),
+        (["--policy", "mpc-scenarios", "--policy-option", "scenarios=0"], "scenarios"),
         (["--policy", "equal-distribution", "--policy-option", "demand_scale=1.2"], "demand_scale"),
     ],
 )

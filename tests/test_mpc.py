@@ -7,7 +7,16 @@ import pytest
 
 from marl_amod.baselines import EqualDistribution
 from marl_amod.baselines.base import round_preserving_sum, target_from_flows
-from marl_amod.baselines.mpc import CvxpyMPC, MPCForecast, MPCOracle, lp_matrices, plan_data, solve_scipy
+from marl_amod.baselines.mpc import (
+    CvxpyMPC,
+    MPCForecast,
+    MPCOracle,
+    MPCScenarios,
+    lp_matrices,
+    plan_data,
+    solve_scenarios,
+    solve_scipy,
+)
 from marl_amod.errors import ConfigError, SolverError
 from marl_amod.evaluation import evaluate
 from marl_amod.policies import make_policy
@@ -226,3 +235,100 @@ def test_mpc_forecast_demand_scale_names_the_policy_and_rejects_bad_values():
     for bad in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(ConfigError, match="demand_scale"):
             MPCForecast(demand_scale=bad)
+
+
+class _MeanScenarios(MPCScenarios):
+    """Every scenario is the expected demand: the two-stage LP must then plan as MPC-Forecast does."""
+
+    def sample_demand(self, mean: np.ndarray) -> np.ndarray:
+        return np.broadcast_to(mean, (self.scenarios, *mean.shape)).astype(float)
+
+
+@pytest.mark.parametrize("steps", [0, 2])
+def test_mpc_scenarios_all_equal_to_the_mean_plan_as_mpc_forecast(small_city, steps):
+    system = _mid_episode(small_city, steps=steps)
+    forecast, scenarios = MPCForecast(horizon=6), _MeanScenarios(horizon=6, scenarios=3)
+    for policy in (forecast, scenarios):
+        policy.reset(system, np.random.default_rng(0))
+    plain, shared = forecast.plan(system), scenarios.plan(system)
+    assert shared.objective == pytest.approx(plain.objective, rel=1e-9)
+    # the shared first step is an optimal first step of the mean plan: fixing it there loses nothing
+    data = plan_data(small_city, system.sim.t, system.sim.idle, system.sim.arrivals, forecast.believed_demand(system), 6)
+    cost, a, b, ub = lp_matrices(data)
+    n = small_city.n_regions
+    lo = np.zeros_like(ub)
+    first = slice(6 * n * n, 7 * n * n)
+    lo[first] = ub[first] = shared.y[0].ravel()
+    from scipy.optimize import linprog
+
+    res = linprog(cost, A_eq=a, b_eq=b, bounds=np.column_stack([lo, ub]), method="highs")
+    assert res.status == 0 and -res.fun == pytest.approx(plain.objective, rel=1e-9)
+
+
+def test_mpc_scenarios_share_the_first_step_and_each_scenario_conserves_vehicles(small_city):
+    system = _mid_episode(small_city, steps=2)
+    policy = MPCScenarios(horizon=5, scenarios=3)
+    policy.reset(system, np.random.default_rng(4))
+    demand = policy.scenario_demand(system)
+    assert demand.shape == (3, 5, small_city.n_regions, small_city.n_regions)
+    assert not np.array_equal(demand[0], demand[1])  # the draws differ
+    policy.reset(system, np.random.default_rng(4))
+    datas = [plan_data(small_city, system.sim.t, system.sim.idle, system.sim.arrivals, d, 5) for d in demand]
+    plan = solve_scenarios(datas)
+    # each scenario solved alone, its first step fixed to the shared one, is feasible and its
+    # profits average to the joint objective; each is at most its own unconstrained optimum
+    from scipy.optimize import linprog
+
+    total = 0.0
+    n = small_city.n_regions
+    for data in datas:
+        cost, a, b, ub = lp_matrices(data)
+        lo = np.zeros_like(ub)
+        first = slice(5 * n * n, 6 * n * n)
+        lo[first] = ub[first] = plan.y[0].ravel()
+        res = linprog(cost, A_eq=a, b_eq=b, bounds=np.column_stack([lo, ub]), method="highs")
+        assert res.status == 0
+        total += -res.fun
+        assert -res.fun <= solve_scipy(data).objective + 1e-6
+    assert plan.objective == pytest.approx(total / 3, rel=1e-9)
+    assert np.allclose(plan.y[0].sum(axis=1), system.sim.idle)  # the whole idle fleet is placed
+    assert plan.objective == pytest.approx(policy.plan(system).objective)  # the policy draws the same
+
+
+def test_mpc_scenarios_targets_are_feasible_and_runs_reproduce_by_seed(tiny_city):
+    system = FleetSystem(tiny_city)
+    system.reset(0)
+    policy = make_policy("mpc-scenarios", tiny_city, horizon=4, scenarios=3)
+    policy.reset(system, np.random.default_rng(0))
+    while not system.done:
+        target = policy.target(system)
+        assert target.dtype.kind == "i" and target.sum() == system.sim.idle.sum() and np.all(target >= 0)
+        flows = system.coordinator.rebalance(system.sim.idle, target)
+        assert np.array_equal(system.sim.idle - flows.sum(axis=1) + flows.sum(axis=0), target)
+        system.step(target)
+    runs = [evaluate("mpc-scenarios", tiny_city, episodes=2, seed=s, horizon=4, scenarios=3) for s in (1, 1, 2)]
+    assert runs[0]["per_episode"] == runs[1]["per_episode"]
+    assert runs[0]["per_episode"] != runs[2]["per_episode"]
+    assert runs[0]["policy"] == "mpc-scenarios+s3" and MPCScenarios().name == "mpc-scenarios"
+
+
+@pytest.mark.parametrize("bad", [0, -2, 2.5, "4", True])
+def test_mpc_scenarios_rejects_a_bad_scenario_count(bad):
+    with pytest.raises(ConfigError, match="scenarios"):
+        MPCScenarios(scenarios=bad)
+    with pytest.raises(ConfigError):
+        solve_scenarios([])
+
+
+def test_mpc_scenarios_add_the_waiting_requests_to_every_scenario(tiny_city):
+    system = FleetSystem(tiny_city, max_wait=2)
+    system.reset(0)
+    system.sim.backlog[0] += 5
+    policy = _MeanScenarios(horizon=3, scenarios=2)
+    policy.reset(system, np.random.default_rng(0))
+    demand = policy.scenario_demand(system)
+    forecast = policy.forecast(system, system.sim.t + np.arange(3))
+    for d in demand:
+        np.testing.assert_allclose(d[1] - forecast[1], system.sim.carried_over())
+        np.testing.assert_allclose(d[[0, 2]], forecast[[0, 2]])
+    assert system.sim.carried_over().sum() > 0

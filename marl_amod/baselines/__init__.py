@@ -6,10 +6,10 @@ They are looked up by name through :mod:`marl_amod.policies`; this package only 
 from marl_amod.baselines.base import FlowPolicy, Policy, WeightPolicy
 from marl_amod.baselines.behaviour import DynamicTripVehicle, Informed, Proportional
 from marl_amod.baselines.heuristics import EqualDistribution, NoRebalancing, PlusOne, RandomPolicy
-from marl_amod.baselines.mpc import MPCForecast, MPCOracle
+from marl_amod.baselines.mpc import MPCForecast, MPCOracle, MPCScenarios
 from marl_amod.baselines.observation import ObservationPolicy
 
 __all__ = [
-    "DynamicTripVehicle", "EqualDistribution", "FlowPolicy", "Informed", "MPCForecast", "MPCOracle", "NoRebalancing",
-    "ObservationPolicy", "PlusOne", "Policy", "Proportional", "RandomPolicy", "WeightPolicy",
+    "DynamicTripVehicle", "EqualDistribution", "FlowPolicy", "Informed", "MPCForecast", "MPCOracle", "MPCScenarios",
+    "NoRebalancing", "ObservationPolicy", "PlusOne", "Policy", "Proportional", "RandomPolicy", "WeightPolicy",
 ]
