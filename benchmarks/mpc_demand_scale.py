@@ -29,6 +29,15 @@ def paired(profit: np.ndarray, reference: np.ndarray) -> dict[str, float]:
     return {"diff": float(diff.mean()), "se": float(diff.std(ddof=1) / np.sqrt(diff.size))}
 
 
+def resume(output: Path, scenario: str, episodes: int, seed: int) -> dict:
+    """The results a paired sweep wrote so far (none: a new one); a file of another sweep is refused,
+    since its episodes would not pair with these."""
+    done = json.loads(output.read_text()) if output.exists() else {}
+    if done and (done["scenario"], done["episodes"], done["seed"]) != (scenario, episodes, seed):
+        raise SystemExit(f"{output} holds another sweep; give another --output")
+    return {"scenario": scenario, "episodes": episodes, "seed": seed, "variants": done.get("variants", {})}
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenario", default="synthetic")
@@ -40,10 +49,7 @@ def main() -> None:
     args = parser.parse_args()
 
     city = load_city(args.scenario)
-    done = json.loads(args.output.read_text()) if args.output.exists() else {}
-    if done and (done["scenario"], done["episodes"], done["seed"]) != (city.name, args.episodes, args.seed):
-        raise SystemExit(f"{args.output} holds another sweep; give another --output")
-    done = {"scenario": city.name, "episodes": args.episodes, "seed": args.seed, "variants": done.get("variants", {})}
+    done = resume(args.output, city.name, args.episodes, args.seed)
     ref_key = f"h{args.horizons[0]}_s1"
     variants = [(args.horizons[0], 1.0)] + [
         (h, s) for h in args.horizons for s in args.scales if (h, s) != (args.horizons[0], 1.0)

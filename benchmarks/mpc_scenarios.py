@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from mpc_demand_scale import paired
+from mpc_demand_scale import paired, resume
 
 from marl_amod.evaluation import evaluate
 from marl_amod.scenario import load_city
@@ -35,10 +35,7 @@ def main() -> None:
     args = parser.parse_args()
 
     city = load_city(args.scenario)
-    done = json.loads(args.output.read_text()) if args.output.exists() else {}
-    if done and (done["scenario"], done["episodes"], done["seed"]) != (city.name, args.episodes, args.seed):
-        raise SystemExit(f"{args.output} holds another run; give another --output")
-    done = {"scenario": city.name, "episodes": args.episodes, "seed": args.seed, "variants": done.get("variants", {})}
+    done = resume(args.output, city.name, args.episodes, args.seed)
     variants = {
         "forecast_h20": ("mpc-forecast", {}),
         f"forecast_h{args.horizon}_s1.2": ("mpc-forecast", {"horizon": args.horizon, "demand_scale": 1.2}),
