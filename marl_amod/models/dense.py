@@ -60,7 +60,28 @@ def dense_conv(conv: nn.Module, x: torch.Tensor, op: torch.Tensor) -> torch.Tens
     raise TypeError(f"no dense form for {type(conv).__name__}")
 
 
-class DenseGraph:
+class _Operators:
+    """What both graph forms share: each conv kind's operator built on first use and reused every
+    forward pass (``_build`` makes it), and a conv layer applied through it."""
+
+    def __init__(self) -> None:
+        self._ops: dict[str, torch.Tensor] = {}
+
+    def _build(self, kind: ConvKind) -> torch.Tensor:
+        raise NotImplementedError
+
+    def operator(self, kind: ConvKind) -> torch.Tensor:
+        """The operator of a ``"gcn"`` or ``"sage"`` layer on this graph (built once)."""
+        if kind not in self._ops:
+            self._ops[kind] = self._build(kind)
+        return self._ops[kind]
+
+    def conv(self, conv: nn.Module, x: torch.Tensor) -> torch.Tensor:
+        """``conv`` (GCNConv or mean SAGEConv) on x (..., N, C) through this graph's operator."""
+        return dense_conv(conv, x, self.operator("gcn" if isinstance(conv, GCNConv) else "sage"))
+
+
+class DenseGraph(_Operators):
     """One city graph for the dense path: pass it where a GNN model takes ``edge_index``.
 
     Holds the (N, N) operator of each conv kind, built on first use and reused every forward
@@ -69,22 +90,16 @@ class DenseGraph:
     """
 
     def __init__(self, edge_index: torch.Tensor, n: int) -> None:
+        super().__init__()
         self.edge_index = torch.as_tensor(edge_index, dtype=torch.long)
         self.n = int(n)
-        self._ops: dict[str, torch.Tensor] = {}
 
-    def operator(self, kind: ConvKind) -> torch.Tensor:
-        """The (N, N) operator of a ``"gcn"`` or ``"sage"`` layer on this graph (built once)."""
-        if kind not in self._ops:
-            self._ops[kind] = graph_operator(kind, self.edge_index, self.n)
-        return self._ops[kind]
-
-    def conv(self, conv: nn.Module, x: torch.Tensor) -> torch.Tensor:
-        """``conv`` (GCNConv or mean SAGEConv) on x (..., N, C) through this graph's operator."""
-        return dense_conv(conv, x, self.operator("gcn" if isinstance(conv, GCNConv) else "sage"))
+    def _build(self, kind: ConvKind) -> torch.Tensor:
+        """The (N, N) operator of ``kind`` on this graph."""
+        return graph_operator(kind, self.edge_index, self.n)
 
 
-class PaddedGraphs:
+class PaddedGraphs(_Operators):
     """C city graphs as one padded batch: pass it where :class:`DenseGraph` goes, with inputs
     (C, B, N_max, ...) (city, trial, region): one matmul per layer for every city at once.
 
@@ -95,21 +110,15 @@ class PaddedGraphs:
     """
 
     def __init__(self, graphs: Sequence[DenseGraph]) -> None:
+        super().__init__()
         self.graphs = list(graphs)
         self.n = max(g.n for g in self.graphs)
         sizes = torch.tensor([g.n for g in self.graphs])
         self.mask = (torch.arange(self.n) < sizes[:, None]).unsqueeze(1)  # (C, 1, N_max): broadcasts over the trials
-        self._ops: dict[str, torch.Tensor] = {}
 
-    def operator(self, kind: ConvKind) -> torch.Tensor:
+    def _build(self, kind: ConvKind) -> torch.Tensor:
         """(C, 1, N_max, N_max): each city's operator in its top-left block, zeros elsewhere."""
-        if kind not in self._ops:
-            block = torch.zeros(len(self.graphs), 1, self.n, self.n)
-            for c, g in enumerate(self.graphs):
-                block[c, 0, : g.n, : g.n] = g.operator(kind)
-            self._ops[kind] = block
-        return self._ops[kind]
-
-    def conv(self, conv: nn.Module, x: torch.Tensor) -> torch.Tensor:
-        """``conv`` on x (C, B, N_max, C_in) through the block operators."""
-        return dense_conv(conv, x, self.operator("gcn" if isinstance(conv, GCNConv) else "sage"))
+        block = torch.zeros(len(self.graphs), 1, self.n, self.n)
+        for c, g in enumerate(self.graphs):
+            block[c, 0, : g.n, : g.n] = g.operator(kind)
+        return block
