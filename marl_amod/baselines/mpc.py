@@ -302,11 +302,19 @@ class MPCPolicy(FlowPolicy):
             demand[..., 1, :, :] += sim.carried_over()
         return demand
 
+    def problem(self, system: FleetSystem) -> PlanData | list[PlanData]:
+        """The LP's data for this step (built outside the timed solve)."""
+        sim = system.sim
+        return plan_data(system.city, sim.t, sim.idle, sim.arrivals, self.believed_demand(system), self.horizon)
+
+    def solve(self, problem: PlanData | list[PlanData]) -> FlowPlan:
+        """The plan of :meth:`problem`'s data."""
+        return self._cvx.solve(problem) if self._cvx is not None else solve_scipy(problem)
+
     def plan(self, system: FleetSystem) -> FlowPlan:
-        sim, city = system.sim, system.city
-        data = plan_data(city, sim.t, sim.idle, sim.arrivals, self.believed_demand(system), self.horizon)
+        problem = self.problem(system)
         start = time.perf_counter()
-        plan = self._cvx.solve(data) if self._cvx is not None else solve_scipy(data)
+        plan = self.solve(problem)
         self.solve_seconds.append(time.perf_counter() - start)
         self.last_plan = plan
         return plan
@@ -400,13 +408,10 @@ class MPCScenarios(MPCForecast):
         mean = self.forecast(system, system.sim.t + np.arange(self.horizon))
         return self.add_waiting(system, self.sample_demand(mean))
 
-    def plan(self, system: FleetSystem) -> FlowPlan:
-        sim, city = system.sim, system.city
-        scenarios = [
-            plan_data(city, sim.t, sim.idle, sim.arrivals, d, self.horizon) for d in self.scenario_demand(system)
-        ]
-        start = time.perf_counter()
-        plan = solve_scenarios(scenarios)
-        self.solve_seconds.append(time.perf_counter() - start)
-        self.last_plan = plan
-        return plan
+    def problem(self, system: FleetSystem) -> list[PlanData]:
+        """One LP's data per sampled scenario."""
+        sim = system.sim
+        return [plan_data(system.city, sim.t, sim.idle, sim.arrivals, d, self.horizon) for d in self.scenario_demand(system)]
+
+    def solve(self, problem: PlanData | list[PlanData]) -> FlowPlan:
+        return solve_scenarios(problem)
