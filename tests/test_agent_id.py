@@ -1,4 +1,4 @@
-"""The GNN's region identity (agent_id): place-dependent outputs, files, configs (dense == torch-geometric: test_dense.py)."""
+"""The GNN's region identity (agent_id): place-dependent outputs, files (dense == torch-geometric: test_dense.py; config errors: test_readout.py)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ import torch
 from marl_amod.algos.registry import ALGOS, args_for
 from marl_amod.checkpoints import architecture_args, load_actor, save_policy
 from marl_amod.comparison import architecture
-from marl_amod.errors import ConfigError, DataError
+from marl_amod.errors import DataError
 from marl_amod.evaluation import evaluate
 from marl_amod.models import GNNActor, build_actor
 from marl_amod.scenario import load_city
@@ -90,16 +90,3 @@ def test_bc_then_a2c_with_agent_id_rebuild_the_actor_from_the_card(tmp_path, tin
     with pytest.raises(DataError, match="differs"):  # a plain actor does not start from the identity clone
         a2c.train(a2c.Args(scenario=scenario, hidden=8, init_actor=str(tmp_path / "p.pt"), episodes=2, episodes_per_update=2,
                            run_dir=str(tmp_path / "a2c_plain"), policy_out=""))  # fmt: skip
-
-
-@pytest.mark.parametrize(("extra", "message"), [
-    ({"mode": "decentralised"}, "agent_id .*decentralised actor reads only its local observation"),
-    ({"actor": "mlp"}, "agent_id is a GNN actor option"),
-    ({"actor": "cnn"}, "agent_id is a GNN actor option"),
-])  # fmt: skip
-def test_agent_id_where_it_cannot_apply_is_a_config_error(tiny_prop_dataset, extra, message):
-    scenario, dataset = tiny_prop_dataset
-    with pytest.raises(ConfigError, match=message):
-        args_for("bc", {"scenario": scenario, "dataset": dataset, "agent_id": True, **extra})
-    with pytest.raises(ValueError, match="agent_id is a GNN actor option"):
-        build_actor("mlp", load_city(scenario), 13, 8, agent_id=True)

@@ -1,4 +1,4 @@
-"""The GNN's fleet-wide readout: whole-fleet reach, equivariance, files, configs (dense == torch-geometric: test_dense.py)."""
+"""The GNN's fleet-wide readout: whole-fleet reach, equivariance, files, config errors of both GNN options (dense == torch-geometric: test_dense.py)."""
 
 from __future__ import annotations
 
@@ -95,14 +95,19 @@ def test_bc_with_readout_ships_a_policy_that_rebuilds_from_its_card(tmp_path, ti
     assert "readout" not in plain["card"]  # the default writes the cards it always wrote
 
 
-@pytest.mark.parametrize(("extra", "message"), [
-    ({"mode": "decentralised"}, "decentralised actor reads only its local observation"),
-    ({"actor": "mlp"}, "GNN actor option"),
-    ({"readout": "sum"}, "readout"),
+@pytest.mark.parametrize(("option", "extra", "message"), [
+    ({"readout": "mean"}, {"mode": "decentralised"}, "decentralised actor reads only its local observation"),
+    ({"readout": "mean"}, {"actor": "mlp"}, "GNN actor option"),
+    ({"readout": "mean"}, {"readout": "sum"}, "readout"),
+    ({"agent_id": True}, {"mode": "decentralised"}, "agent_id .*decentralised actor reads only its local observation"),
+    ({"agent_id": True}, {"actor": "mlp"}, "agent_id is a GNN actor option"),
+    ({"agent_id": True}, {"actor": "cnn"}, "agent_id is a GNN actor option"),
 ])  # fmt: skip
-def test_readout_where_it_cannot_apply_is_a_config_error(tiny_prop_dataset, extra, message):
+def test_gnn_options_where_they_cannot_apply_are_config_errors(tiny_prop_dataset, option, extra, message):
+    """The readout and the region identity (``agent_id``) are centralised GNN options, checked by
+    one validator of the run arguments and by ``build_actor``."""
     scenario, dataset = tiny_prop_dataset
     with pytest.raises(ConfigError, match=message):
-        args_for("bc", {"scenario": scenario, "dataset": dataset, "readout": "mean", **extra})
-    with pytest.raises(ValueError, match="GNN actor option"):
-        build_actor("mlp", load_city(scenario), 13, 8, readout="mean")
+        args_for("bc", {"scenario": scenario, "dataset": dataset, **option, **extra})
+    with pytest.raises(ValueError, match=f"{next(iter(option))} is a GNN actor option"):
+        build_actor("mlp", load_city(scenario), 13, 8, **option)
