@@ -7,6 +7,16 @@
 * ``k``: the profit gap to MPC-Oracle on the held-out cities (report episodes, the tables'
   MPC-Oracle rows) for each number K of adaptation episodes; with ``--validation``, the
   validation return on the training cities instead (the only place K may be chosen).
+* ``heldout``: the imitation error on training (validation) and held-out cities alike, on fresh
+  MPC-Forecast states (demand streams of their own: no city's training data) and on the states
+  the policy reaches itself: the cross-entropy above the labels' entropy and the share of the
+  idle fleet a step sent elsewhere than MPC-F's targets (half the L1 distance of the
+  distributions); then each input's range in every held-out city against the training
+  demonstrations' (per-feature quantiles). Does the policy imitate worse where it was not trained,
+  and which inputs lie outside what it saw?
+* ``where``: where the held-out profit gap to MPC-Forecast comes from, on validation episodes
+  (seed 1000, never the report streams): served trips, fares, trip and rebalancing cost by step
+  and by region, and the share of the idle fleet each asks for.
 * ``event``: the share of the idle fleet each policy asks for in the Brooklyn event's surge
   regions and halved hotspots, inside the event window and outside, and the requests left
   unserved at the surge: does the memory notice the shock?
@@ -14,6 +24,8 @@
     python benchmarks/meta_diagnostics.py gap [--policy policies/meta_rl_all_cities.pt]
     python benchmarks/meta_diagnostics.py k --ks 0,1,3,10 [--validation]
     python benchmarks/meta_diagnostics.py event
+    python benchmarks/meta_diagnostics.py heldout [--cities nyc_brooklyn,porto]
+    python benchmarks/meta_diagnostics.py where [--cities nyc_brooklyn]
 """
 
 from __future__ import annotations
@@ -108,17 +120,120 @@ def event(policy: str, surge: tuple[int, ...] = (8, 10), hotspots: tuple[int, ..
                   f"unserved at the surge {np.mean(unserved):5.1f}", flush=True)  # fmt: skip
 
 
+def feature_names(lookahead: int, structure: bool, place: bool) -> list[str]:
+    """The columns of :func:`~marl_amod.algos.meta.task_features` (and the two rewards the memory reads)."""
+    steps = range(1, lookahead + 1)
+    names = ["idle", *(f"supply+{k}" for k in steps), *(f"value+{k}" for k in steps), "served", "unserved", "t"]
+    if structure:
+        names += [*(f"inflow+{k}" for k in steps), "trip time", "neighbour reb time", "drive cost/fare"]
+    if place:
+        names += ["reb time to", "reb time from", "share out", "share in", "share fleet"]
+    return names + ["region reward", "team reward"]
+
+
+def columns(d: mi.CityDemos) -> np.ndarray:
+    """(decisions x regions, F + 2) every input per region and decision, with the two rewards."""
+    x = d.x.numpy().reshape(-1, d.x.shape[-1])
+    team = np.broadcast_to(d.reward.numpy()[..., None], d.region_reward.shape).reshape(-1, 1)
+    return np.concatenate([x, d.region_reward.numpy().reshape(-1, 1), team], axis=1)
+
+
+def imitation_error(model: meta.RecurrentGNN, d: mi.CityDemos, graph: meta.DenseGraph) -> tuple[float, float]:
+    """(cross-entropy above the labels' entropy, share of the idle fleet sent elsewhere) over trials of 4."""
+    trials = mi.Trials.of_city(d, np.arange(d.episodes).reshape(-1, 4).T)
+    with torch.no_grad():
+        means = mi.teacher_forced(model, trials, graph)[0]
+    share = trials.share.flatten(0, 1)
+    ce = -(share * torch.log(means.clamp_min(1e-8))).sum(-1) + (share * torch.log(share.clamp_min(1e-12))).sum(-1)
+    return float(ce.mean()), float(0.5 * (means - share).abs().sum(-1).mean())
+
+
+def heldout(policy: str, demos: str, cities: list[str], episodes: int = 8) -> None:
+    model, card = meta.load_meta(policy)
+    lookahead = card["lookahead"]
+    structure, place = meta.features_read(model, lookahead)
+    seed_of = lambda s, e: np.random.SeedSequence([s, e, 778])  # noqa: E731  fresh streams: no city's demonstrations
+    pool = np.concatenate([columns(mi.load_demos(demos, load_city(n), lookahead, structure, place)) for n in meta.TRAIN_CITIES])
+    lo, mid, hi = np.quantile(pool, [0.01, 0.5, 0.99], axis=0)
+    ranges = {}
+    for name in cities:
+        city = meta.task_city(name)  # a city or a hotspot variant of one
+        graph, row = meta.city_graph(city), []
+        for learner in (None, model):
+            got = mi.collect_city(city, episodes, 99, lookahead, learner=learner, trial_episodes=4, seed_of=seed_of)
+            if structure:
+                got["x"] = meta.with_structure(got["x"], city, lookahead, place)
+            d = mi.CityDemos(*(torch.from_numpy(got[k]) for k in ("x", "share", "region_reward", "reward", "action")))
+            row += imitation_error(model, d, graph)
+            if learner is None:
+                ranges[name] = columns(d)
+        held = " (held out)" if name in meta.HELD_OUT else ""
+        print(f"{name:24s} MPC-F's states: CE {row[0]:.3f}, misplaced {row[1]:.3f}; its own: CE {row[2]:.3f}, misplaced {row[3]:.3f}{held}", flush=True)
+    print(f"\n{'input':20s} {'train q01 / q50 / q99':>24s}  " + "  ".join(f"{n[:18]:>18s}" for n in ranges))
+    print(f"{'':20s} {'':>24s}  " + "  ".join(f"{'median (out)':>18s}" for _ in ranges))
+    for j, label in enumerate(feature_names(lookahead, structure, place)):
+        cells = [f"{np.median(v[:, j]):8.3f} ({np.mean((v[:, j] < lo[j]) | (v[:, j] > hi[j])):4.0%})" for v in ranges.values()]
+        print(f"{label:20s} {lo[j]:7.3f} / {mid[j]:6.3f} / {hi[j]:7.3f}  " + "  ".join(f"{c:>18s}" for c in cells), flush=True)
+
+
+def where(policy: str, cities: list[str], episodes: int = 10, seed: int = 1000, k: int = 3) -> None:
+    for name in cities:
+        city = load_city(name)
+        per: dict[str, dict[str, np.ndarray]] = {}
+        for label, make in {"meta": lambda c=city: meta.load_policy(policy, c, k, seed=seed), "mpc-forecast": MPCForecast}.items():
+            pol, rows = make(), {"fares": [], "trip cost": [], "reb cost": [], "served": [], "share": []}
+            for e in range(episodes):
+                system = FleetSystem(city)
+                system.reset(np.random.SeedSequence([seed, e]))
+                pol.reset(system, np.random.default_rng([seed, e, 1]))
+                t0 = system.sim.totals
+                last = (t0.revenue.copy(), t0.trip_cost.copy(), t0.rebalancing_cost.copy())
+                ep = {key: [] for key in rows}
+                while not system.done:
+                    want = np.asarray(pol.target(system), dtype=np.float64)
+                    want = np.where(want < 0, system.sim.idle, want)
+                    ep["share"].append(want / max(want.sum(), 1.0))
+                    out = system.step(want.astype(np.int64))
+                    tot = system.sim.totals
+                    now = (tot.revenue.copy(), tot.trip_cost.copy(), tot.rebalancing_cost.copy())
+                    for key, a, b in zip(("fares", "trip cost", "reb cost"), now, last, strict=True):
+                        ep[key].append(a - b)
+                    ep["served"].append(out.dispatch.sum(-1))
+                    last = now
+                for key in rows:
+                    rows[key].append(np.stack(ep[key]))
+            per[label] = {key: np.mean(v, axis=0) for key, v in rows.items()}  # (T, N) mean over episodes
+        m, f = per["meta"], per["mpc-forecast"]
+        profit = lambda r: r["fares"] - r["trip cost"] - r["reb cost"]  # noqa: E731
+        gap = profit(f) - profit(m)
+        print(f"\n{name}: meta K={k} vs MPC-Forecast, {episodes} validation episodes (seed {seed}), per episode after the first dispatch")
+        for key in ("fares", "trip cost", "reb cost", "served"):
+            print(f"  {key:10s} meta {m[key].sum():10.1f}  MPC-F {f[key].sum():10.1f}  diff {m[key].sum() - f[key].sum():+10.1f}")
+        print(f"  profit gap {gap.sum():.1f}: by step " + " ".join(f"{g:.0f}" for g in gap.sum(1)))
+        order = np.argsort(-gap.sum(0))
+        print("  by region (largest first): " + ", ".join(f"r{i} {gap.sum(0)[i]:.0f}" for i in order[:6]))
+        print("  share asked (mean over steps) meta / MPC-F / idle fleet ratio, those regions: " + ", ".join(
+            f"r{i} {m['share'][:, i].mean():.3f}/{f['share'][:, i].mean():.3f}" for i in order[:6]))
+        l1 = 0.5 * np.abs(m["share"] - f["share"]).sum(1)
+        print("  half L1 between the mean shares asked, by step: " + " ".join(f"{v:.2f}" for v in l1), flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["gap", "k", "event"])
+    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where"])
     parser.add_argument("--policy", default="policies/meta_rl_all_cities.pt")
     parser.add_argument("--demos", default="runs/meta_demos")
     parser.add_argument("--ks", default="0,1,2,3,4,5,6,8,10")
+    parser.add_argument("--cities", default=",".join([*VAL_CITIES, *meta.HELD_OUT]), help="heldout, where: the cities")
     parser.add_argument("--validation", action="store_true", help="k: the training cities' validation return instead")
     args = parser.parse_args()
     ks = [int(k) for k in args.ks.split(",")]
     if args.what == "gap":
         gap(args.policy, args.demos)
+    elif args.what == "heldout":
+        heldout(args.policy, args.demos, args.cities.split(","))
+    elif args.what == "where":
+        where(args.policy, [c for c in args.cities.split(",") if c in meta.HELD_OUT])
     elif args.what == "k":
         (k_validation if args.validation else k_sweep)(args.policy, ks)
     else:

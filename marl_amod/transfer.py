@@ -136,11 +136,12 @@ def run_strategy(
         used.update(source=meta_policy, source_city="10 training cities", source_episodes=card.get("episodes_trained"), target_episodes=k)
         warm = card.get("warm_start") or {}
         demos = warm.get("demonstrations") or card.get("demonstrations")
+        variants = (demos or {}).get("hotspot_variants", [])  # hotspot variants of those cities: more tasks
         if demos:  # trained from an imitation of MPC-Forecast on the same cities
-            used["demonstrations"] = demos["episodes_per_city"] * len(demos["cities"])
+            used["demonstrations"] = demos["episodes_per_city"] * len(demos["cities"]) + demos.get("episodes_per_variant", 0) * len(variants)
         rounds = [d for d in (card.get("dagger"), warm.get("dagger")) if d]  # its own DAgger rounds and its start's
         if rounds and demos:  # the policy's own episodes there, labelled by MPC-F
-            used["dagger_episodes"] = sum(d["rounds"] * d["episodes_per_city"] for d in rounds) * len(demos["cities"])
+            used["dagger_episodes"] = sum(d["rounds"] * d["episodes_per_city"] for d in rounds) * (len(demos["cities"]) + len(variants))
         if card["algorithm"] == "meta-bc":  # imitation only: no RL episode
             used["source_episodes"] = None
     result = evaluate(pol, city, episodes, seed)

@@ -213,6 +213,34 @@ def test_random_shocks_change_the_draw_not_the_forecast():
         assert meta.CityScale.of(shocked) == meta.CityScale.of(city)  # units read the forecast
 
 
+def test_a_hotspot_variant_is_another_city_its_name_rebuilds():
+    """Requests out of one region x m against the others in the draw *and* the forecast (the
+    features show it, unlike a shock), every step's total kept; fares and times unchanged; the
+    name alone rebuilds it."""
+    city = load_city("synthetic")
+    hot = meta.hotspot(city, 2, 3.5)
+    assert hot.name == "synthetic~hot2x3.5" and meta.base_city(hot.name) == "synthetic"
+    for table in ("demand_rate", "forecast_rate"):
+        new, old = np.asarray(getattr(hot, table)), np.asarray(getattr(city, table))
+        np.testing.assert_allclose(new.sum(axis=(1, 2)), old.sum(axis=(1, 2)))  # the same demand in all
+        ratio = new / np.where(old > 0, old, np.nan)  # per step: 3.5 c out of region 2, c out of the others
+        others = np.nanmax(np.delete(ratio, 2, axis=1), axis=(1, 2))
+        np.testing.assert_allclose(np.nanmin(np.delete(ratio, 2, axis=1), axis=(1, 2)), others)
+        np.testing.assert_allclose(np.nanmax(ratio[:, 2], axis=1), 3.5 * others)
+    np.testing.assert_array_equal(hot.price, city.price)
+    assert meta.place_table(hot)[2, 2] > meta.place_table(city)[2, 2]  # its share of the day's requests out grew
+    rebuilt = meta.task_city(hot.name)
+    np.testing.assert_array_equal(rebuilt.forecast_rate, hot.forecast_rate)
+    assert meta.task_city("synthetic").name == "synthetic"
+    for bad in ("synthetic~hotAx2", "synthetic~hot99x2", "synthetic~hot1x0"):
+        with pytest.raises(ConfigError, match="hotspot"):
+            meta.task_city(bad)
+    names = meta.hotspot_tasks(["synthetic", "porto"], 3, (2.0, 4.0), seed=0)
+    assert names == meta.hotspot_tasks(["synthetic", "porto"], 3, (2.0, 4.0), seed=0) != meta.hotspot_tasks(["synthetic", "porto"], 3, (2.0, 4.0), seed=1)
+    assert [meta.base_city(n) for n in names] == ["synthetic"] * 3 + ["porto"] * 3
+    assert all(2.0 <= meta.task_city(n).meta["hotspot"]["multiplier"] <= 4.0 for n in names)
+
+
 def test_the_deployed_policy_replays_the_trained_agent_exactly():
     """MetaPolicy (through evaluate, one episode on a FleetSystem) rebuilds the previous rewards from
     the booked money: its episode must be the batched trial's deterministic one from the same memory."""
@@ -273,6 +301,8 @@ def test_held_out_cities_cannot_be_training_tasks():
         meta.train(meta.Args(cities=["chicago", "san_francisco"]))
     with pytest.raises(ConfigError, match="held-out"):
         meta.train(meta.Args(scenario="porto", cities=["porto", "rome"]))
+    with pytest.raises(ConfigError, match="held-out"):  # nor a variant of one
+        meta.train(meta.Args(cities=["chicago", "nyc_brooklyn~hot5x2"]))
 
 
 def test_transfer_strategies_and_the_normalised_score(tmp_path):

@@ -172,6 +172,45 @@ def test_dagger_rounds_join_the_demonstrations_and_resume_from_disk(tasks, tmp_p
     assert np.isfinite(run_strategy("meta-rl", "synthetic", episodes=1, meta_policy=str(tmp_path / "bc3.pt"), adapt_episodes=1)["metrics"]["profit"]["mean"])
 
 
+@pytest.mark.parametrize(("first", "every", "rounds", "starts"), [(0, 3, 2, [0, 3]), (0, 500, 5, [0, 500, 1000, 1500, 2000]),
+                                                                 (4, 3, 3, [4, 7, 10]), (5, 10, 1, [5])])
+def test_dagger_rounds_start_at_the_offset_and_a_resume_reads_back_the_ones_begun(first, every, rounds, starts):
+    args = mi.Args(dagger_rounds=rounds, dagger_every=every, dagger_first=first)
+    steps = range(2 * max(starts) + 2)
+    assert [s for s in steps if mi.round_due(args, s)] == starts
+    assert [mi.round_due(args, s) for s in starts] == list(range(1, rounds + 1))
+    for s in steps:  # a run resumed at update s reads back exactly the rounds collected before s
+        assert mi.started_rounds(args, s) == sum(1 for r in range(s) if mi.round_due(args, r))
+
+
+def test_hotspot_variants_are_tasks_with_demonstrations_and_dagger_rounds_of_their_own(tasks, tmp_path):
+    """One variant per city: its own MPC-F demonstrations (``hotspot_episodes``), drawn like a city,
+    driven in the DAgger rounds (here the first at update 1, not before the first update), named on
+    the card and counted by the transfer table."""
+    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
+                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=1, eval_every=2,
+                   eval_episodes=2, final_eval_episodes=1, dagger_rounds=1, dagger_first=1, dagger_episodes=2,
+                   hotspot_variants=1, hotspot_episodes=4, run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
+    plain, variants = mi.tasks(args)
+    assert plain == tasks and [meta.base_city(v) for v in variants] == tasks and all(meta.HOTSPOT in v for v in variants)
+    card = ALGOS["meta-bc"].train(args)["card"]
+    assert card["demonstrations"]["hotspot_variants"] == variants and card["dagger"]["rounds"] == 0
+    assert not (tmp_path / "bc" / "dagger").exists()  # round 1 waits for update 1
+    for name in variants:
+        city = meta.task_city(name)
+        demos = mi.load_demos(tmp_path / "demos", city, 6)
+        assert demos.episodes == 4 and city.name.startswith(("small~hot", "large~hot"))
+    card = ALGOS["meta-bc"].train(args.model_copy(update={"updates": 2}), resume=str(tmp_path / "bc" / "state.pt"))["card"]
+    assert card["dagger"]["rounds"] == 1
+    assert sorted(p.stem for p in (tmp_path / "bc" / "dagger" / "round1").glob("*.npz")) == sorted(meta.task_city(n).name for n in [*tasks, *variants])
+    from marl_amod.transfer import run_strategy
+
+    rec = run_strategy("meta-rl", "synthetic", episodes=1, meta_policy=str(tmp_path / "bc.pt"), adapt_episodes=0)
+    assert rec["transfer"]["demonstrations"] == 2 * 2 + 2 * 4 and rec["transfer"]["dagger_episodes"] == 1 * 2 * 4
+    with pytest.raises(DataError, match="held-out"):
+        mi.collect_demos(tmp_path / "demos", ["nyc_brooklyn~hot5x2"], episodes=1, seed=0, lookahead=6)
+
+
 def test_shocked_dagger_trials_are_labelled_by_mpc_told_the_shock(tasks):
     """A shocked trial draws the shocked demand, its features keep the usual forecast, and its
     labels are MPC's plan on the shocked expected demand, which MPC-Forecast's plan is not."""

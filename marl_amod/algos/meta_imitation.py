@@ -53,7 +53,7 @@ from marl_amod.baselines.mpc import MPCForecast
 from marl_amod.errors import DataError
 from marl_amod.models.dense import DenseGraph, PaddedGraphs
 from marl_amod.models.recurrent import RecurrentGNN
-from marl_amod.scenario import City, load_city
+from marl_amod.scenario import City
 from marl_amod.scenario.types import step_rows
 from marl_amod.system import FleetSystem
 
@@ -158,15 +158,16 @@ def collect_demos(
     folder: str | Path, cities: list[str], episodes: int, seed: int, lookahead: int, learner: RecurrentGNN | None = None,
     trial_episodes: int = 1, seed_of: Callable[[int, int], np.random.SeedSequence] = demo_seed, shock_prob: float = 0.0,
 ) -> dict[str, float]:
-    """Write ``folder/<city>.npz`` for each city not yet there (resumable, split by city; with
+    """Write ``folder/<task>.npz`` for each task (a city or a :func:`~marl_amod.algos.meta.task_city`
+    variant) not yet there (resumable, split by task; with
     ``learner``, a DAgger round: :func:`collect_city`); returns the collection wall seconds of every
     city's file (recorded in it)."""
-    held = sorted(set(cities) & set(meta.HELD_OUT))
+    held = sorted({meta.base_city(name) for name in cities} & set(meta.HELD_OUT))
     if held:
         raise DataError(f"demonstrations on held-out {held}: the study tests on them")
     walls = {}
     for name in cities:
-        city = load_city(name)
+        city = meta.task_city(name)
         path = demo_path(folder, city.name)
         if not path.is_file():
             start = time.perf_counter()
@@ -264,29 +265,36 @@ def cities_losses(
     return ce / len(draws), vl / len(draws)
 
 
+def teacher_forced(model: RecurrentGNN, trials: Trials, graph: DenseGraph | PaddedGraphs) -> tuple[torch.Tensor, torch.Tensor]:
+    """(Dirichlet means (K T, *lead, N), values (K T, *lead)) of ``model`` run over teacher-forced
+    trials: the memory carried across the K episodes, the previous action and rewards those of the
+    trials (restarting at zero with each episode). What the losses and the diagnostics read."""
+    k_eps, t_steps, *lead, n, _ = trials.x.shape
+    memory = model.initial_memory(n, *lead)
+    means, values = [], []
+    for k in range(k_eps):
+        prev_a, prev_rr, prev_r = torch.zeros(*lead, n), torch.zeros(*lead, n), torch.zeros(lead)
+        for t in range(t_steps):
+            alpha, v, memory = model(trials.x[k, t], prev_a, prev_rr, prev_r, memory, graph)
+            means.append(alpha / alpha.sum(-1, keepdim=True))
+            values.append(v)
+            prev_a, prev_rr, prev_r = trials.action[k, t] * trials.regions, trials.region_reward[k, t], trials.reward[k, t]
+    return torch.stack(means), torch.stack(values)
+
+
 def trial_losses(model: RecurrentGNN, trials: Trials, graph: DenseGraph | PaddedGraphs, gamma: float) -> tuple[torch.Tensor, torch.Tensor]:
     """(actor cross-entropy, critic loss) of teacher-forced trials: the actor fits the Dirichlet
     mean to MPC-F's shares, the critic the discounted return to the trial's end; both means over
     every decision of every trial (padded regions carry share 0 and alpha 0, so they add nothing)."""
-    k_eps, t_steps, *lead, n, _ = trials.x.shape
-    memory = model.initial_memory(n, *lead)
-    ce, values, rewards = [], [], []
-    for k in range(k_eps):
-        prev_a, prev_rr, prev_r = torch.zeros(*lead, n), torch.zeros(*lead, n), torch.zeros(lead)
-        for t in range(t_steps):
-            share, r = trials.share[k, t], trials.reward[k, t]
-            alpha, v, memory = model(trials.x[k, t], prev_a, prev_rr, prev_r, memory, graph)
-            mean = alpha / alpha.sum(-1, keepdim=True)
-            ce.append(-(share * torch.log(mean.clamp_min(1e-8))).sum(-1))  # (*lead)
-            values.append(v)
-            rewards.append(r)
-            prev_a, prev_rr, prev_r = trials.action[k, t] * trials.regions, trials.region_reward[k, t], r
-    ret, running = [], torch.zeros(lead)
+    means, values = teacher_forced(model, trials, graph)
+    share, rewards = trials.share.flatten(0, 1), trials.reward.flatten(0, 1)  # (K T, *lead, N), (K T, *lead)
+    ce = -(share * torch.log(means.clamp_min(1e-8))).sum(-1)  # (K T, *lead)
+    ret, running = [], torch.zeros(rewards.shape[1:])
     for rew in reversed(rewards):  # discounted return to the trial's end, as the RL critic's targets
         running = rew + gamma * running
         ret.append(running)
     target = torch.stack(ret[::-1])
-    return torch.stack(ce).mean(), F.smooth_l1_loss(torch.stack(values), target)
+    return ce.mean(), F.smooth_l1_loss(values, target)
 
 
 # --------------------------------------------------------------------------------------------
@@ -309,12 +317,25 @@ class Args(meta.Args):
     """DAgger rounds: the current model drives ``dagger_episodes`` episodes of each training city
     (trials as deployed), MPC-F labels the states it reached, and they join that city's demonstrations"""
     dagger_every: int = Field(300, ge=1)
-    """updates between DAgger rounds (round 1 before the run's first update)"""
+    """updates between DAgger rounds"""
+    dagger_first: int = Field(0, ge=0)
+    """the update before which round 1 is collected (0: before the first; later rounds every
+    ``dagger_every`` after it). From scratch, round 1 at 0 is driven by an untrained policy, to
+    states the trained one never reaches: an offset spends it on a policy that imitates already"""
     dagger_episodes: int = Field(8, ge=1)
     """episodes per training city and DAgger round"""
     dagger_shock_prob: float = Field(0.0, ge=0, le=1)
     """share of the DAgger trials with a random demand shock, labelled by MPC told the shock
     (:class:`MPCToldTheShock`): the policy learns to react to what the forecast misses"""
+    hotspot_variants: int = Field(0, ge=0)
+    """per training city, this many :func:`~marl_amod.algos.meta.hotspot` variants as more tasks
+    (one busy region's requests x ``hotspot_multipliers``, forecast included), demonstrated by
+    MPC-F (``hotspot_episodes`` each) and driven in the DAgger rounds like the cities; drawn as
+    often as a city. The held-out cities' hotspots are stronger than any training city's"""
+    hotspot_multipliers: tuple[float, float] = (2.0, 4.0)
+    """the range (log-uniform) of the variants' multipliers"""
+    hotspot_episodes: int = Field(32, ge=1)
+    """MPC-Forecast demonstration episodes per hotspot variant"""
     pad_cities: bool = True
     """an update's cities padded into one batch (the same losses to float rounding): 1.12-1.16x
     faster at hidden 64 x 16 trials per city, 1.4-1.8x at 4 trials (``benchmarks/meta_update.py``);
@@ -326,10 +347,10 @@ class Args(meta.Args):
                 "gae_lambda": "the critic fits the demonstrations' returns"}  # fmt: skip
 
 
-def load_all(args: meta.Args, cities: dict[str, City]) -> dict[str, tuple[CityDemos, DenseGraph]]:
-    """The demonstrations (and ``more_demos``) and dense graph of every training city."""
+def load_all(args: meta.Args, cities: dict[str, City], names: list[str] | None = None) -> dict[str, tuple[CityDemos, DenseGraph]]:
+    """The demonstrations (and ``more_demos``) and dense graph of every task (default: the training cities)."""
     data = {}
-    for name in args.cities:
+    for name in args.cities if names is None else names:
         demos = [load_run_demos(folder, cities[name], args) for folder in [args.demos, *args.more_demos]]
         data[name] = (functools.reduce(joined, demos), meta.city_graph(cities[name]))
     return data
@@ -346,12 +367,13 @@ def joined(a: CityDemos, b: CityDemos) -> CityDemos:
 
 
 def dagger_round(args: Args, model: RecurrentGNN, k: int, data: dict[str, tuple[CityDemos, DenseGraph]], cities: dict[str, City]) -> float:
-    """DAgger round ``k`` (collected unless its files exist: resumable) added to ``data``; its collection wall seconds."""
+    """DAgger round ``k`` on every task in ``data`` (collected unless its files exist: resumable) added
+    to ``data``; its collection wall seconds."""
     folder = Path(args.run_dir) / "dagger" / f"round{k}"
     with torch.no_grad():
-        walls = collect_demos(folder, args.cities, args.dagger_episodes, args.seed, args.lookahead, learner=model,
+        walls = collect_demos(folder, list(data), args.dagger_episodes, args.seed, args.lookahead, learner=model,
                               trial_episodes=args.trial_episodes, seed_of=functools.partial(dagger_seed, round=k), shock_prob=args.dagger_shock_prob)  # fmt: skip
-    for name in args.cities:
+    for name in data:
         demos, graph = data[name]
         data[name] = (joined(demos, load_run_demos(folder, cities[name], args)), graph)
     return sum(walls.values())
@@ -362,6 +384,11 @@ def draw_trials(demos: CityDemos, args: meta.Args, rng: np.random.Generator) -> 
     return rng.integers(demos.episodes, size=(args.trial_episodes, args.num_envs))
 
 
+def tasks(args: Args) -> tuple[list[str], list[str]]:
+    """(the training cities, their hotspot variants): the tasks an update draws from."""
+    return list(args.cities), meta.hotspot_tasks(args.cities, args.hotspot_variants, args.hotspot_multipliers, args.seed)
+
+
 def lr_at(args: Args, step: int) -> float:
     """The step size of update ``step`` (``lr_final``: geometric decay over ``updates``)."""
     if args.lr_final is None:
@@ -370,8 +397,15 @@ def lr_at(args: Args, step: int) -> float:
 
 
 def started_rounds(args: Args, step: int) -> int:
-    """DAgger rounds begun before update ``step`` (round k starts at update (k - 1) x ``dagger_every``)."""
-    return min(args.dagger_rounds, -(-step // args.dagger_every))
+    """DAgger rounds begun before update ``step`` (round k starts at update ``dagger_first`` + (k - 1) x ``dagger_every``)."""
+    return min(args.dagger_rounds, max(0, -(-(step - args.dagger_first) // args.dagger_every)))
+
+
+def round_due(args: Args, step: int) -> int:
+    """The DAgger round that starts before update ``step``, or 0 if none does."""
+    since = step - args.dagger_first
+    k = since // args.dagger_every + 1
+    return k if since >= 0 and since % args.dagger_every == 0 and k <= args.dagger_rounds else 0
 
 
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
@@ -379,9 +413,12 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     meta.check_tasks(args)
     torch.set_num_threads(args.threads)
     C.seed_everything(args.seed)
-    walls = collect_demos(args.demos, args.cities, args.demo_episodes, args.seed, args.lookahead)
-    cities = {name: load_city(name) for name in dict.fromkeys([*args.cities, *args.val_cities])}
-    data = load_all(args, cities)
+    plain, variants = tasks(args)
+    walls = collect_demos(args.demos, plain, args.demo_episodes, args.seed, args.lookahead)
+    walls |= collect_demos(args.demos, variants, args.hotspot_episodes, args.seed, args.lookahead)
+    cities = {name: meta.task_city(name) for name in dict.fromkeys([*plain, *variants, *args.val_cities])}
+    data = load_all(args, cities, [*plain, *variants])
+    names = list(data)
     model = meta.make_model(args)
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     rng = np.random.default_rng([args.seed, 23])
@@ -404,11 +441,11 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     dagger_wall = sum(dagger_round(args, model, k, data, cities) for k in range(1, started_rounds(args, step) + 1))  # resumed: read back
     with C.interruptible(save):
         while step < args.updates:
-            if step % args.dagger_every == 0 and step // args.dagger_every < args.dagger_rounds:
-                dagger_wall += dagger_round(args, model, step // args.dagger_every + 1, data, cities)
+            if k := round_due(args, step):
+                dagger_wall += dagger_round(args, model, k, data, cities)
             draws = []
             for _ in range(args.cities_per_update):
-                demos, graph = data[args.cities[int(rng.integers(len(args.cities)))]]
+                demos, graph = data[names[int(rng.integers(len(names)))]]
                 draws.append((demos, draw_trials(demos, args, rng), graph))
             ce, vl = cities_losses(model, draws, args.gamma, args.pad_cities)
             for group in opt.param_groups:
@@ -425,6 +462,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     model.load_state_dict(book.best.state)
     extra = {"updates": step, "demonstrations": {"policy": "mpc-forecast", "cities": list(args.cities), "episodes_per_city": args.demo_episodes,
              "collection_wall_s": round(sum(walls.values()), 1)}, **warm}  # fmt: skip
+    if variants:
+        extra["demonstrations"] |= {"hotspot_variants": variants, "episodes_per_variant": args.hotspot_episodes}
     if args.dagger_rounds:
         extra["dagger"] = {"rounds": started_rounds(args, step), "episodes_per_city": args.dagger_episodes, "shock_prob": args.dagger_shock_prob,
                            "collection_wall_s": round(dagger_wall, 1)}  # fmt: skip
