@@ -17,6 +17,10 @@
 * ``where``: where the held-out profit gap to MPC-Forecast comes from, on validation episodes
   (seed 1000, never the report streams): served trips, fares, trip and rebalancing cost by step
   and by region, and the share of the idle fleet each asks for.
+* ``hotspot``: for each task (a city, or a hotspot variant ``<city>~hot<r>x<m>``), its busiest
+  region's share of the day's requests (x N), what MPC-F sends there and what the policy sends
+  (teacher-forced on 4 fresh MPC-F episodes), and with ``--multiplier m`` the city with that
+  region x m (``meta.hotspot``) beside it, with both profit gaps to MPC-F on validation episodes.
 * ``event``: the share of the idle fleet each policy asks for in the Brooklyn event's surge
   regions and halved hotspots, inside the event window and outside, and the requests left
   unserved at the surge: does the memory notice the shock?
@@ -26,6 +30,7 @@
     python benchmarks/meta_diagnostics.py event
     python benchmarks/meta_diagnostics.py heldout [--cities nyc_brooklyn,porto]
     python benchmarks/meta_diagnostics.py where [--cities nyc_brooklyn]
+    python benchmarks/meta_diagnostics.py hotspot --cities porto,washington_dc --multiplier 3 --episodes 6
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ from marl_amod.algos import meta
 from marl_amod.algos import meta_imitation as mi
 from marl_amod.baselines.mpc import MPCForecast, MPCOracle
 from marl_amod.batch_system import BatchFleetSystem
+from marl_amod.evaluation import evaluate
 from marl_amod.scenario import load_city
 from marl_amod.system import FleetSystem
 from marl_amod.transfer import STUDIES, run_strategy
@@ -176,6 +182,30 @@ def heldout(policy: str, demos: str, cities: list[str], episodes: int = 8) -> No
         print(f"{label:20s} {lo[j]:7.3f} / {mid[j]:6.3f} / {hi[j]:7.3f}  " + "  ".join(f"{c:>18s}" for c in cells), flush=True)
 
 
+def hotspot(policy: str, cities: list[str], multiplier: float | None, episodes: int, seed: int = 1000) -> None:
+    model, card = meta.load_meta(policy)
+    lookahead = card["lookahead"]
+    structure, place = meta.features_read(model, lookahead)
+    for name in cities:
+        city = meta.task_city(name)
+        region = city.meta.get("hotspot", {}).get("region", int(meta.place_table(city)[:, 2].argmax()))
+        for task in (city, meta.hotspot(city, region, multiplier)) if multiplier else (city,):
+            got = mi.collect_city(task, 4, 99, lookahead, seed_of=lambda s, e: np.random.SeedSequence([s, e, 778]))
+            x = meta.with_structure(got["x"], task, lookahead, place) if structure else got["x"]
+            d = mi.CityDemos(torch.from_numpy(x), *(torch.from_numpy(got[k]) for k in ("share", "region_reward", "reward", "action")))
+            trials = mi.Trials.of_city(d, np.arange(4).reshape(4, 1))
+            with torch.no_grad():
+                means = mi.teacher_forced(model, trials, meta.city_graph(task))[0]
+            share = trials.share.flatten(0, 1)
+            line = (f"{task.name:34s} share out {meta.place_table(task)[region, 2]:.2f}  MPC-F sends {share[..., region].mean():.3f}  "
+                    f"the policy {means[..., region].mean():.3f}  misplaced {float(0.5 * (means - share).abs().sum(-1).mean()):.3f}")  # fmt: skip
+            if episodes:
+                mine = evaluate(meta.load_policy(policy, task, seed=seed), task, episodes, seed)["metrics"]["profit"]["mean"]
+                theirs = evaluate(MPCForecast(), task, episodes, seed)["metrics"]["profit"]["mean"]
+                line += f"  gap to MPC-F {100 * (1 - mine / theirs):.1f}% ({episodes} validation episodes)"
+            print(line, flush=True)
+
+
 def where(policy: str, cities: list[str], episodes: int = 10, seed: int = 1000, k: int = 3) -> None:
     for name in cities:
         city = load_city(name)
@@ -210,6 +240,8 @@ def where(policy: str, cities: list[str], episodes: int = 10, seed: int = 1000, 
         for key in ("fares", "trip cost", "reb cost", "served"):
             print(f"  {key:10s} meta {m[key].sum():10.1f}  MPC-F {f[key].sum():10.1f}  diff {m[key].sum() - f[key].sum():+10.1f}")
         print(f"  profit gap {gap.sum():.1f}: by step " + " ".join(f"{g:.0f}" for g in gap.sum(1)))
+        print("  served, MPC-F - meta, by step: " + " ".join(f"{g:.0f}" for g in (f["served"] - m["served"]).sum(1)))
+        print("  rebalancing cost, meta - MPC-F, by step: " + " ".join(f"{g:.0f}" for g in (m["reb cost"] - f["reb cost"]).sum(1)))
         order = np.argsort(-gap.sum(0))
         print("  by region (largest first): " + ", ".join(f"r{i} {gap.sum(0)[i]:.0f}" for i in order[:6]))
         print("  share asked (mean over steps) meta / MPC-F / idle fleet ratio, those regions: " + ", ".join(
@@ -220,10 +252,12 @@ def where(policy: str, cities: list[str], episodes: int = 10, seed: int = 1000, 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where"])
+    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hotspot"])
     parser.add_argument("--policy", default="policies/meta_rl_all_cities.pt")
     parser.add_argument("--demos", default="runs/meta_demos")
     parser.add_argument("--ks", default="0,1,2,3,4,5,6,8,10")
+    parser.add_argument("--episodes", type=int, default=8, help="heldout: episodes per city and side (a multiple of 4); hotspot: validation episodes (0: none)")
+    parser.add_argument("--multiplier", type=float, default=None, help="hotspot: also each city with its busiest region x this")
     parser.add_argument("--cities", default=",".join([*VAL_CITIES, *meta.HELD_OUT]), help="heldout, where: the cities")
     parser.add_argument("--validation", action="store_true", help="k: the training cities' validation return instead")
     args = parser.parse_args()
@@ -231,7 +265,9 @@ def main() -> None:
     if args.what == "gap":
         gap(args.policy, args.demos)
     elif args.what == "heldout":
-        heldout(args.policy, args.demos, args.cities.split(","))
+        heldout(args.policy, args.demos, args.cities.split(","), args.episodes)
+    elif args.what == "hotspot":
+        hotspot(args.policy, args.cities.split(","), args.multiplier, args.episodes)
     elif args.what == "where":
         where(args.policy, [c for c in args.cities.split(",") if c in meta.HELD_OUT])
     elif args.what == "k":

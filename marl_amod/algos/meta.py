@@ -30,6 +30,11 @@ them, requests out of a few regions surge (and sometimes drop out of others) ove
 forecast does not know. The memory thus learns to notice a departure from the usual demand and
 answer it in later steps and episodes: what the special-event study asks.
 
+Hotspot variants (:func:`hotspot`, :func:`task_city`). A training city with one region's share
+of the requests raised, forecast included: a task of its own (``<city>~hot<r>x<m>``) whose
+demand is more concentrated than any training city's, as the held-out cities' is; the imitation
+(:mod:`.meta_imitation`, ``hotspot_variants``) can add them to the cities.
+
 Trials in lockstep. A trial is ``trial_episodes`` consecutive episodes on one city with the
 recurrent memory (:class:`~marl_amod.models.recurrent.RecurrentGNN`) carried from one episode to
 the next; the previous action and rewards restart at zero with each episode. Each update draws
@@ -236,9 +241,9 @@ def hotspot(city: City, region: int, multiplier: float) -> City:
     total kept (the same fleet against the same demand, only more of it in one place), in the draw
     *and* the forecast: another city (the features show it), not a shock. Why: the held-out cities'
     busiest region draws 4.6 (San Francisco) and 5.1 (Brooklyn) times a region's average share of
-    the requests, every training city's at most 4.2, and MPC-Forecast sends it 0.29-0.30 of the
-    idle fleet against at most 0.14 in a training city; the policy, never shown that, sends half
-    (docs/meta/README.md, "Where the held-out gap comes from"). Named so :func:`task_city` rebuilds it."""
+    the requests, every training city's at most 4.2, and MPC-Forecast sends it 0.29-0.31 of the
+    idle fleet against at most 0.14 in a training city; the policy, never shown that, sends
+    0.15-0.25 (docs/meta/README.md, "Where the held-out gap comes from"). Named so :func:`task_city` rebuilds it."""
     if not 0 <= region < city.n_regions or not np.isfinite(multiplier) or multiplier <= 0:
         raise ConfigError(f"hotspot of {city.name}: region {region} (0..{city.n_regions - 1}) and multiplier {multiplier} (> 0)")
     factor = np.ones(city.n_regions)
