@@ -137,6 +137,8 @@ def run_strategy(
         warm = card.get("warm_start") or {}
         demos = warm.get("demonstrations") or card.get("demonstrations")
         variants = (demos or {}).get("hotspot_variants", [])  # hotspot variants of those cities: more tasks
+        if variants:
+            used["source_city"] += f" + {len(variants)} hotspot variants"
         if demos:  # trained from an imitation of MPC-Forecast on the same cities
             used["demonstrations"] = demos["episodes_per_city"] * len(demos["cities"]) + demos.get("episodes_per_variant", 0) * len(variants)
         rounds = [d for d in (card.get("dagger"), warm.get("dagger")) if d]  # its own DAgger rounds and its start's

@@ -207,6 +207,7 @@ def test_hotspot_variants_are_tasks_with_demonstrations_and_dagger_rounds_of_the
 
     rec = run_strategy("meta-rl", "synthetic", episodes=1, meta_policy=str(tmp_path / "bc.pt"), adapt_episodes=0)
     assert rec["transfer"]["demonstrations"] == 2 * 2 + 2 * 4 and rec["transfer"]["dagger_episodes"] == 1 * 2 * 4
+    assert rec["transfer"]["source_city"] == "10 training cities + 2 hotspot variants"
     with pytest.raises(DataError, match="held-out"):
         mi.collect_demos(tmp_path / "demos", ["nyc_brooklyn~hot5x2"], episodes=1, seed=0, lookahead=6)
 
