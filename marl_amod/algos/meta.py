@@ -282,8 +282,8 @@ def hotspot_tasks(cities: list[str], variants: int, multipliers: tuple[float, fl
     """``variants`` hotspot variants of each city: the region drawn by its share of the day's
     requests out (busy regions become hotspots more often), the multiplier log-uniform in
     ``multipliers`` (one decimal); a function of the seed, so a resumed run names the same tasks."""
-    names = []
-    for i, name in enumerate(cities):
+    names: list[str] = []
+    for i, name in enumerate(cities if variants else []):
         city, rng = load_city(name), np.random.default_rng([seed, i, 6029])
         out = place_table(city)[:, 2].astype(np.float64)
         for _ in range(variants):
