@@ -481,15 +481,12 @@ def _write_card(path: str | Path, data: OfflineDataset, scores: dict[str, Any]) 
 def merge_cards(path: str | Path, data: OfflineDataset, pieces: list[str | Path]) -> dict[str, Any] | None:
     """The card of merged dataset ``path``: its own counts and streams, the pieces' scores.
 
-    The behaviour and reference scores are on the evaluation streams, not the data, so every
-    piece's card holds the same ones (checked; nothing is re-evaluated). None, and no card, when
-    no piece has one."""
+    The behaviour and reference scores are on the evaluation streams, not the data: one piece's
+    card is enough (collect the others with ``--eval-episodes 0``), and where several have one
+    they must agree (checked; nothing is re-evaluated). None, and no card, when no piece has one."""
     cards = {str(p): read_card(p) for p in pieces if card_path(p).is_file()}
     if not cards:
         return None
-    if len(cards) < len(pieces):
-        missing = [str(p) for p in pieces if str(p) not in cards]
-        raise DataError(f"{', '.join(missing)} has no card while other pieces do: collect them the same way")
     (name0, first), *rest = cards.items()
     for name, card in rest:
         for key in SCORES:

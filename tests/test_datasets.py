@@ -213,7 +213,8 @@ def test_merge_refuses_overlapping_or_foreign_pieces(tiny_city):
 def test_cli_merges_pieces_and_writes_one_card(tmp_path):
     run = CliRunner().invoke
     common = ["collect", "--policy", "mpc-forecast", "--policy-option", "horizon=4", "--episodes", "1", "--eval-episodes", "1"]
-    for name, extra in (("a", ["--seed", "1"]), ("b", ["--seed", "1", "--first-episode", "1"]), ("c", ["--seed", "2"])):
+    pieces = (("a", ["--seed", "1"]), ("b", ["--seed", "1", "--first-episode", "1"]), ("c", ["--seed", "2", "--eval-episodes", "0"]))
+    for name, extra in pieces:  # one card is enough: the scores are the policy's, not the data's
         result = run(app, [*common, *extra, "--output", str(tmp_path / f"{name}.npz")])
         assert result.exit_code == 0, result.output
     out = tmp_path / "m.npz"
@@ -227,3 +228,8 @@ def test_cli_merges_pieces_and_writes_one_card(tmp_path):
     assert card["dataset"] == "m.npz" and card["policy"] == "mpc-forecast"
     again = run(app, ["merge-datasets", str(tmp_path / "a.npz"), str(out), "--output", str(tmp_path / "x.npz")])
     assert again.exit_code != 0 and "both hold episodes 0..0 of seed 1" in str(again.exception)
+    card = read_card(tmp_path / "b.npz")
+    card["reference_scores"]["mpc-oracle"]["mean"] += 1.0  # scored on other evaluation streams
+    (tmp_path / "b.json").write_text(json.dumps(card))
+    again = run(app, ["merge-datasets", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--output", str(tmp_path / "y.npz")])
+    assert again.exit_code != 0 and "scored differently (reference_scores)" in str(again.exception)
