@@ -191,18 +191,44 @@ def collect(
     eval_seed: Annotated[int, typer.Option(min=0, help="card: evaluation seed (as marl-amod evaluate --seed)")] = 0,
     noise: Annotated[float, typer.Option(min=0, help="exploratory actions: Dirichlet around the policy's, concentration 1/noise")] = 0.0,
     lookahead: Annotated[int, typer.Option(min=1, help="look-ahead steps T of the logged features (train with the same)")] = 6,
+    first_episode: Annotated[int, typer.Option(min=0, help="resume: start at the seed's episode k (merge-datasets joins the pieces)")] = 0,
     policy_option: PolicyOptions = None,
     data_dir: DataDir = None,
 ) -> None:
     """Roll a behaviour policy through the env and write an offline dataset (format 2) and its card."""
     _use_data_dir(data_dir)
     options = parse_policy_options(policy_option)
-    _collect_one(scenario, policy, episodes, seed, output, max_wait, eval_episodes, eval_seed, {}, noise, lookahead, options)
+    _collect_one(
+        scenario, policy, episodes, seed, output, max_wait, eval_episodes, eval_seed, {}, noise, lookahead, options, first_episode
+    )
+
+
+@app.command()
+def merge_datasets(
+    pieces: Annotated[list[Path], typer.Argument(help="dataset pieces of one collection (collect outputs, cards beside them)")],
+    output: Annotated[Path, typer.Option(help="merged dataset file (.npz); its card beside it")] = Path("data.npz"),
+) -> None:
+    """Join pieces of one collection (collected in parallel or across sessions) into one dataset and card.
+
+    Refuses pieces of different collections (city, behaviour policy and its options, logging) or
+    that hold an episode twice; pieces with different --seed, or one resumed with --first-episode
+    where another stopped, never do."""
+    from marl_amod.datasets import OfflineDataset, merge, merge_cards
+
+    output = check_destination(output, what="--output")
+    if output.resolve() in {p.resolve() for p in pieces}:
+        raise ConfigError(f"--output {output} is one of the pieces: write the merged dataset to a new file")
+    data = merge([OfflineDataset.load(p) for p in pieces], names=[str(p) for p in pieces])
+    path = save_or_fallback(output, data.save, what="the dataset")
+    card = merge_cards(path, data, pieces)
+    held = ", ".join(f"seed {s} episodes {k}..{k + n - 1}" for s, k, n in data.meta["streams"])
+    console.print(f"wrote {data.meta['episodes']} episodes, {len(data)} transitions ({held}) to {path}")
+    console.print(f"card {path.with_suffix('.json')}" if card else "no card (the pieces have none)")
 
 
 def _collect_one(
     scenario: str, policy: str, episodes: int, seed: int, output: Path, max_wait: int, eval_episodes: int, eval_seed: int,
-    cache: dict, noise: float = 0.0, lookahead: int = 6, policy_options: dict | None = None,
+    cache: dict, noise: float = 0.0, lookahead: int = 6, policy_options: dict | None = None, first_episode: int = 0,
 ) -> None:
     from marl_amod.datasets import collect as collect_dataset
     from marl_amod.datasets import write_card
@@ -216,8 +242,9 @@ def _collect_one(
         task = bar.add_task(f"{pol.name} on {city.name}", total=episodes)
         data = collect_dataset(
             city, pol, episodes=episodes, seed=seed, lookahead=lookahead, max_wait=max_wait, noise=noise,
-            progress=lambda _k: bar.advance(task),
+            progress=lambda _k: bar.advance(task), first_episode=first_episode,
         )
+    data.meta["policy_options"] = dict(policy_options or {})  # the name alone does not say e.g. the horizon
     path = save_or_fallback(output, data.save, what="the dataset")
     console.print(f"wrote {len(data)} transitions ({city.n_regions} agents) to {path}")
     if eval_episodes:

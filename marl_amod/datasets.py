@@ -41,7 +41,11 @@ Episodes bootstrap nowhere past the horizon: ``terminations | truncations`` ends
 
 Seeds: episode k of a dataset seeded s draws demand from
 :func:`marl_amod.algos.rollout.train_seed` (s, k), never one of the evaluation streams (s', k'),
-so a policy trained on a dataset is scored on demand it has not seen. The card (same name,
+so a policy trained on a dataset is scored on demand it has not seen. ``meta["streams"]`` lists
+the episodes held as ``[seed, first k, count]`` ranges: a collection is one range (``first_episode``
+resumes a seed's streams where an earlier piece stopped), :func:`merge` joins pieces collected in
+parallel or across sessions into one dataset after checking they are the same collection and hold
+no episode twice. Pieces with different seeds never share a stream. The card (same name,
 ``.json``) holds the behaviour policy's score and the reference scores ED and MPC-Oracle on the
 evaluation seeds, for normalised scores (:func:`normalised_score`: 0 = ED, 100 = MPC-Oracle).
 """
@@ -175,15 +179,98 @@ def concatenate(parts: list[OfflineDataset]) -> OfflineDataset:
         for key in ("scenario", "n_agents", "lookahead", "max_wait"):
             if p.meta[key] != first[key]:
                 raise DataError(f"datasets differ in {key}: {first[key]} and {p.meta[key]}")
-    arrays = {k: np.concatenate([getattr(p, k) for p in parts]) for k in ARRAY_KEYS}
-    offsets = np.cumsum([0] + [int(p.episode_ids.max()) + 1 if len(p) else 0 for p in parts[:-1]])
-    arrays["episode_ids"] = np.concatenate([p.episode_ids + off for p, off in zip(parts, offsets, strict=True)])
+    arrays = _stack(parts)
     policies = sorted({p.meta["policy"] for p in parts})
     meta = {
-        **{k: v for k, v in first.items() if k not in ("rollout_policy", "parts")},
+        **{k: v for k, v in first.items() if k not in ("rollout_policy", "parts", "first_episode")},
         "policy": policies[0] if len(policies) == 1 else "+".join(policies),
+        "streams": [r for p in parts for r in streams(p.meta)],  # DAgger rounds may revisit a stream
         "episodes": int(sum(p.meta["episodes"] for p in parts)), "transitions": int(len(arrays["team_rewards"])),
         "parts": [p.meta for p in parts],
+    }  # fmt: skip
+    return OfflineDataset(**arrays, edge_index=parts[0].edge_index, edge_attr=parts[0].edge_attr, meta=meta)
+
+
+def _stack(parts: list[OfflineDataset]) -> dict[str, np.ndarray]:
+    """The parts' arrays one after the other, episodes renumbered 0, 1, ... in that order."""
+    arrays = {k: np.concatenate([getattr(p, k) for p in parts]) for k in ARRAY_KEYS}
+    ids, offset = [], 0
+    for p in parts:
+        _, local = np.unique(p.episode_ids, return_inverse=True)  # a resumed piece's ids start at its first k
+        ids.append(local.reshape(-1) + offset)
+        offset += int(local.max()) + 1 if len(p) else 0
+    arrays["episode_ids"] = np.concatenate(ids).astype(np.int64)
+    return arrays
+
+
+# What makes two pieces one collection: the same behaviour (name, options, noise, DAgger roll-out)
+# logged the same way on the same city. Seeds and episode counts are what may differ.
+SAME_COLLECTION = (
+    "format_version", "scenario", "policy", "policy_options", "rollout_policy", "noise", "lookahead", "max_wait",
+    "n_agents", "n_features",
+)  # fmt: skip
+
+
+def streams(meta: dict[str, Any]) -> list[list[int]]:
+    """The demand streams a dataset holds, as ``[seed, first episode, count]`` ranges (older
+    datasets, which lack the key, hold episodes 0..episodes-1 of their seed)."""
+    if "streams" in meta:
+        return [list(map(int, r)) for r in meta["streams"]]
+    return [[int(meta["seed"]), int(meta.get("first_episode", 0)), int(meta["episodes"])]]
+
+
+def merge(parts: list[OfflineDataset], names: list[str] | None = None) -> OfflineDataset:
+    """One dataset of pieces of the same collection (collected in parallel, or resumed later).
+
+    Refuses (DataError) pieces that differ in what they logged (:data:`SAME_COLLECTION`, the
+    graph) or that hold an episode stream twice: a duplicated episode would weigh twice in
+    training and make the card's counts wrong. Pieces are ordered by their streams, so the
+    order given does not matter and seed s's pieces 0..k-1, k..n-1 merge into exactly what one
+    ``collect`` of n episodes of s gives. ``names`` (file names) make the errors say which piece."""
+    if not parts:
+        raise DataError("nothing to merge")
+    names = names or [f"piece {i}" for i in range(len(parts))]
+    first = parts[0].meta
+    for p, name in zip(parts[1:], names[1:], strict=True):
+        for key in SAME_COLLECTION:
+            if p.meta.get(key) != first.get(key):
+                raise DataError(f"{names[0]} and {name} are not one collection: {key} {first.get(key)!r} != {p.meta.get(key)!r}")
+        if not (np.array_equal(p.edge_index, parts[0].edge_index) and np.array_equal(p.edge_attr, parts[0].edge_attr)):
+            raise DataError(f"{names[0]} and {name} are not one collection: their region graphs differ")
+    held: dict[int, list[tuple[int, int, str]]] = {}  # seed -> (first, end, piece)
+    for p, name in zip(parts, names, strict=True):
+        for seed, start, count in streams(p.meta):
+            for a, b, other in held.get(seed, []):
+                if start < b and a < start + count:
+                    raise DataError(
+                        f"{other} and {name} both hold episodes {max(a, start)}..{min(b, start + count) - 1} of seed "
+                        f"{seed}: collect pieces with different --seed, or resume one with --first-episode"
+                    )
+            held.setdefault(seed, []).append((start, start + count, name))
+    order = sorted(range(len(parts)), key=lambda i: streams(parts[i].meta))
+    parts = [parts[i] for i in order]
+    ranges = sorted(r for p in parts for r in streams(p.meta))
+    joined = [ranges[0]]
+    for seed, start, count in ranges[1:]:  # adjacent ranges of a seed read as one
+        last = joined[-1]
+        if last[0] == seed and last[1] + last[2] == start:
+            last[2] += count
+        else:
+            joined.append([seed, start, count])
+    arrays = _stack(parts)
+    n = np.array([p.meta["episodes"] for p in parts], dtype=np.float64)
+    mean = np.array([p.meta["episode_profit_mean"] for p in parts])
+    std = np.array([p.meta["episode_profit_std"] for p in parts])
+    total = float(np.average(mean, weights=n))
+    steps = np.array([len(p) for p in parts], dtype=np.float64)
+    seeds = sorted({r[0] for r in joined})
+    meta = {
+        **{k: v for k, v in parts[0].meta.items() if k not in ("first_episode", "streams")},
+        "seed": seeds[0] if len(seeds) == 1 else seeds, "streams": joined,
+        "episodes": int(n.sum()), "transitions": int(len(arrays["team_rewards"])),
+        "episode_profit_mean": total,  # pooled mean and (population) std of the pieces' episodes
+        "episode_profit_std": float(np.sqrt(max(np.average(std**2 + mean**2, weights=n) - total**2, 0.0))),
+        "target_mismatch": float(np.average([p.meta["target_mismatch"] for p in parts], weights=np.maximum(steps, 1))),
     }  # fmt: skip
     return OfflineDataset(**arrays, edge_index=parts[0].edge_index, edge_attr=parts[0].edge_attr, meta=meta)
 
@@ -255,7 +342,7 @@ def collection_seed(seed: int, episode: int) -> int:
 
 def collect(
     city: City, policy: Policy, *, episodes: int, seed: int = 0, lookahead: int = 6, max_wait: int = 0, noise: float = 0.0,
-    labeller: Policy | None = None, progress: Callable[[int], None] | None = None,
+    labeller: Policy | None = None, progress: Callable[[int], None] | None = None, first_episode: int = 0,
 ) -> OfflineDataset:
     """Roll ``policy`` through the PettingZoo env for ``episodes`` episodes on the collection seeds
     (``noise``: exploratory actions around the policy's, see :class:`EnvActionPolicy`).
@@ -263,13 +350,16 @@ def collect(
     ``labeller`` (DAgger): the env still steps with ``policy``'s action, but the dataset records
     the labeller's env action at the same state, so an imitation learner sees the expert's answer
     on the states its own policy reaches. Rewards stay those of the steps taken; ``meta["policy"]``
-    names the labeller (whose actions are logged), ``meta["rollout_policy"]`` the policy driven."""
+    names the labeller (whose actions are logged), ``meta["rollout_policy"]`` the policy driven.
+
+    ``first_episode`` k0 collects the seed's episodes k0..k0+episodes-1 (their ``episode_ids``),
+    the same demand and policy draws as one longer collection: a piece that resumes another."""
     from marl_amod import parallel_env
     from marl_amod.env.features import n_features
 
     if as_count(episodes, "episodes") < 1:
         raise ConfigError(f"episodes must be >= 1, got {episodes}")
-    seed = as_seed(seed)
+    seed, first_episode = as_seed(seed), as_count(first_episode, "first_episode")
     env = parallel_env(city, reward_mode="local", action_mode="weight", lookahead=lookahead, max_wait=max_wait)
     behaviour = EnvActionPolicy(policy, noise)
     expert = EnvActionPolicy(labeller) if labeller is not None else None
@@ -277,7 +367,7 @@ def collect(
     cols: dict[str, list] = {k: [] for k in ARRAY_KEYS}
     mismatch = steps = 0
     returns = []
-    for ep in range(episodes):
+    for ep in range(first_episode, first_episode + episodes):
         obs, _ = env.reset(seed=collection_seed(seed, ep))
         behaviour.reset(env.system, np.random.default_rng([seed, ep, 2]))
         if expert is not None:
@@ -315,7 +405,7 @@ def collect(
     graph = env.graph()
     meta = {
         "format_version": FORMAT_VERSION, "scenario": city.name, "policy": expert.name if expert else behaviour.name, "noise": noise,
-        "seed": seed, "episodes": episodes, "transitions": int(len(arrays["team_rewards"])), "lookahead": lookahead,
+        "seed": seed, "first_episode": first_episode, "streams": [[seed, first_episode, episodes]], "episodes": episodes, "transitions": int(len(arrays["team_rewards"])), "lookahead": lookahead,
         "max_wait": max_wait, "n_agents": len(agents), "n_features": n_features(lookahead),
         "observation_dim": int(arrays["observations"].shape[-1]), "state_dim": int(arrays["states"].shape[-1]),
         "agents": agents, "demand_seeds": "episode k: marl_amod.datasets.collection_seed(seed, k)",
@@ -361,22 +451,57 @@ def write_card(
     cache: dict | None = None,
 ) -> dict[str, Any]:
     """Score the behaviour policy (as the env takes it) and the references; write ``<dataset>.json``."""
-    from marl_amod.checkpoints import env_version, git_commit
     from marl_amod.evaluation import evaluate
 
-    path = Path(path)
     refs = reference_scores(city, eval_episodes, eval_seed, cache)
     behaviour = evaluate(EnvActionPolicy(policy, data.meta.get("noise", 0.0)), city, eval_episodes, eval_seed)["metrics"]["profit"]
-    card = {
-        "dataset": path.name, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), **data.meta,
-        "env_version": env_version(), "git_commit": git_commit(),
+    return _write_card(path, data, {
         "evaluation": {"episodes": eval_episodes, "seed": eval_seed, "note": "marl-amod evaluate --seed {seed} streams"},
         "behaviour_score": {"mean": float(behaviour["mean"]), "std": float(behaviour["std"]),
                             "normalised": normalised_score(float(behaviour["mean"]), refs)},
         "reference_scores": refs,
+    })  # fmt: skip
+
+
+SCORES = ("evaluation", "behaviour_score", "reference_scores")  # the card's part that is the policy's, not the data's
+
+
+def _write_card(path: str | Path, data: OfflineDataset, scores: dict[str, Any]) -> dict[str, Any]:
+    from marl_amod.checkpoints import env_version, git_commit
+
+    path = Path(path)
+    card = {
+        "dataset": path.name, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), **data.meta,
+        "env_version": env_version(), "git_commit": git_commit(), **scores,
     }  # fmt: skip
     write_json(card_path(path), card)
     return card
+
+
+def merge_cards(path: str | Path, data: OfflineDataset, pieces: list[str | Path]) -> dict[str, Any] | None:
+    """The card of merged dataset ``path``: its own counts and streams, the pieces' scores.
+
+    The behaviour and reference scores are on the evaluation streams, not the data: one piece's
+    card is enough (collect the others with ``--eval-episodes 0``), and where several have one
+    they must agree (checked; nothing is re-evaluated). None, and no card, when no piece has one."""
+    cards = {str(p): read_card(p) for p in pieces if card_path(p).is_file()}
+    if not cards:
+        return None
+    (name0, first), *rest = cards.items()
+    for name, card in rest:
+        for key in SCORES:
+            if not _same(card.get(key), first.get(key)):
+                raise DataError(f"{name0} and {name} were scored differently ({key}): not one collection")
+    return _write_card(path, data, {key: first[key] for key in SCORES})
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Equal, floats to 1e-9 relative (pieces collected by another build may round differently)."""
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, float) or isinstance(b, float):
+        return isinstance(a, (int, float)) and isinstance(b, (int, float)) and bool(np.isclose(a, b, rtol=1e-9, atol=0))
+    return a == b
 
 
 def read_card(path: str | Path) -> dict[str, Any]:

@@ -16,6 +16,7 @@ from marl_amod.datasets import (
     OfflineDataset,
     collect,
     collection_seed,
+    merge,
     normalised_score,
     read_card,
     write_card,
@@ -160,3 +161,75 @@ def test_noisy_collection_logs_exploratory_actions_around_the_policy(tiny_city):
     assert not np.allclose(noisy.actions[0], plain.actions[0])
     assert np.array_equal(noisy.observations[0], plain.observations[0])  # same demand, same first state
     assert np.abs(noisy.actions[0] - plain.actions[0]).sum() < 1.0  # around the policy's share, not anywhere
+
+
+# ------------------------------------------------------------------ pieces of one collection
+def _same_arrays(a: OfflineDataset, b: OfflineDataset) -> bool:
+    return all(np.array_equal(getattr(a, k), getattr(b, k)) for k in (*ARRAY_KEYS, "edge_index", "edge_attr"))
+
+
+def test_a_resumed_piece_merges_into_exactly_the_one_long_collection(tiny_city):
+    prop = make_policy("prop", tiny_city)
+    whole = collect(tiny_city, prop, episodes=3, seed=3)
+    head = collect(tiny_city, prop, episodes=1, seed=3)
+    tail = collect(tiny_city, prop, episodes=2, seed=3, first_episode=1)
+    assert set(tail.episode_ids) == {1, 2} and tail.meta["streams"] == [[3, 1, 2]]
+    for parts in ([head, tail], [tail, head]):  # the order given does not matter
+        merged = merge(parts)
+        assert _same_arrays(merged, whole)
+        assert merged.meta["streams"] == [[3, 0, 3]] and merged.meta["seed"] == 3
+        assert merged.meta["episodes"] == 3 and merged.meta["transitions"] == len(whole)
+        assert merged.meta["episode_profit_mean"] == pytest.approx(whole.meta["episode_profit_mean"])
+        assert merged.meta["episode_profit_std"] == pytest.approx(whole.meta["episode_profit_std"])
+
+
+def test_pieces_with_different_seeds_hold_different_demand(tiny_city):
+    prop = make_policy("prop", tiny_city)
+    a, b = (collect(tiny_city, prop, episodes=2, seed=s) for s in (4, 5))
+    merged = merge([b, a])
+    assert merged.meta["streams"] == [[4, 0, 2], [5, 0, 2]] and merged.meta["seed"] == [4, 5]
+    assert np.array_equal(merged.episode_ids, np.repeat(np.arange(4), len(a) // 2))
+    assert _same_arrays(OfflineDataset(**{k: getattr(merged, k)[: len(a)] for k in ARRAY_KEYS},
+                                       edge_index=a.edge_index, edge_attr=a.edge_attr, meta=a.meta), a)  # fmt: skip
+    first_states = merged.states[merged.step_ids == 0]
+    assert len({row.tobytes() for row in first_states}) == 4  # four different demand streams, none shared
+
+
+def test_merge_refuses_overlapping_or_foreign_pieces(tiny_city):
+    prop = make_policy("prop", tiny_city)
+    a = collect(tiny_city, prop, episodes=2, seed=3)
+    with pytest.raises(DataError, match=r"a and b both hold episodes 1\.\.1 of seed 3"):
+        merge([a, collect(tiny_city, prop, episodes=2, seed=3, first_episode=1)], names=["a", "b"])
+    with pytest.raises(DataError, match="policy"):
+        merge([a, collect(tiny_city, make_policy("dtv", tiny_city), episodes=1, seed=4)])
+    with pytest.raises(DataError, match="noise"):
+        merge([a, collect(tiny_city, prop, episodes=1, seed=4, noise=0.1)])
+    other = collect(tiny_city, prop, episodes=1, seed=4)
+    other.meta["policy_options"] = {"horizon": 4}  # the name alone does not say it
+    with pytest.raises(DataError, match="policy_options"):
+        merge([a, other])
+
+
+def test_cli_merges_pieces_and_writes_one_card(tmp_path):
+    run = CliRunner().invoke
+    common = ["collect", "--policy", "mpc-forecast", "--policy-option", "horizon=4", "--episodes", "1", "--eval-episodes", "1"]
+    pieces = (("a", ["--seed", "1"]), ("b", ["--seed", "1", "--first-episode", "1"]), ("c", ["--seed", "2", "--eval-episodes", "0"]))
+    for name, extra in pieces:  # one card is enough: the scores are the policy's, not the data's
+        result = run(app, [*common, *extra, "--output", str(tmp_path / f"{name}.npz")])
+        assert result.exit_code == 0, result.output
+    out = tmp_path / "m.npz"
+    result = run(app, ["merge-datasets", *(str(tmp_path / f"{n}.npz") for n in "cba"), "--output", str(out)])
+    assert result.exit_code == 0, result.output
+    card, piece = read_card(out), read_card(tmp_path / "a.npz")
+    data = OfflineDataset.load(out)
+    assert card["episodes"] == 3 and card["transitions"] == len(data) == 3 * len(OfflineDataset.load(tmp_path / "a.npz"))
+    assert card["streams"] == [[1, 0, 2], [2, 0, 1]] and card["policy_options"] == {"horizon": 4}
+    assert card["behaviour_score"] == piece["behaviour_score"] and card["sha256"] != piece["sha256"]
+    assert card["dataset"] == "m.npz" and card["policy"] == "mpc-forecast"
+    again = run(app, ["merge-datasets", str(tmp_path / "a.npz"), str(out), "--output", str(tmp_path / "x.npz")])
+    assert again.exit_code != 0 and "both hold episodes 0..0 of seed 1" in str(again.exception)
+    card = read_card(tmp_path / "b.npz")
+    card["reference_scores"]["mpc-oracle"]["mean"] += 1.0  # scored on other evaluation streams
+    (tmp_path / "b.json").write_text(json.dumps(card))
+    again = run(app, ["merge-datasets", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--output", str(tmp_path / "y.npz")])
+    assert again.exit_code != 0 and "scored differently (reference_scores)" in str(again.exception)
