@@ -25,7 +25,7 @@
   regions and halved hotspots, inside the event window and outside, and the requests left
   unserved at the surge: does the memory notice the shock?
 
-    python benchmarks/meta_diagnostics.py gap [--policy policies/meta_rl_all_cities.pt]
+    python benchmarks/meta_diagnostics.py gap [--policy policies/meta_rl_hot_cities.pt]
     python benchmarks/meta_diagnostics.py k --ks 0,1,3,10 [--validation]
     python benchmarks/meta_diagnostics.py event
     python benchmarks/meta_diagnostics.py heldout [--cities nyc_brooklyn,porto]
@@ -253,7 +253,7 @@ def where(policy: str, cities: list[str], episodes: int = 10, seed: int = 1000, 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hotspot"])
-    parser.add_argument("--policy", default="policies/meta_rl_all_cities.pt")
+    parser.add_argument("--policy", default="policies/meta_rl_hot_cities.pt")
     parser.add_argument("--demos", default="runs/meta_demos")
     parser.add_argument("--ks", default="0,1,2,3,4,5,6,8,10")
     parser.add_argument("--episodes", type=int, default=8, help="heldout: episodes per city and side (a multiple of 4); hotspot: validation episodes (0: none)")
