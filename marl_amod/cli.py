@@ -191,19 +191,18 @@ def collect(
     eval_seed: Annotated[int, typer.Option(min=0, help="card: evaluation seed (as marl-amod evaluate --seed)")] = 0,
     noise: Annotated[float, typer.Option(min=0, help="exploratory actions: Dirichlet around the policy's, concentration 1/noise")] = 0.0,
     lookahead: Annotated[int, typer.Option(min=1, help="look-ahead steps T of the logged features (train with the same)")] = 6,
-    first_episode: Annotated[int, typer.Option(min=0, help="start at this episode of the seed's stream (a dataset's next piece)")] = 0,
     policy_option: PolicyOptions = None,
     data_dir: DataDir = None,
 ) -> None:
     """Roll a behaviour policy through the env and write an offline dataset (format 2) and its card."""
     _use_data_dir(data_dir)
     options = parse_policy_options(policy_option)
-    _collect_one(scenario, policy, episodes, seed, output, max_wait, eval_episodes, eval_seed, {}, noise, lookahead, options, first_episode)
+    _collect_one(scenario, policy, episodes, seed, output, max_wait, eval_episodes, eval_seed, {}, noise, lookahead, options)
 
 
 def _collect_one(
     scenario: str, policy: str, episodes: int, seed: int, output: Path, max_wait: int, eval_episodes: int, eval_seed: int,
-    cache: dict, noise: float = 0.0, lookahead: int = 6, policy_options: dict | None = None, first_episode: int = 0,
+    cache: dict, noise: float = 0.0, lookahead: int = 6, policy_options: dict | None = None,
 ) -> None:
     from marl_amod.datasets import collect as collect_dataset
     from marl_amod.datasets import write_card
@@ -217,7 +216,7 @@ def _collect_one(
         task = bar.add_task(f"{pol.name} on {city.name}", total=episodes)
         data = collect_dataset(
             city, pol, episodes=episodes, seed=seed, lookahead=lookahead, max_wait=max_wait, noise=noise,
-            progress=lambda _k: bar.advance(task), first_episode=first_episode,
+            progress=lambda _k: bar.advance(task),
         )
     path = save_or_fallback(output, data.save, what="the dataset")
     console.print(f"wrote {len(data)} transitions ({city.n_regions} agents) to {path}")

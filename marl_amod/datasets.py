@@ -166,10 +166,8 @@ class OfflineDataset:
 
 
 def concatenate(parts: list[OfflineDataset]) -> OfflineDataset:
-    """One dataset of several collected on the same city and features (DAgger's aggregate, or the
-    pieces of one collection): each part's episodes numbered on from the previous part's last, so
-    pieces collected with consecutive ``first_episode`` keep their ids; the episode profit and
-    ``target_mismatch`` are pooled over the parts, ``meta["parts"]`` keeps each part's meta."""
+    """One dataset of several collected on the same city and features (DAgger's aggregate):
+    episodes renumbered one part after the other, ``meta["parts"]`` keeps each part's meta."""
     if not parts:
         raise DataError("nothing to concatenate")
     first = parts[0].meta
@@ -178,23 +176,13 @@ def concatenate(parts: list[OfflineDataset]) -> OfflineDataset:
             if p.meta[key] != first[key]:
                 raise DataError(f"datasets differ in {key}: {first[key]} and {p.meta[key]}")
     arrays = {k: np.concatenate([getattr(p, k) for p in parts]) for k in ARRAY_KEYS}
-    ids, start = [], int(parts[0].episode_ids.min()) if len(parts[0]) else 0
-    for p in parts:
-        ids.append(p.episode_ids - (int(p.episode_ids.min()) if len(p) else 0) + start)
-        start = int(ids[-1].max()) + 1 if len(p) else start
-    arrays["episode_ids"] = np.concatenate(ids)
+    offsets = np.cumsum([0] + [int(p.episode_ids.max()) + 1 if len(p) else 0 for p in parts[:-1]])
+    arrays["episode_ids"] = np.concatenate([p.episode_ids + off for p, off in zip(parts, offsets, strict=True)])
     policies = sorted({p.meta["policy"] for p in parts})
-    episodes = np.array([p.meta["episodes"] for p in parts], dtype=np.float64)
-    steps = np.array([p.meta["transitions"] for p in parts], dtype=np.float64)
-    mean = np.array([p.meta["episode_profit_mean"] for p in parts])
-    var = np.array([p.meta["episode_profit_std"] for p in parts]) ** 2
-    pooled = float(episodes @ mean / episodes.sum())
     meta = {
         **{k: v for k, v in first.items() if k not in ("rollout_policy", "parts")},
         "policy": policies[0] if len(policies) == 1 else "+".join(policies),
-        "episodes": int(episodes.sum()), "transitions": int(len(arrays["team_rewards"])),
-        "episode_profit_mean": pooled, "episode_profit_std": float(np.sqrt(max(episodes @ (var + mean**2) / episodes.sum() - pooled**2, 0.0))),
-        "target_mismatch": float(steps @ np.array([p.meta["target_mismatch"] for p in parts]) / max(steps.sum(), 1.0)),
+        "episodes": int(sum(p.meta["episodes"] for p in parts)), "transitions": int(len(arrays["team_rewards"])),
         "parts": [p.meta for p in parts],
     }  # fmt: skip
     return OfflineDataset(**arrays, edge_index=parts[0].edge_index, edge_attr=parts[0].edge_attr, meta=meta)
@@ -267,15 +255,10 @@ def collection_seed(seed: int, episode: int) -> int:
 
 def collect(
     city: City, policy: Policy, *, episodes: int, seed: int = 0, lookahead: int = 6, max_wait: int = 0, noise: float = 0.0,
-    labeller: Policy | None = None, progress: Callable[[int], None] | None = None, first_episode: int = 0,
+    labeller: Policy | None = None, progress: Callable[[int], None] | None = None,
 ) -> OfflineDataset:
     """Roll ``policy`` through the PettingZoo env for ``episodes`` episodes on the collection seeds
     (``noise``: exploratory actions around the policy's, see :class:`EnvActionPolicy`).
-
-    ``first_episode``: collect episodes first_episode .. first_episode + episodes - 1 of seed
-    ``seed``'s stream (``episode_ids`` count from it), so a dataset grows in pieces that
-    :func:`concatenate` joins into exactly what one longer collection gives: a long collection
-    splits into resumable runs, and extending a dataset repeats none of its episodes.
 
     ``labeller`` (DAgger): the env still steps with ``policy``'s action, but the dataset records
     the labeller's env action at the same state, so an imitation learner sees the expert's answer
@@ -286,7 +269,7 @@ def collect(
 
     if as_count(episodes, "episodes") < 1:
         raise ConfigError(f"episodes must be >= 1, got {episodes}")
-    seed, first_episode = as_seed(seed), as_count(first_episode, "first_episode")
+    seed = as_seed(seed)
     env = parallel_env(city, reward_mode="local", action_mode="weight", lookahead=lookahead, max_wait=max_wait)
     behaviour = EnvActionPolicy(policy, noise)
     expert = EnvActionPolicy(labeller) if labeller is not None else None
@@ -294,7 +277,7 @@ def collect(
     cols: dict[str, list] = {k: [] for k in ARRAY_KEYS}
     mismatch = steps = 0
     returns = []
-    for ep in range(first_episode, first_episode + episodes):
+    for ep in range(episodes):
         obs, _ = env.reset(seed=collection_seed(seed, ep))
         behaviour.reset(env.system, np.random.default_rng([seed, ep, 2]))
         if expert is not None:
@@ -332,7 +315,7 @@ def collect(
     graph = env.graph()
     meta = {
         "format_version": FORMAT_VERSION, "scenario": city.name, "policy": expert.name if expert else behaviour.name, "noise": noise,
-        "seed": seed, "first_episode": first_episode, "episodes": episodes, "transitions": int(len(arrays["team_rewards"])), "lookahead": lookahead,
+        "seed": seed, "episodes": episodes, "transitions": int(len(arrays["team_rewards"])), "lookahead": lookahead,
         "max_wait": max_wait, "n_agents": len(agents), "n_features": n_features(lookahead),
         "observation_dim": int(arrays["observations"].shape[-1]), "state_dim": int(arrays["states"].shape[-1]),
         "agents": agents, "demand_seeds": "episode k: marl_amod.datasets.collection_seed(seed, k)",

@@ -15,7 +15,6 @@ from marl_amod.datasets import (
     EnvActionPolicy,
     OfflineDataset,
     collect,
-    concatenate,
     collection_seed,
     normalised_score,
     read_card,
@@ -135,12 +134,11 @@ def test_loading_a_foreign_or_old_file_is_a_data_error(tmp_path, dataset):
 
 def test_cli_collect_writes_a_dataset_and_its_card(tmp_path):
     out = tmp_path / "data.npz"
-    args = ["collect", "--policy", "dtv", "--episodes", "1", "--seed", "1", "--first-episode", "4", "--output", str(out), "--eval-episodes", "1"]
+    args = ["collect", "--policy", "dtv", "--episodes", "1", "--seed", "1", "--output", str(out), "--eval-episodes", "1"]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     data = OfflineDataset.load(out)
     assert data.meta["policy"] == "dtv" and data.truncations.sum() == 1
-    assert data.meta["first_episode"] == 4 and set(data.episode_ids) == {4}
     assert read_card(out)["behaviour_score"]["mean"] > 0
 
 
@@ -162,19 +160,3 @@ def test_noisy_collection_logs_exploratory_actions_around_the_policy(tiny_city):
     assert not np.allclose(noisy.actions[0], plain.actions[0])
     assert np.array_equal(noisy.observations[0], plain.observations[0])  # same demand, same first state
     assert np.abs(noisy.actions[0] - plain.actions[0]).sum() < 1.0  # around the policy's share, not anywhere
-
-
-def test_pieces_from_first_episode_join_into_the_longer_collection(tiny_city):
-    policy = make_policy("dtv", tiny_city)
-    whole = collect(tiny_city, policy, episodes=3, seed=5)
-    head = collect(tiny_city, policy, episodes=1, seed=5)
-    tail = collect(tiny_city, policy, episodes=2, seed=5, first_episode=1)
-    assert tail.meta["first_episode"] == 1 and set(tail.episode_ids) == {1, 2}
-    assert not np.array_equal(tail.states[0], head.states[0])  # episode 1's demand, not episode 0's again
-    joined = concatenate([head, tail])
-    for key in ARRAY_KEYS:
-        assert np.array_equal(getattr(joined, key), getattr(whole, key)), key
-    for key in ("episodes", "transitions", "first_episode", "seed", "target_mismatch"):
-        assert joined.meta[key] == whole.meta[key], key
-    assert np.isclose(joined.meta["episode_profit_mean"], whole.meta["episode_profit_mean"])
-    assert np.isclose(joined.meta["episode_profit_std"], whole.meta["episode_profit_std"])
