@@ -62,6 +62,8 @@ class PolicyCard(BaseModel):
     agent_id: bool | None = None
     """the GNN actor appends a one-hot region identity to every node (``agent_id``): it runs only
     on cities of ``n_regions`` regions; absent: no identity, the paper's actor"""
+    standardise_inputs: bool | None = None
+    """the MLP actor standardises its inputs by statistics carried in its weights; absent: it does not"""
     n_features: int
     lookahead: int
     seed: int
@@ -276,7 +278,8 @@ def load_actor(path: str | Path, city: City) -> tuple[torch.nn.Module, dict[str,
             )
     try:
         actor = build_actor(
-            card.actor, city, actor_inputs(card.n_features, card.time_context), card.hidden, card.conv, card.readout or "none", bool(card.agent_id)
+            card.actor, city, actor_inputs(card.n_features, card.time_context), card.hidden, card.conv, card.readout or "none", bool(card.agent_id),
+            bool(card.standardise_inputs),
         )
     except ValueError as exc:
         raise DataError(f"{path}: {exc}") from None
@@ -319,7 +322,7 @@ def architecture_args(card: Mapping[str, Any]) -> dict[str, Any]:
     (fine-tuning, transfer) must set exactly these, or its actor's shapes differ."""
     return {
         "actor": card["actor"], "conv": card["conv"], "readout": card.get("readout") or "none",
-        "agent_id": bool(card.get("agent_id")), "hidden": card["hidden"],
+        "agent_id": bool(card.get("agent_id")), "standardise_inputs": bool(card.get("standardise_inputs")), "hidden": card["hidden"],
         "lookahead": card["lookahead"], "actor_time": card.get("time_context", False),
     }  # fmt: skip
 

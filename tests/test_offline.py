@@ -313,3 +313,44 @@ def test_a_policy_trained_with_a_longer_lookahead_evaluates_with_it(tmp_path, ti
     result = CliRunner().invoke(app, ["evaluate", "--scenario", scenario, "--policy", str(tmp_path / "p.pt"), "--episodes", "2", "--output", str(out)])
     assert result.exit_code == 0, result.output
     assert json.loads(out.read_text())["metrics"]["profit"]["mean"] == pytest.approx(summary["card"]["profit_mean"])
+
+
+def test_a_standardised_mlp_reads_its_inputs_in_any_units():
+    """With standardise the actor's function does not depend on the units of its inputs: the same
+    weights fitted to rescaled and shifted data give the same concentrations on the rescaled inputs."""
+    from marl_amod.models import MLPActor
+
+    x = torch.rand(64, 3, 4) * torch.tensor([0.01, 1.0, 40.0, 3.0])
+    scale, shift = torch.tensor([100.0, 0.5, 0.01, 7.0]), torch.tensor([1.0, -2.0, 0.0, 5.0])
+    actors = []
+    for data in (x, x * scale + shift):
+        torch.manual_seed(0)
+        actor = MLPActor(4, 16, 3, standardise=True)
+        actor.fit_inputs(data)
+        actors.append(actor)
+    with torch.no_grad():
+        assert torch.allclose(actors[0](x[:5]), actors[1](x[:5] * scale + shift), rtol=1e-4, atol=1e-5)
+        torch.manual_seed(0)
+        plain = MLPActor(4, 16, 3)
+        assert not torch.allclose(plain(x[:5]), plain(x[:5] * scale + shift), rtol=1e-2)
+
+
+def test_standardise_inputs_ships_the_datasets_statistics_and_iql_keeps_its_starts(tmp_path, tiny):
+    from marl_amod.checkpoints import load_actor
+
+    city = load_city(tiny[0])
+    bc = ALGOS["bc"].train(args_for("bc", _args(tmp_path, tiny, actor="mlp", standardise_inputs=True, policy_out=str(tmp_path / "bc.pt"))))
+    assert bc["card"]["standardise_inputs"] is True
+    clone, _ = load_actor(tmp_path / "bc.pt", city)
+    x = O.Data(args_for("bc", _args(tmp_path, tiny)), city).tensors["x"].flatten(1)
+    assert torch.allclose(clone.input_mean, x.mean(0)) and torch.allclose(clone.input_std, x.std(0).clamp_min(1e-3))
+    res = evaluate(str(tmp_path / "bc.pt"), city, episodes=2, seed=0)
+    assert res["metrics"]["profit"]["mean"] == pytest.approx(bc["card"]["profit_mean"])
+    start = {"actor": "mlp", "init_actor": str(tmp_path / "bc.pt"), "critic_hidden": 8, "beta": 0.0, "run_dir": str(tmp_path / "r2")}
+    ALGOS["iql"].train(args_for("iql", _args(tmp_path, tiny, standardise_inputs=True, lr_actor=1e-12, **start)))
+    shipped, _ = load_actor(tmp_path / "p.pt", city)
+    assert torch.equal(shipped.input_mean, clone.input_mean) and torch.equal(shipped.input_std, clone.input_std)
+    with pytest.raises(DataError, match="standardise_inputs"):
+        ALGOS["iql"].train(args_for("iql", _args(tmp_path, tiny, **start)))
+    with pytest.raises(ConfigError, match="standardise_inputs"):
+        args_for("bc", _args(tmp_path, tiny, standardise_inputs=True))  # the GNN actor has no such option

@@ -60,6 +60,10 @@ class RunArgs(CommonArgs):
     every node's input (the agent-ID input of parameter-shared MARL policies), so a region's
     output can depend on where it is; ties the policy to the training city's size and region
     order (the card records it; evaluating it on a city of another size is an error)"""
+    standardise_inputs: bool = False
+    """centralised MLP actor: standardise every input dimension by the offline dataset's mean and
+    std (CORL's state normalisation; offline runs set them from their dataset, a run with
+    init_actor takes its start's); the statistics ride in the policy file and the card records it"""
     central_critic: bool = True
     """decentralised mode only: critic on the global graph (env.state()) instead of sum of local values"""
     episodes: int = Field(1000, ge=1)
@@ -93,6 +97,8 @@ class RunArgs(CommonArgs):
             if self.actor != "gnn":
                 raise ValueError(f"{key} is a GNN actor option; the {self.actor} actor reads every region, each in its place, "
                                  f"already (use actor: gnn, or {key}: {str(off).lower()})")  # fmt: skip
+        if self.standardise_inputs and (self.mode == "decentralised" or self.actor != "mlp"):
+            raise ValueError("standardise_inputs is an option of the centralised MLP actor (use actor: mlp, or standardise_inputs: false)")
         return self
 
     def ignored_keys(self) -> dict[str, str]:
@@ -126,7 +132,7 @@ def make_actor(args: RunArgs, city: City) -> torch.nn.Module:
     f = n_features(args.lookahead)
     if args.mode == "decentralised":
         return LocalActor(f, args.hidden)
-    return build_actor(args.actor, city, actor_features(f, args), args.hidden, args.conv, args.readout, args.agent_id)
+    return build_actor(args.actor, city, actor_features(f, args), args.hidden, args.conv, args.readout, args.agent_id, args.standardise_inputs)
 
 
 def critic_features(n_features: int, args: RunArgs) -> int:
@@ -316,8 +322,9 @@ def warm_start(actor: torch.nn.Module, args: RunArgs, city: City) -> None:
     if set(theirs) != set(ours) or any(theirs[k].shape != ours[k].shape for k in ours):
         raise DataError(
             f"init_actor {args.init_actor} is a {card['actor']}/{card['conv']} actor with hidden {card['hidden']}, "
-            f"readout {card.get('readout') or 'none'}, agent_id {bool(card.get('agent_id'))}; this run's actor differs "
-            "(set actor, conv, hidden, readout and agent_id to match)"
+            f"readout {card.get('readout') or 'none'}, agent_id {bool(card.get('agent_id'))}, "
+            f"standardise_inputs {bool(card.get('standardise_inputs'))}; this run's actor differs "
+            "(set actor, conv, hidden, readout, agent_id and standardise_inputs to match)"
         )
     actor.load_state_dict(theirs)
 
@@ -436,7 +443,7 @@ def finish_run(
         scenario=city.name, n_regions=city.n_regions, algorithm=algorithm, mode=args.mode,
         actor="local" if args.mode == "decentralised" else args.actor,
         conv="sage" if args.mode == "decentralised" else args.conv, readout=None if args.readout == "none" else args.readout,
-        agent_id=args.agent_id or None,
+        agent_id=args.agent_id or None, standardise_inputs=args.standardise_inputs or None,
         hidden=args.hidden, n_features=n_features(args.lookahead), lookahead=args.lookahead, seed=args.seed, time_context=args.actor_time,
         episodes_trained=episodes_done, eval_episodes=args.final_eval_episodes, eval_seed=args.final_eval_seed,
         profit_mean=profit["mean"], profit_std=profit["std"], served_demand_mean=result["metrics"]["served_demand"]["mean"],

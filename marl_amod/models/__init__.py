@@ -18,20 +18,26 @@ from marl_amod.models.mlp import MLPActor
 ACTORS = {"gnn": GNNActor, "local": LocalActor, "mlp": MLPActor, "cnn": CNNActor}
 
 
-def build_actor(kind: str, city, n_features: int = 13, hidden: int = 32, conv: str = "gcn", readout: str = "none", agent_id: bool = False):
+def build_actor(
+    kind: str, city, n_features: int = 13, hidden: int = 32, conv: str = "gcn", readout: str = "none", agent_id: bool = False,
+    standardise: bool = False,
+):
     """An actor by name for ``city``; MLP and CNN are tied to the city's size/grid, GNNs are not
     (unless ``agent_id``). ``readout`` and ``agent_id`` (a one-hot region identity on every
     node's input, sized for ``city``) are GNN options: the others see the whole fleet, each
-    region in its place, already (MLP, CNN), or only a neighbourhood by design (local)."""
+    region in its place, already (MLP, CNN), or only a neighbourhood by design (local).
+    ``standardise`` (per-input statistics carried in the weights) is an MLP option."""
     for name, on in (("readout", readout != "none"), ("agent_id", agent_id)):
         if on and kind != "gnn":
             raise ValueError(f"{name} is a GNN actor option; a {kind} actor has none")
+    if standardise and kind != "mlp":
+        raise ValueError(f"standardise is an MLP actor option; a {kind} actor has none")
     if kind == "gnn":
         return GNNActor(n_features, hidden, conv, readout, city.n_regions if agent_id else 0)  # type: ignore[arg-type]
     if kind == "local":
         return LocalActor(n_features, hidden)
     if kind == "mlp":
-        return MLPActor(n_features, hidden, city.n_regions)
+        return MLPActor(n_features, hidden, city.n_regions, standardise)
     if kind == "cnn":
         from marl_amod.models.cnn import grid_layout
 
