@@ -21,6 +21,8 @@
   region's share of the day's requests (x N), what MPC-F sends there and what the policy sends
   (teacher-forced on 4 fresh MPC-F episodes), and with ``--multiplier m`` the city with that
   region x m (``meta.hotspot``) beside it, with both profit gaps to MPC-F on validation episodes.
+  With ``--own`` also on the states the policy reaches itself (8 episodes driven as deployed,
+  labelled by MPC-F): does a hotspot it fills on MPC-F's states stay filled on its own path?
 * ``event``: the share of the idle fleet each policy asks for in the Brooklyn event's surge
   regions and halved hotspots, inside the event window and outside, and the requests left
   unserved at the surge: does the memory notice the shock?
@@ -31,12 +33,14 @@
     python benchmarks/meta_diagnostics.py heldout [--cities nyc_brooklyn,porto]
     python benchmarks/meta_diagnostics.py where [--cities nyc_brooklyn]
     python benchmarks/meta_diagnostics.py hotspot --cities porto,washington_dc --multiplier 3 --episodes 6
+    python benchmarks/meta_diagnostics.py hotspot --cities san_francisco --episodes 0 --own
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -46,11 +50,27 @@ from marl_amod.algos import meta_imitation as mi
 from marl_amod.baselines.mpc import MPCForecast, MPCOracle
 from marl_amod.batch_system import BatchFleetSystem
 from marl_amod.evaluation import evaluate
-from marl_amod.scenario import load_city
+from marl_amod.scenario import City, load_city
 from marl_amod.system import FleetSystem
 from marl_amod.transfer import STUDIES, run_strategy
 
 VAL_CITIES = ("porto", "nyc_man_north", "shenzhen_north", "washington_dc")
+
+
+def fresh(tag: int) -> Callable[[int, int], np.random.SeedSequence]:
+    """Demand streams of their own (``tag``): no city's demonstrations, validation or report episodes."""
+    return lambda s, e: np.random.SeedSequence([s, e, tag])
+
+
+def labelled(model: meta.RecurrentGNN, task: City, episodes: int, lookahead: int, seed_of: Callable[[int, int], np.random.SeedSequence],
+             learner: meta.RecurrentGNN | None = None) -> mi.CityDemos:  # fmt: skip
+    """``episodes`` episodes of ``task`` labelled by MPC-F, with the inputs ``model`` reads: driven by
+    MPC-F, or with ``learner`` by the policy as deployed (trials of 4, memory carried)."""
+    structure, place = meta.features_read(model, lookahead)
+    got = mi.collect_city(task, episodes, 99, lookahead, learner=learner, trial_episodes=4, seed_of=seed_of)
+    if structure:
+        got["x"] = meta.with_structure(got["x"], task, lookahead, place)
+    return mi.CityDemos(*(torch.from_numpy(got[k]) for k in ("x", "share", "region_reward", "reward", "action")))
 
 
 def gap(policy: str, demos: str, episodes: int = 8) -> None:
@@ -60,11 +80,7 @@ def gap(policy: str, demos: str, episodes: int = 8) -> None:
     trials = np.arange(episodes).reshape(-1, 4).T  # (K = 4, B) as the trials of training
     for name in VAL_CITIES:
         city, graph = load_city(name), meta.city_graph(load_city(name))
-        own = mi.collect_city(city, episodes, 99, lookahead, learner=model, trial_episodes=4,
-                              seed_of=lambda s, e: np.random.SeedSequence([s, e, 777]))  # fmt: skip
-        if structure:
-            own["x"] = meta.with_structure(own["x"], city, lookahead, place)
-        mine = mi.CityDemos(*(torch.from_numpy(own[k]) for k in ("x", "share", "region_reward", "reward", "action")))
+        mine = labelled(model, city, episodes, lookahead, fresh(777), learner=model)
         stored = mi.load_demos(demos, city, lookahead, structure, place)
         theirs = mi.CityDemos(*(v[-episodes:] for v in vars(stored).values()))
         row = []
@@ -158,7 +174,6 @@ def heldout(policy: str, demos: str, cities: list[str], episodes: int = 8) -> No
     model, card = meta.load_meta(policy)
     lookahead = card["lookahead"]
     structure, place = meta.features_read(model, lookahead)
-    seed_of = lambda s, e: np.random.SeedSequence([s, e, 778])  # noqa: E731  fresh streams: no city's demonstrations
     pool = np.concatenate([columns(mi.load_demos(demos, load_city(n), lookahead, structure, place)) for n in meta.TRAIN_CITIES])
     lo, mid, hi = np.quantile(pool, [0.01, 0.5, 0.99], axis=0)
     ranges = {}
@@ -166,10 +181,7 @@ def heldout(policy: str, demos: str, cities: list[str], episodes: int = 8) -> No
         city = meta.task_city(name)  # a city or a hotspot variant of one
         graph, row = meta.city_graph(city), []
         for learner in (None, model):
-            got = mi.collect_city(city, episodes, 99, lookahead, learner=learner, trial_episodes=4, seed_of=seed_of)
-            if structure:
-                got["x"] = meta.with_structure(got["x"], city, lookahead, place)
-            d = mi.CityDemos(*(torch.from_numpy(got[k]) for k in ("x", "share", "region_reward", "reward", "action")))
+            d = labelled(model, city, episodes, lookahead, fresh(778), learner=learner)
             row += imitation_error(model, d, graph)
             if learner is None:
                 ranges[name] = columns(d)
@@ -182,23 +194,26 @@ def heldout(policy: str, demos: str, cities: list[str], episodes: int = 8) -> No
         print(f"{label:20s} {lo[j]:7.3f} / {mid[j]:6.3f} / {hi[j]:7.3f}  " + "  ".join(f"{c:>18s}" for c in cells), flush=True)
 
 
-def hotspot(policy: str, cities: list[str], multiplier: float | None, episodes: int, seed: int = 1000) -> None:
+def hotspot(policy: str, cities: list[str], multiplier: float | None, episodes: int, seed: int = 1000, own: bool = False) -> None:
     model, card = meta.load_meta(policy)
     lookahead = card["lookahead"]
-    structure, place = meta.features_read(model, lookahead)
     for name in cities:
         city = meta.task_city(name)
         region = city.meta.get("hotspot", {}).get("region", int(meta.place_table(city)[:, 2].argmax()))
         for task in (city, meta.hotspot(city, region, multiplier)) if multiplier else (city,):
-            got = mi.collect_city(task, 4, 99, lookahead, seed_of=lambda s, e: np.random.SeedSequence([s, e, 778]))
-            x = meta.with_structure(got["x"], task, lookahead, place) if structure else got["x"]
-            d = mi.CityDemos(torch.from_numpy(x), *(torch.from_numpy(got[k]) for k in ("share", "region_reward", "reward", "action")))
-            trials = mi.Trials.of_city(d, np.arange(4).reshape(4, 1))
-            with torch.no_grad():
-                means = mi.teacher_forced(model, trials, meta.city_graph(task))[0]
-            share = trials.share.flatten(0, 1)
-            line = (f"{task.name:34s} share out {meta.place_table(task)[region, 2]:.2f}  MPC-F sends {share[..., region].mean():.3f}  "
-                    f"the policy {means[..., region].mean():.3f}  misplaced {float(0.5 * (means - share).abs().sum(-1).mean()):.3f}")  # fmt: skip
+            line = f"{task.name:34s} share out {meta.place_table(task)[region, 2]:.2f}"
+            # on MPC-F's states (4 episodes, one trial); with ``own`` also on the policy's (8: 2 trials of 4)
+            for learner, n in ((None, 4), (model, 8)) if own else ((None, 4),):
+                d = labelled(model, task, n, lookahead, fresh(778), learner=learner)
+                trials = mi.Trials.of_city(d, np.arange(n).reshape(-1, 4).T)
+                with torch.no_grad():
+                    means = mi.teacher_forced(model, trials, meta.city_graph(task))[0]
+                share = trials.share.flatten(0, 1)
+                misplaced = float(0.5 * (means - share).abs().sum(-1).mean())
+                if learner is None:
+                    line += f"  MPC-F sends {share[..., region].mean():.3f}  the policy {means[..., region].mean():.3f}  misplaced {misplaced:.3f}"
+                else:
+                    line += f"  | on its own states: it sends {means[..., region].mean():.3f}, MPC-F's label {share[..., region].mean():.3f}, misplaced {misplaced:.3f}"
             if episodes:
                 mine = evaluate(meta.load_policy(policy, task, seed=seed), task, episodes, seed)["metrics"]["profit"]["mean"]
                 theirs = evaluate(MPCForecast(), task, episodes, seed)["metrics"]["profit"]["mean"]
@@ -260,14 +275,16 @@ def main() -> None:
     parser.add_argument("--multiplier", type=float, default=None, help="hotspot: also each city with its busiest region x this")
     parser.add_argument("--cities", default=",".join([*VAL_CITIES, *meta.HELD_OUT]), help="heldout, where: the cities")
     parser.add_argument("--validation", action="store_true", help="k: the training cities' validation return instead")
+    parser.add_argument("--own", action="store_true", help="hotspot: also on the states the policy reaches itself (8 episodes, labelled by MPC-F)")
     args = parser.parse_args()
+    torch.manual_seed(0)  # the policy's sampled adaptation episodes (gap, heldout, hotspot --own): a rerun repeats them
     ks = [int(k) for k in args.ks.split(",")]
     if args.what == "gap":
         gap(args.policy, args.demos)
     elif args.what == "heldout":
         heldout(args.policy, args.demos, args.cities.split(","), args.episodes)
     elif args.what == "hotspot":
-        hotspot(args.policy, args.cities.split(","), args.multiplier, args.episodes)
+        hotspot(args.policy, args.cities.split(","), args.multiplier, args.episodes, own=args.own)
     elif args.what == "where":
         where(args.policy, [c for c in args.cities.split(",") if c in meta.HELD_OUT])
     elif args.what == "k":
