@@ -354,3 +354,16 @@ def test_standardise_inputs_ships_the_datasets_statistics_and_iql_keeps_its_star
         ALGOS["iql"].train(args_for("iql", _args(tmp_path, tiny, **start)))
     with pytest.raises(ConfigError, match="standardise_inputs"):
         args_for("bc", _args(tmp_path, tiny, standardise_inputs=True))  # the GNN actor has no such option
+
+
+def test_standardise_inputs_covers_the_time_context_of_an_actor_time_mlp(tmp_path, tiny):
+    """actor_time appends the time context to every node: the statistics are of those inputs too."""
+    from marl_amod.checkpoints import load_actor
+
+    city = load_city(tiny[0])
+    args = args_for("bc", _args(tmp_path, tiny, actor="mlp", standardise_inputs=True, actor_time=True, policy_out=str(tmp_path / "bc.pt")))
+    ALGOS["bc"].train(args)
+    clone, _ = load_actor(tmp_path / "bc.pt", city)
+    t = O.Data(args, city).tensors
+    x = C.with_time(t["x"], t["ctx"], True).flatten(1)
+    assert torch.allclose(clone.input_mean, x.mean(0)) and torch.allclose(clone.input_std, x.std(0).clamp_min(1e-3))

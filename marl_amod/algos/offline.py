@@ -195,8 +195,8 @@ def fit(
     are the networks and optimisers whose state a resumed run restores (by name); ``critic``
     (a TwinQ, its hidden units and conv) ships in the policy file with ``args.selection``."""
     if not resume:
-        if args.standardise_inputs:  # the dataset's statistics; a warm start brings its own
-            actor.fit_inputs(data.tensors["x"])
+        if args.standardise_inputs:  # the dataset's statistics (of what the actor reads); a warm start brings its own
+            actor.fit_inputs(C.with_time(data.tensors["x"], data.tensors["ctx"], args.actor_time))
         C.warm_start(actor, args, city)
     step, prior_wall, best = 0, 0.0, C.BestActor.of(actor)
     if args.init_actor and args.keep == "best" and not resume:  # a conservative improvement step: the start
