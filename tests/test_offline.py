@@ -367,3 +367,12 @@ def test_standardise_inputs_covers_the_time_context_of_an_actor_time_mlp(tmp_pat
     t = O.Data(args, city).tensors
     x = C.with_time(t["x"], t["ctx"], True).flatten(1)
     assert torch.allclose(clone.input_mean, x.mean(0)) and torch.allclose(clone.input_std, x.std(0).clamp_min(1e-3))
+
+
+def test_an_online_run_refuses_standardise_inputs_with_nothing_to_fit_them_from(tmp_path, tiny):
+    """Online, the statistics come only from a start (init_actor); without one they would stay 0 and 1."""
+    online = {"scenario": tiny[0], "actor": "mlp", "standardise_inputs": True, "run_dir": str(tmp_path / "r")}
+    with pytest.raises(ConfigError, match="init_actor"):
+        args_for("a2c", online)
+    assert args_for("a2c", {**online, "init_actor": str(tmp_path / "bc.pt")}).standardise_inputs
+    assert args_for("bc", _args(tmp_path, tiny, actor="mlp", standardise_inputs=True)).standardise_inputs

@@ -99,6 +99,9 @@ class RunArgs(CommonArgs):
                                  f"already (use actor: gnn, or {key}: {str(off).lower()})")  # fmt: skip
         if self.standardise_inputs and (self.mode == "decentralised" or self.actor != "mlp"):
             raise ValueError("standardise_inputs is an option of the centralised MLP actor (use actor: mlp, or standardise_inputs: false)")
+        if self.standardise_inputs and not self.init_actor and "dataset" not in type(self).model_fields:
+            raise ValueError("standardise_inputs: an online run takes the statistics from its start; without init_actor they would "
+                             "stay mean 0, std 1 (set init_actor to a standardised offline policy, or standardise_inputs: false)")  # fmt: skip
         return self
 
     def ignored_keys(self) -> dict[str, str]:
