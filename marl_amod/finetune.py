@@ -60,7 +60,7 @@ def finetune_curve(
     runs = {
         "finetune": a2c.Args(**common, init_actor=str(policy), lr_actor=finetune_lr_actor, critic_warmup=critic_warmup,
                              concentration_cap=concentration_cap, run_dir=str(Path(run_root) / "finetune")),  # fmt: skip
-        "scratch": a2c.Args(**common, lr_actor=lr_actor, run_dir=str(Path(run_root) / "scratch")),
+        "scratch": a2c.Args(**{**common, "standardise_inputs": False}, lr_actor=lr_actor, run_dir=str(Path(run_root) / "scratch")),  # no start: no statistics
     }
     val = {"episodes": eval_episodes, "seed": runs["scratch"].eval_seed}
     pretrained = evaluate_actor(actor, city, eval_episodes, val["seed"], card["lookahead"], card.get("time_context", False))["metrics"]["profit"]["mean"]

@@ -106,3 +106,15 @@ def test_concentration_cap_keeps_the_mean_and_bounds_the_total():
     assert torch.allclose(wide.mean(0), torch.tensor([0.6, 0.3, 0.1]), atol=0.02)
     both = sampling_concentrations(alpha, Args(action_concentration=4.0, concentration_cap=10.0))
     assert torch.allclose(both.sum(-1), torch.tensor([10.0, 10.0]))  # scaled first (x4: 400, 24), then capped
+
+
+def test_a_standardised_mlp_start_fine_tunes_beside_a_plain_scratch_arm(tmp_path, tiny_prop_dataset):
+    """The scratch arm has no start to take input statistics from: it runs the plain MLP (what
+    identity statistics amount to), the fine-tuned arm the start's standardisation."""
+    scenario, path = tiny_prop_dataset
+    args = {"scenario": scenario, "dataset": path, "updates": 4, "batch_size": 8, "eval_every": 4, "eval_episodes": 1, "final_eval_episodes": 1,
+            "hidden": 8, "actor": "mlp", "standardise_inputs": True, "run_dir": str(tmp_path / "bc"), "policy_out": str(tmp_path / "bc.pt")}  # fmt: skip
+    ALGOS["bc"].train(args_for("bc", args))
+    study = finetune.finetune_curve(str(tmp_path / "bc.pt"), episodes=2, num_envs=2, eval_every=2, eval_episodes=1, critic_warmup=2, run_root=tmp_path / "runs")
+    ft, sc = study["runs"]["finetune"], study["runs"]["scratch"]
+    assert ft["validation"][0] == [0, study["pretrained_profit"]] and [ep for ep, _ in sc["validation"]] == [2]
