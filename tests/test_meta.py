@@ -351,3 +351,15 @@ def test_a_study_reruns_only_the_rows_asked_for(monkeypatch):
     assert "# toy" not in transfer.study_markdown(again) and "| mpc-forecast |" in transfer.study_markdown(again)
     other_seed = transfer.run_study("toy", episodes=1, seed=1, strategies=("mpc-forecast",), previous=first)
     assert "mpc-oracle" not in other_seed["targets"]["synthetic"]  # rows of another seed are never mixed in
+
+
+def test_a_hotspot_variant_with_any_multiplier_is_rebuilt_exactly_by_its_name():
+    """The name is what demonstrations, DAgger rounds and cards keep: it must hold the multiplier
+    exactly (``:g`` kept 6 digits: 2.1234567 was rebuilt as 2.12346), and plain values stay short."""
+    city = load_city("synthetic")
+    for m, text in ((2.1234567, "2.1234567"), (1234567.0, "1234567"), (3.0, "3"), (0.5, "0.5")):
+        hot = meta.hotspot(city, 1, m)
+        assert hot.name == f"synthetic~hot1x{text}"
+        rebuilt = meta.task_city(hot.name)
+        assert rebuilt.meta["hotspot"]["multiplier"] == m
+        np.testing.assert_array_equal(rebuilt.demand_rate, hot.demand_rate)

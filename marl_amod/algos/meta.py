@@ -255,9 +255,15 @@ def hotspot(city: City, region: int, multiplier: float) -> City:
         return new * np.where(now > 0, total / np.maximum(now, 1e-12), 1.0)[:, None, None]
 
     return replace(
-        city, name=f"{city.name}{HOTSPOT}{region}x{multiplier:g}", demand_rate=raised(city.demand_rate),
+        city, name=hotspot_name(city.name, region, multiplier), demand_rate=raised(city.demand_rate),
         forecast_rate=raised(city.forecast_rate), meta={**city.meta, "hotspot": {"region": region, "multiplier": multiplier}},
     )  # fmt: skip
+
+
+def hotspot_name(city: str, region: int, multiplier: float) -> str:
+    """``<city>~hot<region>x<multiplier>``, the multiplier exactly (the name is what rebuilds the task)
+    and short (3, not 3.0)."""
+    return f"{city}{HOTSPOT}{region}x{np.format_float_positional(float(multiplier), trim='-')}"
 
 
 def base_city(name: str) -> str:
@@ -289,7 +295,7 @@ def hotspot_tasks(cities: list[str], variants: int, multipliers: tuple[float, fl
         for _ in range(variants):
             region = int(rng.choice(city.n_regions, p=out / out.sum()))
             multiplier = round(float(np.exp(rng.uniform(*np.log(multipliers)))), 1)
-            names.append(f"{name}{HOTSPOT}{region}x{multiplier:g}")
+            names.append(hotspot_name(name, region, multiplier))
     return names
 
 
