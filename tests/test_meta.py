@@ -363,3 +363,17 @@ def test_a_hotspot_variant_with_any_multiplier_is_rebuilt_exactly_by_its_name():
         rebuilt = meta.task_city(hot.name)
         assert rebuilt.meta["hotspot"]["multiplier"] == m
         np.testing.assert_array_equal(rebuilt.demand_rate, hot.demand_rate)
+
+
+def test_hotspot_tasks_are_distinct_and_refuse_ranges_they_cannot_draw_from():
+    """A duplicate would be one task counted twice on the card (and in the transfer table's
+    demonstrations); a multiplier range that rounds to 0 names no city."""
+    n = load_city("synthetic").n_regions
+    names = meta.hotspot_tasks(["synthetic"], n, (2.0, 2.0), seed=0)  # every region once: the only way
+    assert len(set(names)) == n
+    assert meta.hotspot_tasks(["synthetic"], 1, (2.0, 4.0), seed=0) == meta.hotspot_tasks(["synthetic"], 3, (2.0, 4.0), seed=0)[:1]
+    with pytest.raises(ConfigError, match="distinct"):
+        meta.hotspot_tasks(["synthetic"], n + 1, (2.0, 2.0), seed=0)
+    for bad in ((0.0, 2.0), (0.01, 0.04), (3.0, 2.0), (2.0, float("inf"))):
+        with pytest.raises(ConfigError, match="hotspot_multipliers"):
+            meta.hotspot_tasks(["synthetic"], 1, bad, seed=0)

@@ -288,14 +288,25 @@ def hotspot_tasks(cities: list[str], variants: int, multipliers: tuple[float, fl
     """``variants`` hotspot variants of each city: the region drawn by its share of the day's
     requests out (busy regions become hotspots more often), the multiplier log-uniform in
     ``multipliers`` (one decimal); a function of the seed, so a resumed run names the same tasks."""
+    lo, hi = map(float, multipliers)
+    if variants and not (np.isfinite(hi) and 0.05 <= lo <= hi):
+        raise ConfigError(f"hotspot_multipliers {list(multipliers)}: a range [low, high] with 0.05 <= low <= high (one decimal is kept)")
     names: list[str] = []
     for i, name in enumerate(cities if variants else []):
         city, rng = load_city(name), np.random.default_rng([seed, i, 6029])
         out = place_table(city)[:, 2].astype(np.float64)
-        for _ in range(variants):
+        mine: list[str] = []
+        for _ in range(1000 * variants):  # a duplicate would be one task counted twice: draw again
             region = int(rng.choice(city.n_regions, p=out / out.sum()))
-            multiplier = round(float(np.exp(rng.uniform(*np.log(multipliers)))), 1)
-            names.append(hotspot_name(name, region, multiplier))
+            multiplier = round(float(np.exp(rng.uniform(np.log(lo), np.log(hi)))), 1)
+            if (task := hotspot_name(name, region, multiplier)) not in mine:
+                mine.append(task)
+            if len(mine) == variants:
+                break
+        else:
+            raise ConfigError(f"{variants} distinct hotspot variants of {name} not found in hotspot_multipliers {list(multipliers)} "
+                              "(one decimal) x its busy regions: ask for fewer, or widen the range")  # fmt: skip
+        names += mine
     return names
 
 
