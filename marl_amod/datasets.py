@@ -483,10 +483,14 @@ def merge_cards(path: str | Path, data: OfflineDataset, pieces: list[str | Path]
 
     The behaviour and reference scores are on the evaluation streams, not the data: one piece's
     card is enough (collect the others with ``--eval-episodes 0``), and where several have one
-    they must agree (checked; nothing is re-evaluated). None, and no card, when no piece has one."""
+    they must agree, and each must be its piece's by sha256 (checked; nothing is re-evaluated). None, and no card, when no piece has one."""
     cards = {str(p): read_card(p) for p in pieces if card_path(p).is_file()}
     if not cards:
         return None
+    for name, card in cards.items():  # a card left by what was collected at that path before scores another policy
+        if card.get("sha256") != hashlib.sha256(Path(name).read_bytes()).hexdigest():
+            raise DataError(f"{card_path(name)} is not the card of {name} (its sha256 is another file's): delete it, "
+                            "or collect the piece again with --eval-episodes")  # fmt: skip
     (name0, first), *rest = cards.items()
     for name, card in rest:
         for key in SCORES:

@@ -233,3 +233,22 @@ def test_cli_merges_pieces_and_writes_one_card(tmp_path):
     (tmp_path / "b.json").write_text(json.dumps(card))
     again = run(app, ["merge-datasets", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--output", str(tmp_path / "y.npz")])
     assert again.exit_code != 0 and "scored differently (reference_scores)" in str(again.exception)
+
+
+def test_merge_cards_refuses_a_card_left_from_another_collection_at_a_pieces_path(tiny_city, tmp_path):
+    """``collect --eval-episodes 0`` over an earlier piece leaves that piece's card beside the new
+    data: its scores are of whatever was collected there before, so the merged card must not take them."""
+    from marl_amod.datasets import merge_cards
+
+    prop = make_policy("prop", tiny_city)
+    a, b = (collect(tiny_city, prop, episodes=1, seed=s) for s in (1, 2))
+    for name, data in (("a", a), ("b", b)):
+        data.save(tmp_path / f"{name}.npz")
+        write_card(tmp_path / f"{name}.npz", data, tiny_city, prop, eval_episodes=1)
+    merged = merge([a, b])
+    merged.save(tmp_path / "m.npz")
+    assert merge_cards(tmp_path / "m.npz", merged, [tmp_path / "a.npz", tmp_path / "b.npz"])["episodes"] == 2
+    dtv = make_policy("dtv", tiny_city)
+    collect(tiny_city, dtv, episodes=1, seed=2).save(tmp_path / "b.npz")  # b.json is prop's card still
+    with pytest.raises(DataError, match=r"b\.json is not the card of .*b\.npz"):
+        merge_cards(tmp_path / "m.npz", merged, [tmp_path / "a.npz", tmp_path / "b.npz"])
