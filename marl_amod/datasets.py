@@ -483,9 +483,10 @@ def merge_cards(path: str | Path, data: OfflineDataset, pieces: list[str | Path]
 
     The behaviour and reference scores are on the evaluation streams, not the data: one piece's
     card is enough (collect the others with ``--eval-episodes 0``), and where several have one
-    they must agree, and each must be its piece's by sha256 (checked; nothing is re-evaluated). None, and no card, when no piece has one."""
+    they must agree, and each must be its piece's by sha256 (checked; nothing is re-evaluated). None, and no card (an earlier one at ``path`` removed), when no piece has one."""
     cards = {str(p): read_card(p) for p in pieces if card_path(p).is_file()}
     if not cards:
+        card_path(path).unlink(missing_ok=True)  # a card there described the file ``path`` replaced
         return None
     for name, card in cards.items():  # a card left by what was collected at that path before scores another policy
         if card.get("sha256") != hashlib.sha256(Path(name).read_bytes()).hexdigest():

@@ -252,3 +252,21 @@ def test_merge_cards_refuses_a_card_left_from_another_collection_at_a_pieces_pat
     collect(tiny_city, dtv, episodes=1, seed=2).save(tmp_path / "b.npz")  # b.json is prop's card still
     with pytest.raises(DataError, match=r"b\.json is not the card of .*b\.npz"):
         merge_cards(tmp_path / "m.npz", merged, [tmp_path / "a.npz", tmp_path / "b.npz"])
+
+
+def test_merging_cardless_pieces_over_an_earlier_merge_leaves_no_stale_card(tiny_city, tmp_path):
+    prop = make_policy("prop", tiny_city)
+    for name, seed in (("a", 1), ("b", 2), ("c", 3), ("d", 4)):
+        data = collect(tiny_city, prop, episodes=1, seed=seed)
+        data.save(tmp_path / f"{name}.npz")
+        if name in "ab":
+            write_card(tmp_path / f"{name}.npz", data, tiny_city, prop, eval_episodes=1)
+    out = tmp_path / "m.npz"
+    run = CliRunner().invoke
+    result = run(app, ["merge-datasets", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--output", str(out)])
+    assert result.exit_code == 0, result.output
+    assert read_card(out)["streams"] == [[1, 0, 1], [2, 0, 1]]
+    result = run(app, ["merge-datasets", str(tmp_path / "c.npz"), str(tmp_path / "d.npz"), "--output", str(out)])
+    assert result.exit_code == 0, result.output
+    assert OfflineDataset.load(out).meta["streams"] == [[3, 0, 1], [4, 0, 1]]
+    assert not out.with_suffix(".json").exists()  # the a+b card described the file this merge replaced
