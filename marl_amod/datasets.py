@@ -230,6 +230,10 @@ def merge(parts: list[OfflineDataset], names: list[str] | None = None) -> Offlin
     if not parts:
         raise DataError("nothing to merge")
     names = names or [f"piece {i}" for i in range(len(parts))]
+    for p, name in zip(parts, names, strict=True):
+        if "parts" in p.meta:  # its own record is of several collections, and its streams may repeat
+            raise DataError(f"{name} is a concatenation of {len(p.meta['parts'])} datasets (e.g. a DAgger aggregate), not a piece "
+                            "of one collection: merge the pieces it was made of, or join it with datasets.concatenate")  # fmt: skip
     first = parts[0].meta
     for p, name in zip(parts[1:], names[1:], strict=True):
         for key in SAME_COLLECTION:

@@ -270,3 +270,15 @@ def test_merging_cardless_pieces_over_an_earlier_merge_leaves_no_stale_card(tiny
     assert result.exit_code == 0, result.output
     assert OfflineDataset.load(out).meta["streams"] == [[3, 0, 1], [4, 0, 1]]
     assert not out.with_suffix(".json").exists()  # the a+b card described the file this merge replaced
+
+
+def test_merge_refuses_a_concatenation_of_collections(tiny_city):
+    """A DAgger aggregate (``concatenate``) mixes collections and may revisit a stream; merged as a
+    piece, the result kept its first parts' record only (or blamed the piece for overlapping itself)."""
+    from marl_amod.datasets import concatenate
+
+    prop = make_policy("prop", tiny_city)
+    a, b, c = (collect(tiny_city, prop, episodes=1, seed=s) for s in (1, 2, 3))
+    for parts in ([concatenate([a, b]), c], [concatenate([a, a])]):
+        with pytest.raises(DataError, match="concatenation"):
+            merge(parts, names=[f"p{i}" for i in range(len(parts))])
