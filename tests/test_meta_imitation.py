@@ -264,3 +264,18 @@ def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp
         torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-4)
     with pytest.raises(ValueError, match="same"):
         mi.Trials.padded([mi.Trials.of_city(demos[0], draws[0][1]), mi.Trials.of_city(short, draws[3][1])])
+
+
+def test_a_resume_refuses_a_config_that_names_other_tasks(tasks, tmp_path):
+    """The state's updates and DAgger rounds are of its tasks: resumed with other hotspot variants
+    (or cities), the run would train on tasks it was not started on and collect the missing tasks'
+    earlier DAgger rounds with a later model."""
+    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
+                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=1, eval_every=2,
+                   eval_episodes=2, final_eval_episodes=1, hotspot_variants=1, hotspot_episodes=2,
+                   run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
+    ALGOS["meta-bc"].train(args)
+    state = str(tmp_path / "bc" / "state.pt")
+    with pytest.raises(DataError, match="hotspot"):
+        ALGOS["meta-bc"].train(args.model_copy(update={"updates": 2, "hotspot_variants": 0}), resume=state)
+    assert ALGOS["meta-bc"].train(args.model_copy(update={"updates": 2}), resume=state)["card"]["updates"] == 2

@@ -426,6 +426,9 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     best, warm = meta.warm_start(args, model, cities, resume)  # init_actor: continue an imitation (e.g. with DAgger rounds)
     if resume:
         st = C.load_state(resume, "meta-bc")
+        if st.get("tasks", names) != names:  # its updates and DAgger rounds are of those tasks (older states: not recorded)
+            raise DataError(f"{resume} trained on the tasks {st['tasks']}; this config names {names}: resume with the run's "
+                            "cities, seed and hotspot settings (hotspot_variants, hotspot_multipliers)")  # fmt: skip
         model.load_state_dict(st["model"]), opt.load_state_dict(st["opt"])
         step, prior_wall, best = st["episode"], st["wall_s"], C.BestActor(st["best_val"], st["best_actor"])
         rng.bit_generator.state = st["city_rng"]
@@ -435,7 +438,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
 
     def save() -> tuple[Path, int]:
         C.save_state(C.state_path(args), algorithm="meta-bc", model=model.state_dict(), opt=opt.state_dict(), episode=step,
-                     best_val=book.best.value, best_actor=book.best.state, wall_s=timer(), city_rng=rng.bit_generator.state)  # fmt: skip
+                     best_val=book.best.value, best_actor=book.best.state, wall_s=timer(), city_rng=rng.bit_generator.state, tasks=names)  # fmt: skip
         return C.state_path(args), step
 
     dagger_wall = sum(dagger_round(args, model, k, data, cities) for k in range(1, started_rounds(args, step) + 1))  # resumed: read back
