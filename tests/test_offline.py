@@ -346,10 +346,13 @@ def test_standardise_inputs_ships_the_datasets_statistics_and_iql_keeps_its_star
     assert torch.allclose(clone.input_mean, x.mean(0)) and torch.allclose(clone.input_std, x.std(0).clamp_min(1e-3))
     res = evaluate(str(tmp_path / "bc.pt"), city, episodes=2, seed=0)
     assert res["metrics"]["profit"]["mean"] == pytest.approx(bc["card"]["profit_mean"])
-    start = {"actor": "mlp", "init_actor": str(tmp_path / "bc.pt"), "critic_hidden": 8, "beta": 0.0, "run_dir": str(tmp_path / "r2")}
+    blob = torch.load(tmp_path / "bc.pt", map_location="cpu", weights_only=True)
+    blob["state_dict"]["input_mean"] += 1.0  # the start's statistics, told apart from the (same) dataset's
+    torch.save(blob, tmp_path / "start.pt")
+    start = {"actor": "mlp", "init_actor": str(tmp_path / "start.pt"), "critic_hidden": 8, "beta": 0.0, "run_dir": str(tmp_path / "r2")}
     ALGOS["iql"].train(args_for("iql", _args(tmp_path, tiny, standardise_inputs=True, lr_actor=1e-12, **start)))
     shipped, _ = load_actor(tmp_path / "p.pt", city)
-    assert torch.equal(shipped.input_mean, clone.input_mean) and torch.equal(shipped.input_std, clone.input_std)
+    assert torch.equal(shipped.input_mean, clone.input_mean + 1.0) and torch.equal(shipped.input_std, clone.input_std)
     with pytest.raises(DataError, match="standardise_inputs"):
         ALGOS["iql"].train(args_for("iql", _args(tmp_path, tiny, **start)))
     with pytest.raises(ConfigError, match="standardise_inputs"):
