@@ -237,6 +237,10 @@ def merge(parts: list[OfflineDataset], names: list[str] | None = None) -> Offlin
     first = parts[0].meta
     for p, name in zip(parts[1:], names[1:], strict=True):
         for key in SAME_COLLECTION:
+            if key == "policy_options" and (key in p.meta) != (key in first):  # older (or Python-API) pieces lack it
+                lacking = name if key in first else names[0]
+                raise DataError(f"{lacking} does not record {key} (collected by an older version or through the Python API), "
+                                "so it cannot be checked to be the same collection: collect it again with `marl-amod collect`")  # fmt: skip
             if p.meta.get(key) != first.get(key):
                 raise DataError(f"{names[0]} and {name} are not one collection: {key} {first.get(key)!r} != {p.meta.get(key)!r}")
         if not (np.array_equal(p.edge_index, parts[0].edge_index) and np.array_equal(p.edge_attr, parts[0].edge_attr)):

@@ -282,3 +282,16 @@ def test_merge_refuses_a_concatenation_of_collections(tiny_city):
     for parts in ([concatenate([a, b]), c], [concatenate([a, a])]):
         with pytest.raises(DataError, match="concatenation"):
             merge(parts, names=[f"p{i}" for i in range(len(parts))])
+
+
+def test_merge_says_which_piece_does_not_record_what_the_other_does(tiny_city):
+    """A piece collected before the policy options were logged (or through the Python API) cannot
+    be told to be the same collection: the error says so and what to do, not ``{} != None``."""
+    prop = make_policy("prop", tiny_city)
+    a, b = (collect(tiny_city, prop, episodes=1, seed=s) for s in (1, 2))
+    b.meta["policy_options"] = {}  # as marl-amod collect logs it
+    with pytest.raises(DataError, match=r"a does not record policy_options .*collect it again"):
+        merge([a, b], names=["a", "b"])
+    dagger = collect(tiny_city, prop, episodes=1, seed=3, labeller=make_policy("prop", tiny_city))
+    with pytest.raises(DataError, match="not one collection: rollout_policy"):  # a DAgger piece is another collection
+        merge([a, dagger])
