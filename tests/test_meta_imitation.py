@@ -8,9 +8,9 @@ import torch
 
 from marl_amod.algos import meta
 from marl_amod.algos import meta_imitation as mi
-from marl_amod.algos.registry import ALGOS
+from marl_amod.algos.registry import ALGOS, args_for
 from marl_amod.baselines.mpc import MPCForecast
-from marl_amod.errors import DataError
+from marl_amod.errors import ConfigError, DataError
 from marl_amod.evaluation import evaluate
 from marl_amod.models.recurrent import RecurrentGNN
 from marl_amod.scenario import load_city
@@ -181,6 +181,17 @@ def test_dagger_rounds_start_at_the_offset_and_a_resume_reads_back_the_ones_begu
     assert [mi.round_due(args, s) for s in starts] == list(range(1, rounds + 1))
     for s in steps:  # a run resumed at update s reads back exactly the rounds collected before s
         assert mi.started_rounds(args, s) == sum(1 for r in range(s) if mi.round_due(args, r))
+
+
+@pytest.mark.parametrize(("first", "updates", "refused"), [(599, 600, False), (600, 600, True), (900, 600, True)])
+def test_a_dagger_schedule_whose_first_round_never_comes_is_refused(first, updates, refused):
+    values = {"dagger_rounds": 2, "dagger_first": first, "updates": updates}
+    if refused:
+        with pytest.raises(ConfigError, match="no DAgger round"):
+            args_for("meta-bc", values)
+    else:
+        assert args_for("meta-bc", values).dagger_first == first
+    assert args_for("meta-bc", {**values, "dagger_rounds": 0}).dagger_rounds == 0  # no rounds asked: nothing to refuse
 
 
 def test_hotspot_variants_are_tasks_with_demonstrations_and_dagger_rounds_of_their_own(tasks, tmp_path):

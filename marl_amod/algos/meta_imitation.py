@@ -44,7 +44,7 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from marl_amod.algos import common as C
 from marl_amod.algos import meta
@@ -340,6 +340,13 @@ class Args(meta.Args):
     """an update's cities padded into one batch (the same losses to float rounding): 1.12-1.16x
     faster at hidden 64 x 16 trials per city, 1.4-1.8x at 4 trials (``benchmarks/meta_update.py``);
     False: one city after another, as fast at hidden 128 x 16 trials (0.97x padded)"""
+
+    @model_validator(mode="after")
+    def _dagger_rounds_fit(self) -> Args:
+        if self.dagger_rounds and self.dagger_first >= self.updates:
+            raise ValueError(f"dagger_first {self.dagger_first} is not before the last update ({self.updates}): no DAgger round "
+                             "would run (lower dagger_first, raise updates, or dagger_rounds: 0)")  # fmt: skip
+        return self
 
     def ignored_keys(self) -> dict[str, str]:
         return {**super().ignored_keys(), "episodes": "imitation takes no env episodes; set updates",
