@@ -199,19 +199,19 @@ def test_hotspot_variants_are_tasks_with_demonstrations_and_dagger_rounds_of_the
     driven in the DAgger rounds (here the first at update 1, not before the first update), named on
     the card and counted by the transfer table."""
     args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
-                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=1, eval_every=2,
+                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=2, eval_every=2,
                    eval_episodes=2, final_eval_episodes=1, dagger_rounds=1, dagger_first=1, dagger_episodes=2,
                    hotspot_variants=1, hotspot_episodes=4, run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
     plain, variants = mi.tasks(args)
     assert plain == tasks and [meta.base_city(v) for v in variants] == tasks and all(meta.HOTSPOT in v for v in variants)
-    card = ALGOS["meta-bc"].train(args)["card"]
+    card = ALGOS["meta-bc"].train(args.model_copy(update={"updates": 1}))["card"]  # stopped before its round, then resumed
     assert card["demonstrations"]["hotspot_variants"] == variants and card["dagger"]["rounds"] == 0
     assert not (tmp_path / "bc" / "dagger").exists()  # round 1 waits for update 1
     for name in variants:
         city = meta.task_city(name)
         demos = mi.load_demos(tmp_path / "demos", city, 6)
         assert demos.episodes == 4 and city.name.startswith(("small~hot", "large~hot"))
-    card = ALGOS["meta-bc"].train(args.model_copy(update={"updates": 2}), resume=str(tmp_path / "bc" / "state.pt"))["card"]
+    card = ALGOS["meta-bc"].train(args, resume=str(tmp_path / "bc" / "state.pt"))["card"]
     assert card["dagger"]["rounds"] == 1
     assert sorted(p.stem for p in (tmp_path / "bc" / "dagger" / "round1").glob("*.npz")) == sorted(meta.task_city(n).name for n in [*tasks, *variants])
     from marl_amod.transfer import run_strategy
