@@ -69,7 +69,7 @@ def started_elsewhere(card: dict[str, Any], start: str | None) -> bool:
     """Whether the policy of ``card`` was trained from another version of ``start`` than the file
     there now (its start was retrained since), by content: the card's ``start_sha256``. Cards
     written before it was recorded count as current (file times say nothing after a clone)."""
-    from marl_amod.checkpoints import file_sha256
+    from marl_amod.files import file_sha256
 
     recorded = card.get("start_sha256")
     return bool(start) and recorded is not None and Path(start).is_file() and file_sha256(start) != recorded

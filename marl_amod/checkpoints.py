@@ -32,7 +32,7 @@ from marl_amod.baselines.base import WeightPolicy
 from marl_amod.env import observations as ob
 from marl_amod.env.features import n_features, node_features
 from marl_amod.errors import ConfigError, DataError
-from marl_amod.files import atomic_write, write_json
+from marl_amod.files import atomic_write, file_sha256, write_json
 from marl_amod.models.distributions import dirichlet_mean
 from marl_amod.scenario import City
 from marl_amod.selection import QSelector, Selection
@@ -112,11 +112,6 @@ def git_commit() -> str | None:
     except (OSError, subprocess.SubprocessError):
         return None
     return f"{sha}+dirty" if dirty.strip() else sha
-
-
-def file_sha256(path: str | Path) -> str:
-    """The SHA-256 of a file's bytes (a card's ``pt_sha256``; a warm-started run's ``start_sha256``)."""
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def make_card(**fields: Any) -> PolicyCard:

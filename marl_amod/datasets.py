@@ -52,7 +52,6 @@ evaluation seeds, for normalised scores (:func:`normalised_score`: 0 = ED, 100 =
 
 from __future__ import annotations
 
-import hashlib
 import json
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -63,7 +62,7 @@ import numpy as np
 
 from marl_amod.baselines.base import Policy, WeightPolicy
 from marl_amod.errors import ConfigError, DataError
-from marl_amod.files import atomic_write, check_destination, write_json
+from marl_amod.files import atomic_write, check_destination, file_sha256, write_json
 from marl_amod.scenario.types import City
 from marl_amod.system import FleetSystem
 from marl_amod.validation import as_count, as_seed
@@ -479,7 +478,7 @@ def _write_card(path: str | Path, data: OfflineDataset, scores: dict[str, Any]) 
 
     path = Path(path)
     card = {
-        "dataset": path.name, "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), **data.meta,
+        "dataset": path.name, "sha256": file_sha256(path), **data.meta,
         "env_version": env_version(), "git_commit": git_commit(), **scores,
     }  # fmt: skip
     write_json(card_path(path), card)
@@ -497,7 +496,7 @@ def merge_cards(path: str | Path, data: OfflineDataset, pieces: list[str | Path]
         card_path(path).unlink(missing_ok=True)  # a card there described the file ``path`` replaced
         return None
     for name, card in cards.items():  # a card left by what was collected at that path before scores another policy
-        if card.get("sha256") != hashlib.sha256(Path(name).read_bytes()).hexdigest():
+        if card.get("sha256") != file_sha256(name):
             raise DataError(f"{card_path(name)} is not the card of {name} (its sha256 is another file's): delete it, "
                             "or collect the piece again with --eval-episodes")  # fmt: skip
     (name0, first), *rest = cards.items()

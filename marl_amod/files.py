@@ -11,6 +11,7 @@ after an hour of training.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import io
 import json
 import os
@@ -105,3 +106,9 @@ def save_or_fallback(path: str | Path, write: Callable[[Path], Any], *, what: st
                 continue
             raise OutputError(f"could not write {what} to {path} ({reason}); they are saved in {fallback}") from exc
         raise OutputError(f"could not write {what} to {path} ({reason}) nor to {', '.join(tried)}") from exc
+
+
+def file_sha256(path: str | Path) -> str:
+    """The SHA-256 of a file's bytes: what a card names its file by (a policy's ``pt_sha256``, a
+    dataset's ``sha256``, a warm-started run's ``start_sha256``)."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()

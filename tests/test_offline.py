@@ -247,7 +247,7 @@ def test_training_seeds_get_their_own_files_and_start_and_the_table_averages_the
     # a start retrained since is told by content, not by file times
     start = tmp_path / "start.pt"
     start.write_bytes(b"one")
-    from marl_amod.checkpoints import file_sha256
+    from marl_amod.files import file_sha256
 
     card = {"start_sha256": file_sha256(start)}
     assert not offline_seeds.started_elsewhere(card, str(start)) and not offline_seeds.started_elsewhere({}, str(start))

@@ -28,11 +28,11 @@ import torch
 from pydantic import Field, model_validator
 
 from marl_amod.algos.rollout import BatchRollout, Mode, Rollout
-from marl_amod.checkpoints import ActorPolicy, actor_inputs, check_torch_file, file_sha256, make_card, save_policy, with_context
+from marl_amod.checkpoints import ActorPolicy, actor_inputs, check_torch_file, make_card, save_policy, with_context
 from marl_amod.config import CommonArgs
 from marl_amod.env.features import n_features
 from marl_amod.errors import DataError, MarlAmodError
-from marl_amod.files import atomic_write, torch_save, write_json
+from marl_amod.files import atomic_write, file_sha256, torch_save, write_json
 from marl_amod.models import LocalActor, build_actor
 from marl_amod.models.dense import DenseGraph
 from marl_amod.models.gnn import Readout
