@@ -213,7 +213,7 @@ def merge_datasets(
     Refuses pieces of different collections (city, behaviour policy and its options, logging) or
     that hold an episode twice; pieces with different --seed, or one resumed with --first-episode
     where another stopped, never do."""
-    from marl_amod.datasets import OfflineDataset, merge, merge_cards
+    from marl_amod.datasets import OfflineDataset, card_path, merge, merge_cards
 
     output = check_destination(output, what="--output")
     if output.resolve() in {p.resolve() for p in pieces}:
@@ -223,7 +223,7 @@ def merge_datasets(
     card = merge_cards(path, data, pieces)
     held = ", ".join(f"seed {s} episodes {k}..{k + n - 1}" for s, k, n in data.meta["streams"])
     console.print(f"wrote {data.meta['episodes']} episodes, {len(data)} transitions ({held}) to {path}")
-    console.print(f"card {path.with_suffix('.json')}" if card else "no card (the pieces have none)")
+    console.print(f"card {card_path(path)}" if card else "no card (the pieces have none)")
 
 
 def _collect_one(

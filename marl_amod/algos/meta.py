@@ -471,9 +471,14 @@ def make_model(args: Args) -> RecurrentGNN:
     return RecurrentGNN(n_features, args.hidden, args.conv, args.stay_prior, args.readout)
 
 
+def held_out_among(tasks: list[str]) -> list[str]:
+    """The held-out cities that ``tasks`` are, or are hotspot variants of (sorted)."""
+    return sorted({base_city(name) for name in tasks} & set(HELD_OUT))
+
+
 def check_tasks(args: Args) -> None:
     bases = {base_city(name) for name in args.cities}
-    leaked = sorted(bases & set(HELD_OUT)) + ([args.scenario] if args.scenario in bases else [])
+    leaked = held_out_among(args.cities) + ([args.scenario] if args.scenario in bases else [])
     if leaked:
         raise ConfigError(f"meta-RL training cities include held-out {sorted(set(leaked))}; the study tests on them")
 

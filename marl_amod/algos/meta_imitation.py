@@ -162,7 +162,7 @@ def collect_demos(
     variant) not yet there (resumable, split by task; with
     ``learner``, a DAgger round: :func:`collect_city`); returns the collection wall seconds of every
     city's file (recorded in it)."""
-    held = sorted({meta.base_city(name) for name in cities} & set(meta.HELD_OUT))
+    held = meta.held_out_among(cities)
     if held:
         raise DataError(f"demonstrations on held-out {held}: the study tests on them")
     walls = {}
