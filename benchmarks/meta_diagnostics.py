@@ -77,17 +77,12 @@ def gap(policy: str, demos: str, episodes: int = 8) -> None:
     model, card = meta.load_meta(policy)
     lookahead = card["lookahead"]
     structure, place = meta.features_read(model, lookahead)
-    trials = np.arange(episodes).reshape(-1, 4).T  # (K = 4, B) as the trials of training
     for name in VAL_CITIES:
         city, graph = load_city(name), meta.city_graph(load_city(name))
         mine = labelled(model, city, episodes, lookahead, fresh(777), learner=model)
         stored = mi.load_demos(demos, city, lookahead, structure, place)
         theirs = mi.CityDemos(*(v[-episodes:] for v in vars(stored).values()))
-        row = []
-        for d in (theirs, mine):
-            with torch.no_grad():
-                ce = mi.imitation_losses(model, d, trials, graph, 0.97)[0].item()
-            row.append(ce + float((d.share * torch.log(d.share.clamp_min(1e-12))).sum(-1).mean()))
+        row = [imitation_error(model, d, graph)[0] for d in (theirs, mine)]
         print(f"{name:22s} cross-entropy above the labels' entropy: MPC-F's states {row[0]:.3f}, its own {row[1]:.3f}", flush=True)
 
 
@@ -160,14 +155,25 @@ def columns(d: mi.CityDemos) -> np.ndarray:
     return np.concatenate([x, d.region_reward.numpy().reshape(-1, 1), team], axis=1)
 
 
-def imitation_error(model: meta.RecurrentGNN, d: mi.CityDemos, graph: meta.DenseGraph) -> tuple[float, float]:
-    """(cross-entropy above the labels' entropy, share of the idle fleet sent elsewhere) over trials of 4."""
+def forced(model: meta.RecurrentGNN, d: mi.CityDemos, graph: meta.DenseGraph) -> tuple[torch.Tensor, torch.Tensor]:
+    """(the policy's Dirichlet means, MPC-F's shares), (decisions, B, N), teacher-forced over trials
+    of 4 episodes (the memory carried as in training)."""
     trials = mi.Trials.of_city(d, np.arange(d.episodes).reshape(-1, 4).T)
     with torch.no_grad():
         means = mi.teacher_forced(model, trials, graph)[0]
-    share = trials.share.flatten(0, 1)
+    return means, trials.share.flatten(0, 1)
+
+
+def misplaced(means: torch.Tensor, share: torch.Tensor) -> float:
+    """The share of the idle fleet a step sends elsewhere than MPC-F's targets (half the L1 distance)."""
+    return float(0.5 * (means - share).abs().sum(-1).mean())
+
+
+def imitation_error(model: meta.RecurrentGNN, d: mi.CityDemos, graph: meta.DenseGraph) -> tuple[float, float]:
+    """(cross-entropy above the labels' entropy, share of the idle fleet sent elsewhere) over trials of 4."""
+    means, share = forced(model, d, graph)
     ce = -(share * torch.log(means.clamp_min(1e-8))).sum(-1) + (share * torch.log(share.clamp_min(1e-12))).sum(-1)
-    return float(ce.mean()), float(0.5 * (means - share).abs().sum(-1).mean())
+    return float(ce.mean()), misplaced(means, share)
 
 
 def heldout(policy: str, demos: str, cities: list[str], episodes: int = 8) -> None:
@@ -204,16 +210,12 @@ def hotspot(policy: str, cities: list[str], multiplier: float | None, episodes: 
             line = f"{task.name:34s} share out {meta.place_table(task)[region, 2]:.2f}"
             # on MPC-F's states (4 episodes, one trial); with ``own`` also on the policy's (8: 2 trials of 4)
             for learner, n in ((None, 4), (model, 8)) if own else ((None, 4),):
-                d = labelled(model, task, n, lookahead, fresh(778), learner=learner)
-                trials = mi.Trials.of_city(d, np.arange(n).reshape(-1, 4).T)
-                with torch.no_grad():
-                    means = mi.teacher_forced(model, trials, meta.city_graph(task))[0]
-                share = trials.share.flatten(0, 1)
-                misplaced = float(0.5 * (means - share).abs().sum(-1).mean())
+                means, share = forced(model, labelled(model, task, n, lookahead, fresh(778), learner=learner), meta.city_graph(task))
+                off = misplaced(means, share)
                 if learner is None:
-                    line += f"  MPC-F sends {share[..., region].mean():.3f}  the policy {means[..., region].mean():.3f}  misplaced {misplaced:.3f}"
+                    line += f"  MPC-F sends {share[..., region].mean():.3f}  the policy {means[..., region].mean():.3f}  misplaced {off:.3f}"
                 else:
-                    line += f"  | on its own states: it sends {means[..., region].mean():.3f}, MPC-F's label {share[..., region].mean():.3f}, misplaced {misplaced:.3f}"
+                    line += f"  | on its own states: it sends {means[..., region].mean():.3f}, MPC-F's label {share[..., region].mean():.3f}, misplaced {off:.3f}"
             if episodes:
                 mine = evaluate(meta.load_policy(policy, task, seed=seed), task, episodes, seed)["metrics"]["profit"]["mean"]
                 theirs = evaluate(MPCForecast(), task, episodes, seed)["metrics"]["profit"]["mean"]
