@@ -40,7 +40,8 @@ from __future__ import annotations
 
 import argparse
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from typing import Any
 
 import numpy as np
 import torch
@@ -51,7 +52,7 @@ from marl_amod.baselines.mpc import MPCForecast, MPCOracle
 from marl_amod.batch_system import BatchFleetSystem
 from marl_amod.evaluation import evaluate
 from marl_amod.scenario import City, load_city
-from marl_amod.system import FleetSystem
+from marl_amod.system import FleetSystem, StepOutcome
 from marl_amod.transfer import STUDIES, run_strategy
 
 VAL_CITIES = ("porto", "nyc_man_north", "shenzhen_north", "washington_dc")
@@ -112,24 +113,35 @@ def k_validation(policy: str, ks: list[int]) -> None:
         print(f"K={k}: validation {np.mean(scores):.4f}", flush=True)
 
 
-def event(policy: str, surge: tuple[int, ...] = (8, 10), hotspots: tuple[int, ...] = (5, 6), window: range = range(6, 14)) -> None:
+def drive(pol: Any, city: City, episode_seed: np.random.SeedSequence, policy_rng: np.random.Generator) -> tuple[FleetSystem, Iterator]:
+    """One episode of ``pol`` on ``city``, reset now: the system, and its steps as they are played
+    (the step's t, the share of the idle fleet asked, the outcome); a target of -1 keeps a region's idle vehicles."""
+    system = FleetSystem(city)
+    system.reset(episode_seed)
+    pol.reset(system, policy_rng)
+
+    def steps() -> Iterator[tuple[int, np.ndarray, StepOutcome]]:
+        while not system.done:
+            t = system.sim.t
+            want = np.asarray(pol.target(system), dtype=np.float64)
+            want = np.where(want < 0, system.sim.idle, want)
+            share = want / max(want.sum(), 1.0)
+            yield t, share, system.step(want.astype(np.int64))
+
+    return system, steps()
+
+
+def event(policy: str, surge: tuple[int, ...] = (8, 10), hotspots: tuple[int, ...] = (5, 6), window: range = range(6, 14), episodes: int = 10) -> None:
     for name in ("nyc_brooklyn", "nyc_brooklyn_event"):
         city = load_city(name)
         makers = {"meta K=3": lambda c=city: meta.load_policy(policy, c, 3), "meta K=0": lambda c=city: meta.load_policy(policy, c, 0),
                   "mpc-forecast": MPCForecast, "mpc-oracle": MPCOracle}  # fmt: skip
         for label, make in makers.items():
             pol, inside, outside, unserved = make(), [], [], []
-            for k in range(10):
-                system = FleetSystem(city)
-                system.reset(np.random.SeedSequence([0, k]))
-                pol.reset(system, np.random.default_rng(k))
-                while not system.done:
-                    t = system.sim.t
-                    want = np.asarray(pol.target(system), dtype=np.float64)
-                    want = np.where(want < 0, system.sim.idle, want)
-                    share = want / max(want.sum(), 1.0)
+            for k in range(episodes):
+                system, steps = drive(pol, city, np.random.SeedSequence([0, k]), np.random.default_rng(k))
+                for t, share, _ in steps:
                     (inside if t in window else outside).append([share[list(surge)].sum(), share[list(hotspots)].sum()])
-                    system.step(want.astype(np.int64))
                     if t in window:
                         unserved.append(system.sim.requests().sum(-1)[list(surge)].sum())
             i, o = np.mean(inside, 0), np.mean(outside, 0)
@@ -230,17 +242,12 @@ def where(policy: str, cities: list[str], episodes: int = 10, seed: int = 1000, 
         for label, make in {"meta": lambda c=city: meta.load_policy(policy, c, k, seed=seed), "mpc-forecast": MPCForecast}.items():
             pol, rows = make(), {"fares": [], "trip cost": [], "reb cost": [], "served": [], "share": []}
             for e in range(episodes):
-                system = FleetSystem(city)
-                system.reset(np.random.SeedSequence([seed, e]))
-                pol.reset(system, np.random.default_rng([seed, e, 1]))
+                system, steps = drive(pol, city, np.random.SeedSequence([seed, e]), np.random.default_rng([seed, e, 1]))
                 t0 = system.sim.totals
                 last = (t0.revenue.copy(), t0.trip_cost.copy(), t0.rebalancing_cost.copy())
                 ep = {key: [] for key in rows}
-                while not system.done:
-                    want = np.asarray(pol.target(system), dtype=np.float64)
-                    want = np.where(want < 0, system.sim.idle, want)
-                    ep["share"].append(want / max(want.sum(), 1.0))
-                    out = system.step(want.astype(np.int64))
+                for _, share, out in steps:
+                    ep["share"].append(share)
                     tot = system.sim.totals
                     now = (tot.revenue.copy(), tot.trip_cost.copy(), tot.rebalancing_cost.copy())
                     for key, a, b in zip(("fares", "trip cost", "reb cost"), now, last, strict=True):
