@@ -43,21 +43,34 @@ PolicyOptions = Annotated[
 ]
 
 
-def parse_policy_options(items: list[str] | None) -> dict[str, object]:
-    """``["demand_scale=1.2", "horizon=10"]`` -> ``{"demand_scale": 1.2, "horizon": 10}`` (values read as YAML scalars)."""
+def parse_policy_options(items: list[str] | None, ctx: typer.Context | None = None) -> dict[str, object]:
+    """``["demand_scale=1.2", "horizon=10"]`` -> ``{"demand_scale": 1.2, "horizon": 10}`` (values read as YAML scalars).
+
+    A key the command sets itself (``seed``, ``episodes``, ``max_wait``, ...) is refused with the
+    flag of ``ctx``'s command to use: passed on, it would collide with the run's own argument."""
+    import inspect
+
     import yaml
 
     from marl_amod.evaluation import SYSTEM_OPTIONS
+    from marl_amod.evaluation import evaluate as run_eval
 
+    flags = {opt for param in ctx.command.params for opt in getattr(param, "opts", ())} if ctx is not None else set()
+    run_keys = {name for name, p in inspect.signature(run_eval).parameters.items() if p.kind is not p.VAR_KEYWORD}
     options: dict[str, object] = {}
     for item in items or []:
         key, sep, value = item.partition("=")
         key = key.strip()
         if not sep or not key.isidentifier():
             raise ConfigError(f"--policy-option takes KEY=VALUE, got {item!r}")
-        if key in SYSTEM_OPTIONS:
-            raise ConfigError(f"{key} is the system's, not the policy's: use --{key.replace('_', '-')}")
-        options[key] = yaml.safe_load(value)
+        if key in SYSTEM_OPTIONS or key in run_keys:
+            flag = f"--{key.replace('_', '-')}"
+            raise ConfigError(f"{key} is the run's, not the policy's" + (f": use {flag}" if flag in flags else ""))
+        try:
+            options[key] = yaml.safe_load(value)
+        except yaml.YAMLError as exc:
+            first = str(exc).splitlines()[0]
+            raise ConfigError(f"--policy-option {key}: {value!r} is not a YAML value ({first})") from None
     return options
 
 
@@ -137,6 +150,7 @@ def metrics_table(results: list[dict], title: str) -> Table:
 
 @app.command()
 def evaluate(
+    ctx: typer.Context,
     scenario: Annotated[str, typer.Option(help="scenario name or YAML path")] = "synthetic",
     policy: Annotated[
         list[str], typer.Option(help=f"{', '.join(policy_names())} or a checkpoint .pt; repeat to compare")
@@ -156,7 +170,7 @@ def evaluate(
     from marl_amod.scenario import load_city
 
     _use_data_dir(data_dir)
-    options = parse_policy_options(policy_option)
+    options = parse_policy_options(policy_option, ctx)
     if output is not None:
         output = check_destination(output, what="--output")  # before the run, not after it
     city = load_city(scenario)
@@ -181,6 +195,7 @@ def evaluate(
 
 @app.command()
 def collect(
+    ctx: typer.Context,
     scenario: Annotated[str, typer.Option(help="scenario name or YAML path")] = "synthetic",
     policy: Annotated[str, typer.Option(help="behaviour policy: inf, dtv, prop, mpc-forecast, ... or a checkpoint")] = "inf",
     episodes: Annotated[int, typer.Option(min=1)] = 10,
@@ -197,7 +212,7 @@ def collect(
 ) -> None:
     """Roll a behaviour policy through the env and write an offline dataset (format 2) and its card."""
     _use_data_dir(data_dir)
-    options = parse_policy_options(policy_option)
+    options = parse_policy_options(policy_option, ctx)
     _collect_one(
         scenario, policy, episodes, seed, output, max_wait, eval_episodes, eval_seed, {}, noise, lookahead, options, first_episode
     )
