@@ -81,10 +81,24 @@ def as_seed(seed: Any, what: str = "seed") -> int:
     return as_count(seed, what)
 
 
-def as_count(value: Any, what: str, *, upper: int | None = None, why: str = "") -> int:
-    """A whole number in [0, upper] (numpy integers welcome, bools not), else a ConfigError."""
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral) or value < 0:
-        raise ConfigError(f"{what} must be a non-negative integer, got {value!r}")
+def as_count(value: Any, what: str, *, lower: int = 0, upper: int | None = None, why: str = "") -> int:
+    """A whole number in [lower, upper] (numpy integers welcome, bools not), else a ConfigError."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Integral) or value < lower:
+        kind = "a non-negative integer" if lower == 0 else f"an integer >= {lower}"
+        raise ConfigError(f"{what} must be {kind}, got {value!r}")
     if upper is not None and value > upper:
         raise ConfigError(f"{what} must be at most {upper}{why}, got {int(value)}")
     return int(value)
+
+
+def as_real(value: Any, what: str, *, minimum: float | None = None, above: float | None = None) -> float:
+    """A finite real number, ``>= minimum`` and ``> above`` where given (numpy scalars welcome;
+    strings, bools and None not), else a ConfigError: a policy option read from the command line
+    as the wrong type must not fail later as a TypeError deep in a solver."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real) or not np.isfinite(value):
+        raise ConfigError(f"{what} must be a finite number, got {value!r}")
+    if minimum is not None and value < minimum:
+        raise ConfigError(f"{what} must be >= {minimum:g}, got {value!r}")
+    if above is not None and value <= above:
+        raise ConfigError(f"{what} must be > {above:g}, got {value!r}")
+    return float(value)

@@ -84,6 +84,28 @@ def test_policy_options_reach_the_factory_and_unknown_ones_are_clear_errors(tiny
         marl_amod.evaluate(tiny_city, "equal-distribution")  # the old argument order fails loudly
 
 
+@pytest.mark.parametrize(
+    "name, options, culprit",
+    [
+        ("mpc-forecast", {"horizon": "abc"}, "MPC horizon"),  # --policy-option horizon=abc reads a string
+        ("mpc-forecast", {"horizon": 2.5}, "MPC horizon"),
+        ("mpc-oracle", {"horizon": 0}, "MPC horizon"),
+        ("mpc-forecast", {"demand_scale": "big"}, "demand_scale"),
+        ("mpc-forecast", {"noise": None}, "noise"),
+        ("mpc-scenarios", {"scenarios": 1.5}, "scenarios"),
+        ("inf", {"roh": "x"}, "roh"),
+        ("inf", {"window": 0}, "window"),
+        ("inf", {"max_reb": True}, "max_reb"),
+        ("prop", {"lookahead": None}, "lookahead"),
+    ],
+)
+def test_policy_options_of_the_wrong_type_are_config_errors_naming_the_option(tiny_city, name, options, culprit):
+    """Options come from the command line as YAML scalars; a string or a fraction where a count
+    belongs is refused where the policy is made, not met later as a TypeError in a solver."""
+    with pytest.raises(ConfigError, match=culprit):
+        make_policy(name, tiny_city, **options)
+
+
 # ------------------------------------------------------------------------------------------ callables
 def test_a_callable_that_always_returns_one_reproduces_equal_distribution_exactly(tiny_city):
     def always_one(observations: dict) -> dict:

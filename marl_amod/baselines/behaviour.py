@@ -21,8 +21,9 @@ from __future__ import annotations
 import numpy as np
 
 from marl_amod.baselines.base import Policy, WeightPolicy
-from marl_amod.errors import ConfigError, SolverError
+from marl_amod.errors import SolverError
 from marl_amod.system import FleetSystem
+from marl_amod.validation import as_count, as_real
 
 
 def _linprog(c: np.ndarray, **kwargs) -> np.ndarray:
@@ -58,9 +59,9 @@ class Informed(Policy):
     name = "inf"
 
     def __init__(self, max_reb: int = 6, roh: float = 4.0, window: int = 10) -> None:
-        if max_reb < 1 or roh <= 0 or window < 1:
-            raise ConfigError(f"INF needs max_reb >= 1, roh > 0, window >= 1; got {max_reb}, {roh}, {window}")
-        self.max_reb, self.roh, self.window = max_reb, roh, window
+        self.max_reb = as_count(max_reb, "INF max_reb (steps)", lower=1)
+        self.roh = as_real(roh, "INF roh", above=0)
+        self.window = as_count(window, "INF window (steps)", lower=1)
 
     def target(self, system: FleetSystem) -> np.ndarray:
         idle = system.sim.idle
@@ -117,9 +118,7 @@ class Proportional(WeightPolicy):
     name = "prop"
 
     def __init__(self, lookahead: int = 1) -> None:
-        if lookahead < 1:
-            raise ConfigError(f"PROP lookahead must be >= 1 step, got {lookahead}")
-        self.lookahead = lookahead
+        self.lookahead = as_count(lookahead, "PROP lookahead (steps)", lower=1)
 
     def weights(self, system: FleetSystem) -> np.ndarray:
         return _expected_outflow(system, system.t + 1, self.lookahead)

@@ -44,6 +44,7 @@ from marl_amod.baselines.base import FlowPolicy
 from marl_amod.errors import ConfigError, SolverError
 from marl_amod.scenario.types import City, step_rows
 from marl_amod.system import FleetSystem
+from marl_amod.validation import as_count, as_real
 
 if TYPE_CHECKING:
     import scipy.sparse as sp
@@ -263,11 +264,9 @@ class MPCPolicy(FlowPolicy):
     name = "mpc"
 
     def __init__(self, horizon: int = DEFAULT_HORIZON, backend: MPCBackend = "scipy") -> None:
-        if horizon < 1:
-            raise ConfigError(f"MPC horizon must be >= 1 step, got {horizon}")
+        self.horizon = as_count(horizon, "MPC horizon (steps)", lower=1)
         if backend not in ("scipy", "cvxpy"):
             raise ConfigError(f"MPC backend must be 'scipy' or 'cvxpy', got {backend!r}")
-        self.horizon = horizon
         self.backend = backend
         self._cvx: CvxpyMPC | None = None
         self._cvx_city: City | None = None
@@ -355,12 +354,8 @@ class MPCForecast(MPCPolicy):
         self, horizon: int = DEFAULT_HORIZON, backend: MPCBackend = "scipy", noise: float = 0.0, demand_scale: float = 1.0,
     ) -> None:
         super().__init__(horizon, backend)
-        if noise < 0:
-            raise ConfigError(f"forecast noise must be >= 0, got {noise}")
-        if not (np.isfinite(demand_scale) and demand_scale > 0):
-            raise ConfigError(f"forecast demand_scale must be a finite number > 0, got {demand_scale}")
-        self.noise = noise
-        self.demand_scale = float(demand_scale)
+        self.noise = as_real(noise, "forecast noise", minimum=0)
+        self.demand_scale = as_real(demand_scale, "forecast demand_scale", above=0)
         if self.demand_scale != 1.0:  # results, datasets and cards say which teacher it was
             self.name = f"{MPCForecast.name}+scale{self.demand_scale:g}"
 
@@ -393,9 +388,7 @@ class MPCScenarios(MPCForecast):
 
     def __init__(self, horizon: int = DEFAULT_HORIZON, scenarios: int = DEFAULT_SCENARIOS) -> None:
         super().__init__(horizon, "scipy")
-        if isinstance(scenarios, bool) or not isinstance(scenarios, (int, np.integer)) or scenarios < 1:
-            raise ConfigError(f"mpc-scenarios needs scenarios = an integer >= 1, got {scenarios!r}")
-        self.scenarios = int(scenarios)
+        self.scenarios = as_count(scenarios, "mpc-scenarios scenarios", lower=1)
         if self.scenarios != self.DEFAULT_SCENARIOS:  # results, datasets and cards say which teacher it was
             self.name = f"{MPCScenarios.name}+s{self.scenarios}"
 
