@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.console import Console
@@ -23,6 +23,10 @@ from marl_amod.data import ENV_VAR
 from marl_amod.errors import ConfigError, MarlAmodError
 from marl_amod.files import check_destination, save_or_fallback, write_json
 from marl_amod.policies import policy_names
+
+if TYPE_CHECKING:
+    from marl_amod.baselines import Policy
+    from marl_amod.scenario.types import City
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, help="Robo-taxi fleet coordination as a multi-agent RL benchmark.")
 # wide enough for the metrics table when output is piped (rich would assume 80 columns)
@@ -174,14 +178,15 @@ def evaluate(
     if output is not None:
         output = check_destination(output, what="--output")  # before the run, not after it
     city = load_city(scenario)
+    policies = _make_policies(policy, city, options)
     results = []
     with progress_bar() as bar:
-        for name in policy:
+        for name, pol in zip(policy, policies, strict=True):
             task = bar.add_task(f"{name} on {city.name}", total=episodes)
             results.append(
                 run_eval(
-                    name, city, episodes, seed, max_wait=max_wait, objective=objective, solver=solver,
-                    progress=lambda _k, task=task: bar.advance(task), **options,
+                    pol, city, episodes, seed, max_wait=max_wait, objective=objective, solver=solver,
+                    progress=lambda _k, task=task: bar.advance(task),
                 )
             )
     console.print(metrics_table(results, f"{city.name}: {episodes} episodes, seed {seed}"))
@@ -191,6 +196,14 @@ def evaluate(
         payload = results_payload(results)
         save_or_fallback(output, lambda path: write_json(path, payload), what="the results")
         console.print(f"wrote {output}")
+
+
+def _make_policies(names: list[str], city: City, options: dict[str, object]) -> list[Policy]:
+    """Every ``--policy`` built before the first episode runs, so a typo in the last name (or a
+    missing checkpoint) fails at once instead of after the others' evaluations."""
+    from marl_amod.policies import make_policy
+
+    return [make_policy(name, city, **options) for name in names]
 
 
 @app.command()
@@ -493,11 +506,12 @@ def wait_map(
     _use_data_dir(data_dir)
     check_destination(output, what="--output")
     city = load_city(scenario)
+    policies = _make_policies(policy, city, {})
     results = []
     with progress_bar() as bar:
-        for name in policy:
+        for name, pol in zip(policy, policies, strict=True):
             task = bar.add_task(f"{name} on {city.name}", total=episodes)
-            results.append(run_eval(name, city, episodes, seed, max_wait=max_wait,
+            results.append(run_eval(pol, city, episodes, seed, max_wait=max_wait,
                                     progress=lambda _k, task=task: bar.advance(task)))
     console.print(metrics_table(results, f"{city.name}: {episodes} episodes, seed {seed}, max wait {max_wait} steps"))
     title = f"{city.name}: {episodes} episodes (seed {seed}), requests wait up to {max_wait} steps ({max_wait * city.tstep:g} min)"

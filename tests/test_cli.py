@@ -120,6 +120,21 @@ def test_user_errors_exit_2_with_one_clear_line(args, message, capsys):
     assert message in capsys.readouterr().out
 
 
+@pytest.mark.parametrize("command", [["evaluate"], ["plot", "wait-map", "--output", "w.png"]])
+@pytest.mark.parametrize("bad", ["teleport", "missing.pt"])
+def test_a_bad_last_policy_fails_before_the_others_run(monkeypatch, tmp_path, command, bad):
+    """`--policy A --policy B`: a typo or a missing checkpoint in B is reported before A's episodes run."""
+    import marl_amod.evaluation
+    from marl_amod.errors import ConfigError
+
+    ran = []
+    monkeypatch.setattr(marl_amod.evaluation, "evaluate", lambda *a, **k: ran.append(a) or {})
+    monkeypatch.chdir(tmp_path)
+    result = runner.invoke(app, [*command, "--episodes", "1", "--policy", "equal-distribution", "--policy", bad])
+    assert isinstance(result.exception, ConfigError), result.output
+    assert bad in str(result.exception) and ran == []
+
+
 def test_error_messages_print_verbatim_including_brackets(monkeypatch, capsys):
     """Errors name extras like `marl-amod[sumo]`; rich must not eat them as markup."""
     import sys
