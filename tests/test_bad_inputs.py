@@ -155,6 +155,7 @@ def write_yaml(tmp_path, text, name="s.yaml"):
         ("beta: '0.5'\n", "beta must be a number"),
         ("rows: 1\ncols: 1\n", "at least 2 regions"),
         ("rows: 3\nrows: 4\n", "duplicate key 'rows'"),
+        ("colls: 4\n", "colls: unknown key; a synthetic scenario has .*cols"),
     ],
 )
 def test_bad_scenario_yaml_is_a_config_error_naming_the_key(tmp_path, text, culprit):
@@ -162,6 +163,12 @@ def test_bad_scenario_yaml_is_a_config_error_naming_the_key(tmp_path, text, culp
     with pytest.raises(ConfigError, match=culprit) as exc:
         load_city(path)
     assert "s.yaml" in str(exc.value)
+
+
+def test_an_unknown_override_says_it_is_one_and_lists_the_scenarios_keys():
+    """`parallel_env("synthetic", fleet=100)`: the synthetic city sizes its fleet by vehicles_per_region."""
+    with pytest.raises(ConfigError, match=r"fleet: unknown key \(a keyword override\); a synthetic scenario has .*vehicles_per_region"):
+        load_city("synthetic", fleet=100)
 
 
 def test_overrides_are_validated_like_the_file():

@@ -186,13 +186,24 @@ def load_spec(name_or_path: str, **overrides: Any) -> ScenarioSpec:
     try:
         spec = model(**raw)
     except ValidationError as exc:
-        problems = "; ".join(
-            (f"{'.'.join(map(str, e['loc']))}: " if e["loc"] else "") + e["msg"].removeprefix("Value error, ")
-            for e in exc.errors()
-        )
+        problems = "; ".join(_problem(e, model, source, overrides) for e in exc.errors())
         raise ConfigError(f"invalid scenario {path}: {problems}") from exc
     spec._source = str(path)
     return spec
+
+
+def _problem(err: Any, model: type[_Spec], source: str, overrides: dict[str, Any]) -> str:
+    """One pydantic error as ``key: message``; an unknown top-level key (a typo, or a keyword
+    override such as ``fleet=`` on a scenario that has no fleet) lists the keys that exist."""
+    loc = err["loc"]
+    key = ".".join(map(str, loc))
+    msg = err["msg"].removeprefix("Value error, ")
+    if err["type"] == "extra_forbidden":
+        msg = "unknown key"
+        if len(loc) == 1:
+            given = " (a keyword override)" if loc[0] in overrides else ""
+            msg = f"unknown key{given}; a {source} scenario has {', '.join(k for k in model.model_fields if k != 'source')}"
+    return (f"{key}: " if key else "") + msg
 
 
 def build_city(spec: ScenarioSpec) -> City:
