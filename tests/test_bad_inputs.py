@@ -155,6 +155,7 @@ def write_yaml(tmp_path, text, name="s.yaml"):
         ("beta: '0.5'\n", "beta must be a number"),
         ("rows: 1\ncols: 1\n", "at least 2 regions"),
         ("rows: 3\nrows: 4\n", "duplicate key 'rows'"),
+        ("vehicles_per_region: 0\n", "vehicles_per_region: Input should be greater than or equal to 1"),
         ("colls: 4\n", "colls: unknown key; a synthetic scenario has .*cols"),
     ],
 )

@@ -74,7 +74,7 @@ class SyntheticScenario(_Spec):
     imbalance: float = Field(0.8, ge=0, lt=1)
     trip_length_preference: float = 0.5
     fare_per_step: float = Field(4.0, gt=0)
-    vehicles_per_region: int = Field(12, ge=0)
+    vehicles_per_region: int = Field(12, ge=1)  # an empty fleet serves nobody: a typo, not a scenario
 
     @model_validator(mode="after")
     def _two_regions(self) -> SyntheticScenario:
