@@ -345,9 +345,13 @@ def test_bad_configuration_raises_config_error(tiny_city) -> None:
     for bad in (0, -1.0, float("nan"), "big"):
         with pytest.raises(ConfigError, match="reward_scale"):
             marl_amod.parallel_env(tiny_city, reward_scale=bad)
-    for bad in (0, 2.5):
+    for bad in (0, 2.5, True):
         with pytest.raises(ConfigError, match="max_cycles"):
             marl_amod.parallel_env(tiny_city, max_cycles=bad)
+    for key, bad in (("lookahead", True), ("reward_scale", True), ("strict_actions", "no"), ("strict_actions", 0)):
+        for make in (marl_amod.parallel_env, marl_amod.vector_env):  # the two faces read the same options
+            with pytest.raises(ConfigError, match=key):
+                make(tiny_city, **{key: bad})
 
 
 @needs_data

@@ -48,12 +48,20 @@ def env_options(
         raise ConfigError(f"reward_mode must be one of {REWARD_MODES}, got {reward_mode!r}")
     if action_mode not in act.ACTION_MODES:
         raise ConfigError(f"action_mode must be one of {act.ACTION_MODES}, got {action_mode!r}")
-    if not isinstance(lookahead, (int, np.integer)) or lookahead < 1:
+    # bools are refused although Python counts them as ints: lookahead=True is a slip, not 1 step
+    if isinstance(lookahead, (bool, np.bool_)) or not isinstance(lookahead, (int, np.integer)) or lookahead < 1:
         raise ConfigError(f"lookahead must be a positive number of steps, got {lookahead!r}")
-    if max_cycles is not None and (not isinstance(max_cycles, (int, np.integer)) or max_cycles < 1):
+    if max_cycles is not None and (
+        isinstance(max_cycles, (bool, np.bool_)) or not isinstance(max_cycles, (int, np.integer)) or max_cycles < 1
+    ):
         raise ConfigError(f"max_cycles must be None or a positive number of steps, got {max_cycles!r}")
-    if reward_scale != "auto" and not (isinstance(reward_scale, (int, float)) and np.isfinite(reward_scale) and reward_scale > 0):
+    if reward_scale != "auto" and (
+        isinstance(reward_scale, (bool, np.bool_))
+        or not (isinstance(reward_scale, (int, float, np.integer, np.floating)) and np.isfinite(reward_scale) and reward_scale > 0)
+    ):
         raise ConfigError(f"reward_scale must be a positive number or 'auto', got {reward_scale!r}")
+    if not isinstance(strict_actions, (bool, np.bool_)):  # strict_actions="no" would be truthy
+        raise ConfigError(f"strict_actions must be True or False, got {strict_actions!r}")
     if isinstance(scenario, City):
         if scenario_overrides:
             raise ConfigError(f"scenario overrides {sorted(scenario_overrides)} need a scenario name, not a City")
