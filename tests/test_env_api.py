@@ -59,6 +59,10 @@ def test_env_metadata_and_spaces_are_shared(tiny_city) -> None:
     f = 13
     assert env.observation_space("region_0").shape == (f + 3 + env.max_degree * (f + 1),)
     assert env.render_mode is None
+    beyond = f"region_{tiny_city.n_regions}"  # one past the last region: a typo, not an agent
+    for space in (env.observation_space, env.action_space):
+        with pytest.raises(KeyError, match=beyond):
+            space(beyond)
 
 
 def test_max_cycles_conformance() -> None:

@@ -157,10 +157,18 @@ class AmodParallelEnv(HasEnvOptions, ParallelEnv):
 
     # ------------------------------------------------------------------ spaces
     def observation_space(self, agent: str) -> spaces.Box:
-        return self._observation_space
+        return self._space(self.observation_spaces, agent)
 
     def action_space(self, agent: str) -> spaces.Box:
-        return self._action_space
+        return self._space(self.action_spaces, agent)
+
+    def _space(self, table: dict[str, spaces.Box], agent: str) -> spaces.Box:
+        """The one shared space, for agents of this city only: a typo such as ``region_16`` in a
+        16-region city is an error, not a space for an agent that never acts."""
+        try:
+            return table[agent]
+        except (KeyError, TypeError):
+            raise KeyError(f"unknown agent {agent!r}; the agents are region_0 ... region_{len(table) - 1}") from None
 
     # ------------------------------------------------------------------ episode
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
