@@ -72,13 +72,15 @@ def test_unseeded_resets_continue_the_first_seed(tiny_city) -> None:
 
 def test_episode_truncates_every_agent_at_the_horizon(tiny_city) -> None:
     env = marl_amod.parallel_env(tiny_city)
+    with pytest.raises(RuntimeError, match="reset.. was never called"):  # not "the episode is over"
+        env.step({})
     env.reset(seed=0)
     for _ in range(tiny_city.horizon - 2):
         _, _, term, trunc, _ = env.step(_const(env, 0.5))
         assert not any(trunc.values()) and not any(term.values())
     _, _, term, trunc, _ = env.step(_const(env, 0.5))
     assert all(trunc.values()) and not any(term.values()) and env.agents == []
-    with pytest.raises(RuntimeError, match="reset"):
+    with pytest.raises(RuntimeError, match="every agent was truncated.*call reset"):
         env.step({})
 
 

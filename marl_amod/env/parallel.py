@@ -191,7 +191,8 @@ class AmodParallelEnv(HasEnvOptions, ParallelEnv):
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         if not self.agents:
-            raise RuntimeError("the episode is over (all agents truncated); call reset()")
+            why = "every agent was truncated" if self._last_outcome is not None else "reset() was never called"
+            raise RuntimeError(f"no episode is running ({why}); call reset() first")
         target = act.targets(self.system, actions, self.agents, self.action_mode, strict=self.strict_actions)
         outcome = self._last_outcome = self.system.step(target)
         self._steps += 1
