@@ -32,7 +32,7 @@ def data_dir() -> Path:
         )
     root = Path(value).expanduser()
     if not root.is_dir():
-        raise DataError(f"{ENV_VAR}={value!r} is not a directory")
+        raise DataError(f"the data directory {value!r} (--data-dir, or {ENV_VAR}) is not a directory")
     return root
 
 

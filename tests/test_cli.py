@@ -135,6 +135,17 @@ def test_a_bad_last_policy_fails_before_the_others_run(monkeypatch, tmp_path, co
     assert bad in str(result.exception) and ran == []
 
 
+def test_a_data_dir_that_is_not_a_folder_is_named_as_the_flag_the_user_gave(monkeypatch, tmp_path):
+    from marl_amod.data import ENV_VAR
+    from marl_amod.errors import DataError
+
+    monkeypatch.setenv(ENV_VAR, str(tmp_path))  # restored afterwards: --data-dir sets it for the run
+    missing = tmp_path / "nowhere"
+    result = runner.invoke(app, ["evaluate", "--scenario", "nyc_brooklyn", "--episodes", "1", "--data-dir", str(missing)])
+    assert isinstance(result.exception, DataError) and "--data-dir" in str(result.exception)
+    assert str(missing) in str(result.exception)
+
+
 def test_error_messages_print_verbatim_including_brackets(monkeypatch, capsys):
     """Errors name extras like `marl-amod[sumo]`; rich must not eat them as markup."""
     import sys
