@@ -238,9 +238,8 @@ def merge_datasets(
 ) -> None:
     """Join pieces of one collection (collected in parallel or across sessions) into one dataset and card.
 
-    Refuses pieces of different collections (city, behaviour policy and its options, logging) or
-    that hold an episode twice; pieces with different --seed, or one resumed with --first-episode
-    where another stopped, never do."""
+    Refuses pieces of different collections (city, behaviour policy and its options, logging) or that hold an episode twice; pieces with different --seed, or one resumed with --first-episode where another stopped, never do.
+    """  # one line per paragraph: --help prints a docstring's line breaks as they are
     from marl_amod.datasets import OfflineDataset, card_path, merge, merge_cards
 
     output = check_destination(output, what="--output")

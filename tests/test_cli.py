@@ -20,6 +20,28 @@ def run_eval(tmp_path, *args):
     return json.loads(out.read_text()), result.output
 
 
+def _commands(group, prefix=""):
+    for name, command in group.commands.items():
+        yield from _commands(command, f"{prefix}{name} ") if hasattr(command, "commands") else [(prefix + name, command)]
+
+
+def test_every_command_has_help_whose_paragraphs_are_not_broken_mid_sentence():
+    """Typer's --help prints a docstring's line breaks as they are: a paragraph wrapped in the source
+    shows as lines cut mid-sentence, so each paragraph is one line; every command says what it does."""
+    import inspect
+
+    import typer.main
+
+    commands = list(_commands(typer.main.get_command(app)))
+    assert {"evaluate", "train", "plot wait-map"} <= {name for name, _ in commands}
+    for name, command in commands:
+        doc = inspect.cleandoc(command.callback.__doc__ or "")
+        assert doc, f"{name} has no help"
+        for paragraph in doc.split("\n\n"):
+            assert "\n" not in paragraph, f"{name}: --help breaks the line inside {paragraph[:60]!r}"
+        assert runner.invoke(app, [*name.split(), "--help"]).exit_code == 0
+
+
 def test_scenarios_lists_the_default_city():
     result = runner.invoke(app, ["scenarios"])
     assert result.exit_code == 0, result.output
