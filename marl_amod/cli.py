@@ -293,9 +293,15 @@ def datasets(
     data_dir: DataDir = None,
 ) -> None:
     """The benchmark's offline datasets: one per behaviour policy, each with its card."""
+    from marl_amod.scenario import load_city
+
     _use_data_dir(data_dir)
+    names = [p.strip() for p in policies.split(",") if p.strip()]
+    if not names:
+        raise ConfigError(f"--policies names no policy: {policies!r}")
+    _make_policies(names, load_city(scenario), {})  # a typo in the last name fails before the first dataset
     cache: dict = {}
-    for name in [p.strip() for p in policies.split(",") if p.strip()]:
+    for name in names:
         suffix = f"_noise{noise:g}" if noise else ""
         out = out_dir / f"{Path(scenario).stem}_{name.replace('-', '_')}{suffix}.npz"
         _collect_one(scenario, name, episodes, seed, out, 0, eval_episodes, eval_seed, cache, noise)

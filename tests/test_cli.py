@@ -157,6 +157,16 @@ def test_a_bad_last_policy_fails_before_the_others_run(monkeypatch, tmp_path, co
     assert bad in str(result.exception) and ran == []
 
 
+@pytest.mark.parametrize("policies, message", [("inf,teleport", "teleport"), (" , ", "no policy")])
+def test_datasets_checks_every_behaviour_policy_before_collecting(monkeypatch, tmp_path, policies, message):
+    import marl_amod.datasets
+    from marl_amod.errors import ConfigError
+
+    monkeypatch.setattr(marl_amod.datasets, "collect", lambda *a, **k: pytest.fail("collected before the names were checked"))
+    result = runner.invoke(app, ["datasets", "--scenario", "synthetic", "--policies", policies, "--out-dir", str(tmp_path)])
+    assert isinstance(result.exception, ConfigError) and message in str(result.exception)
+
+
 def test_a_data_dir_that_is_not_a_folder_is_named_as_the_flag_the_user_gave(monkeypatch, tmp_path):
     from marl_amod.data import ENV_VAR
     from marl_amod.errors import DataError
