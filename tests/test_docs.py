@@ -93,3 +93,18 @@ def test_results_generator_scores_and_merges(tmp_path: Path) -> None:
     assert "| 75 |" in table and "**30 ± 1**" in table
     with pytest.raises(KeyError, match="nowhere"):
         results_tables.render("<!-- results:full nowhere -->\n<!-- /results -->", {})
+
+
+def test_the_env_page_and_docstring_name_every_info_key() -> None:
+    """docs/env.md's Infos row and the env's docstring list exactly the keys step() returns."""
+    import marl_amod
+    import marl_amod.env.parallel
+
+    env = marl_amod.parallel_env("synthetic", horizon=3)
+    _, infos = env.reset(seed=0)
+    keys = set(infos["region_0"])
+    row = next(line for line in (ROOT / "docs" / "env.md").read_text().splitlines() if line.startswith("| Infos |"))
+    assert set(re.findall(r"`(\w+)`", row)) == keys
+    doc = marl_amod.env.parallel.__doc__
+    block = doc[doc.index("Infos (per agent") : doc.index("Global view")]
+    assert set(re.findall(r"``(\w+)``", block)) == keys

@@ -41,7 +41,8 @@ Infos (per agent, small): ``served`` (trips that left the region this step), ``d
 (requests that appeared there this step),
 ``rebalancing_cost`` (of the vehicles the region sent away), ``idle`` (after dispatch), and the
 episode so far, the same for every agent: ``system_profit``, ``system_served_demand``,
-``system_demand``, ``system_rebalancing_cost``, ``system_wait_time``, ``system_utilization``
+``system_demand``, ``system_rebalancing_cost``, ``system_wait_time``, ``system_utilization``,
+``system_wait_time_gini``, ``system_service_rate_gini`` (the equity metrics over regions)
 (flat scalars, so TorchRL and vector wrappers can stack them).
 
 Global view: ``state()`` / ``state_space``, ``graph()`` -> ``{"x": (N, F) float32,
