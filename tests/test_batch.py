@@ -8,7 +8,7 @@ import pytest
 import marl_amod
 from marl_amod.batch_system import BatchFleetSystem
 from marl_amod.coordinator.reference import lp_dispatch, lp_rebalance
-from marl_amod.errors import ActionError
+from marl_amod.errors import ActionError, ConfigError
 from marl_amod.scenario import load_city
 from marl_amod.sim.macro import EpisodeTotals
 from marl_amod.system import FleetSystem
@@ -137,6 +137,17 @@ def test_vector_env_reset_without_seed_continues_the_seeded_sequence() -> None:
     b.reset(seed=5)
     np.testing.assert_array_equal(a.reset()[0], b.reset()[0])
     assert not np.array_equal(a.system.sim.demand[0], a.system.sim.demand[1])  # distinct episodes
+
+
+@pytest.mark.parametrize("seed", [-3, 1.5, "a", True, [1, -1], [0, 1.5]])
+def test_vector_env_seeds_are_checked_like_the_parallel_envs(seed) -> None:
+    """A negative, fractional or string seed, alone or in the per-episode list, is a ConfigError
+    (a string was read as a list of one seed; the others escaped as numpy errors)."""
+    venv = marl_amod.vector_env("synthetic", num_envs=2, horizon=3)
+    with pytest.raises(ConfigError, match="seed"):
+        venv.reset(seed=seed)
+    obs, _ = venv.reset(seed=np.int64(4))  # numpy integers are seeds, as in the ParallelEnv
+    np.testing.assert_array_equal(obs, venv.reset(seed=[4, 5])[0])
 
 
 def test_vector_env_rejects_bad_actions() -> None:

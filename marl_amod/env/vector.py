@@ -42,6 +42,7 @@ from marl_amod.env.rewards import RewardMode
 from marl_amod.errors import ActionError, ConfigError
 from marl_amod.metrics import metric_arrays
 from marl_amod.scenario import City
+from marl_amod.validation import as_seed
 
 
 class AmodVectorEnv(HasEnvOptions):
@@ -101,11 +102,13 @@ class AmodVectorEnv(HasEnvOptions):
             if self._seeds is None:
                 self._seeds = np.random.SeedSequence()
             seeds: list[Seed] = list(self._seeds.spawn(b))
-        elif isinstance(seed, (int, np.integer)):
-            self._seeds = np.random.SeedSequence(int(seed))
-            seeds = [int(seed) + k for k in range(b)]
+        elif not isinstance(seed, (list, tuple, np.ndarray)):
+            first = as_seed(seed)  # as the ParallelEnv: numpy integers welcome, a negative seed a ConfigError
+            self._seeds = np.random.SeedSequence(first)
+            seeds = [first + k for k in range(b)]
         else:
-            seeds = list(seed)
+            seeds = [s if s is None or isinstance(s, np.random.SeedSequence) else as_seed(s, f"seed of episode {k}")
+                     for k, s in enumerate(seed)]  # fmt: skip
             if len(seeds) != b:
                 raise ConfigError(f"reset needs one seed per episode ({b}), got {len(seeds)}")
         self.last_outcome = self.system.reset(seeds)
