@@ -585,7 +585,8 @@ def main() -> None:
     try:
         app()
     except MarlAmodError as exc:
-        console.print(f"[red]error:[/red] {escape(str(exc))}")  # messages name extras like [sumo]
+        # soft_wrap: one line however long (rich would cut it at the console width, mid-list)
+        console.print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)  # messages name extras like [sumo]
         raise SystemExit(2) from None
 
 

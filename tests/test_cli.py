@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -195,6 +196,27 @@ def test_error_messages_print_verbatim_including_brackets(monkeypatch, capsys):
         main()
     assert exc.value.code == 2
     assert 'pip install "marl-amod[sumo]"' in capsys.readouterr().out
+
+
+def test_a_long_error_is_one_line_however_narrow_the_console(monkeypatch, capsys):
+    """An unknown name lists every known one: well past the console width, still one line to grep."""
+    import sys
+
+    import marl_amod.scenario
+    from marl_amod.cli import console, main
+    from marl_amod.errors import ConfigError
+
+    message = "unknown thing 'x'; known: " + ", ".join(f"name_{i}" for i in range(60))
+
+    def fail(*_a, **_k):
+        raise ConfigError(message)
+
+    monkeypatch.setattr(marl_amod.scenario, "load_city", fail)
+    monkeypatch.setattr(console, "width", 80)
+    monkeypatch.setattr(sys, "argv", ["marl-amod", "evaluate", "--episodes", "1"])
+    with pytest.raises(SystemExit):
+        main()
+    assert capsys.readouterr().out.strip() == f"error: {message}"
 
 
 def test_wait_column_is_explained_only_when_requests_cannot_wait(tmp_path):
