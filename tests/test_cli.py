@@ -43,6 +43,24 @@ def test_every_command_has_help_whose_paragraphs_are_not_broken_mid_sentence():
         assert runner.invoke(app, [*name.split(), "--help"]).exit_code == 0
 
 
+def test_python_dash_m_marl_amod_is_the_command_with_its_exit_codes(tmp_path):
+    """A checkout used without `pip install -e .` has no `marl-amod` script; `python -m marl_amod`
+    is the same command: help exits 0, a user's mistake exits 2 with one line and no traceback."""
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parent.parent
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}
+    run = lambda *args: subprocess.run([sys.executable, "-m", "marl_amod", *args], cwd=tmp_path, env=env,  # noqa: E731
+                                       capture_output=True, text=True, timeout=120)  # fmt: skip
+    ok = run("evaluate", "--help")
+    assert ok.returncode == 0 and "--policy" in ok.stdout, ok.stderr
+    bad = run("evaluate", "--episodes", "1", "--policy", "teleport")
+    assert bad.returncode == 2 and "Traceback" not in bad.stdout + bad.stderr
+    assert [line for line in bad.stdout.splitlines() if line.startswith("error:")] == [bad.stdout.strip().splitlines()[-1]]
+
+
 def test_scenarios_lists_the_default_city():
     result = runner.invoke(app, ["scenarios"])
     assert result.exit_code == 0, result.output
