@@ -108,3 +108,68 @@ def test_the_env_page_and_docstring_name_every_info_key() -> None:
     doc = marl_amod.env.parallel.__doc__
     block = doc[doc.index("Infos (per agent") : doc.index("Global view")]
     assert set(re.findall(r"``(\w+)``", block)) == keys
+
+
+# ------------------------------------------------------------------ names the pages mention
+ALL_PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
+COMMAND = re.compile(r"marl-amod ([a-z][\w-]*)((?:[ \t]+[^\s`|;)&]+)*)")
+
+
+def stale_commands(text: str) -> list[str]:
+    """``marl-amod SUB --flag ...`` mentions whose subcommand or flag the CLI does not have."""
+    import typer.main
+
+    from marl_amod.cli import app
+
+    cli = typer.main.get_command(app)
+    stale = []
+    for m in COMMAND.finditer(text.replace("\\\n", " ")):  # shell line continuations join the command
+        name, rest = m.group(1), m.group(2)
+        command = cli.commands.get(name)
+        if command is not None and hasattr(command, "commands"):  # a group: `plot wait-map`
+            words = rest.split()
+            command = command.commands.get(words[0]) if words else command
+        if command is None:
+            stale.append(f"unknown command in {m.group(0)[:80]!r}")
+            continue
+        flags = {opt for param in command.params for opt in getattr(param, "opts", ())} | {"--help"}
+        stale += [f"{name}: no flag {flag}" for flag in re.findall(r"(?<![\w-])(--[a-z][\w-]*)", rest) if flag not in flags]
+    return stale
+
+
+def stale_names(text: str) -> list[str]:
+    """Backticked ``marl_amod.a.b`` names that neither import nor resolve as attributes."""
+    import importlib
+
+    stale = []
+    for name in sorted(set(re.findall(r"`[^`\n]*?\b(marl_amod(?:\.[A-Za-z_]\w*)+)", text))):
+        parts = name.split(".")
+        for i in range(len(parts), 0, -1):
+            try:
+                obj = importlib.import_module(".".join(parts[:i]))
+            except ImportError:
+                continue
+            rest = parts[i:]
+            while rest and hasattr(obj, rest[0]):
+                obj = getattr(obj, rest.pop(0))
+            if rest:
+                stale.append(name)
+            break
+    return stale
+
+
+def test_every_command_and_flag_the_pages_mention_exists() -> None:
+    """A renamed flag or command leaves no page telling users to type it (README.md and docs/**)."""
+    assert stale_commands("marl-amod evaluate --policy x --epochs 3 \\\n  --seeed 1; marl-amod plot wait-map --max-wait 3") == [
+        "evaluate: no flag --epochs", "evaluate: no flag --seeed"]  # fmt: skip
+    assert stale_commands("marl-amod evalute --help") != []
+    for page in ALL_PAGES:
+        assert stale_commands(page.read_text()) == [], page.relative_to(ROOT)
+
+
+def test_every_marl_amod_name_the_guide_pages_mention_exists() -> None:
+    """`marl_amod.x.y` in docs/** imports or resolves as an attribute."""
+    assert stale_names("`marl_amod.env.render.record_episode` and `marl_amod.integrations.nothing_here`") == [
+        "marl_amod.integrations.nothing_here"]  # fmt: skip
+    for page in ALL_PAGES[1:]:  # README.md joins once its `marl_amod.integrations.joint_env` reads `...joint.joint_env`
+        assert stale_names(page.read_text()) == [], page.relative_to(ROOT)
