@@ -37,6 +37,13 @@ DataDir = Annotated[
 ]
 
 
+# the report's evaluation: episode k draws its demand from (seed, k), the same draws for every policy
+Episodes = Annotated[int, typer.Option(min=1, help="evaluation episodes per policy")]
+EvalSeed = Annotated[int, typer.Option(min=0, help="episode k draws demand from (seed, k); the results tables use 0")]
+# a dataset's card scores its behaviour policy and the references on evaluation episodes
+CardEpisodes = Annotated[int, typer.Option(min=0, help="card: evaluation episodes of the behaviour and reference scores (0: no card)")]
+CardSeed = Annotated[int, typer.Option(min=0, help="card: evaluation seed (as marl-amod evaluate --seed)")]
+
 PolicyOptions = Annotated[
     list[str] | None,
     typer.Option(
@@ -159,8 +166,8 @@ def evaluate(
     policy: Annotated[
         list[str], typer.Option(help=f"{', '.join(policy_names())} or a checkpoint .pt; repeat to compare")
     ] = ["equal-distribution"],  # noqa: B006
-    episodes: Annotated[int, typer.Option(min=1)] = 10,
-    seed: Annotated[int, typer.Option(min=0)] = 0,
+    episodes: Episodes = 10,
+    seed: EvalSeed = 0,
     output: Annotated[Path | None, typer.Option(help="write the results JSON here")] = None,
     max_wait: Annotated[int, typer.Option(min=0, help="steps a request waits before leaving")] = 0,
     objective: Annotated[str, typer.Option(help="dispatch objective: profit or revenue")] = "profit",
@@ -211,12 +218,12 @@ def collect(
     ctx: typer.Context,
     scenario: Annotated[str, typer.Option(help="scenario name or YAML path")] = "synthetic",
     policy: Annotated[str, typer.Option(help="behaviour policy: inf, dtv, prop, mpc-forecast, ... or a checkpoint")] = "inf",
-    episodes: Annotated[int, typer.Option(min=1)] = 10,
+    episodes: Annotated[int, typer.Option(min=1, help="episodes to collect")] = 10,
     seed: Annotated[int, typer.Option(min=0, help="collection seed (demand streams disjoint from evaluation's)")] = 0,
     output: Annotated[Path, typer.Option(help="dataset file to write (.npz, format in marl_amod.datasets); card beside it")] = Path("data.npz"),
     max_wait: Annotated[int, typer.Option(min=0, help="steps a request waits before leaving")] = 0,
-    eval_episodes: Annotated[int, typer.Option(min=0, help="card: evaluation episodes of the behaviour and reference scores (0: no card)")] = 10,
-    eval_seed: Annotated[int, typer.Option(min=0, help="card: evaluation seed (as marl-amod evaluate --seed)")] = 0,
+    eval_episodes: CardEpisodes = 10,
+    eval_seed: CardSeed = 0,
     noise: Annotated[float, typer.Option(min=0, help="exploratory actions: Dirichlet around the policy's, concentration 1/noise")] = 0.0,
     lookahead: Annotated[int, typer.Option(min=1, help="look-ahead steps T of the logged features (train with the same)")] = 6,
     first_episode: Annotated[int, typer.Option(min=0, help="resume: start at the seed's episode k (merge-datasets joins the pieces)")] = 0,
@@ -287,8 +294,8 @@ def datasets(
     episodes: Annotated[int, typer.Option(min=1, help="episodes per dataset")] = 200,
     seed: Annotated[int, typer.Option(min=0, help="collection seed (disjoint from evaluation's)")] = 0,
     out_dir: Annotated[Path, typer.Option(help="folder of <scenario>_<policy>.npz and cards")] = Path("runs/datasets"),
-    eval_episodes: Annotated[int, typer.Option(min=0)] = 10,
-    eval_seed: Annotated[int, typer.Option(min=0)] = 0,
+    eval_episodes: CardEpisodes = 10,
+    eval_seed: CardSeed = 0,
     noise: Annotated[float, typer.Option(min=0, help="exploratory actions (see collect); names get _noise<x>")] = 0.0,
     data_dir: DataDir = None,
 ) -> None:
@@ -402,7 +409,7 @@ def finetune_curve(
     episodes: Annotated[int, typer.Option(min=1, help="online episodes of each run (fine-tuned and scratch)")] = 6000,
     num_envs: Annotated[int, typer.Option(min=1, help="episodes in lockstep, one A2C update each")] = 4,
     eval_every: Annotated[int, typer.Option(min=1, help="episodes between validations")] = 200,
-    eval_episodes: Annotated[int, typer.Option(min=1)] = 10,
+    eval_episodes: Annotated[int, typer.Option(min=1, help="validation episodes at each validation")] = 10,
     critic_warmup: Annotated[int, typer.Option(min=0, help="first fine-tuning updates that train the critic only")] = 50,
     finetune_lr: Annotated[float, typer.Option(min=0, help="actor learning rate when fine-tuning")] = 1e-4,
     concentration_cap: Annotated[
@@ -410,7 +417,7 @@ def finetune_curve(
     ] = None,
     out: Annotated[Path, typer.Option(help="folder for finetune.json and finetune.png")] = Path("docs/offline"),
     run_root: Annotated[Path, typer.Option(help="the two runs' logs")] = Path("runs/finetune"),
-    seed: Annotated[int, typer.Option(min=0)] = 0,
+    seed: Annotated[int, typer.Option(min=0, help="training seed of both runs (torch, numpy, training demand)")] = 0,
     data_dir: DataDir = None,
 ) -> None:
     """Offline -> online: fine-tune an offline policy with A2C next to A2C from scratch; plot and numbers."""
@@ -496,8 +503,8 @@ app.add_typer(plot_app, name="plot")
 def wait_map(
     scenario: Annotated[str, typer.Option(help="scenario name or YAML path")] = "synthetic",
     policy: Annotated[list[str], typer.Option(help="policy name or checkpoint; repeat: one panel each")] = ["no-rebalancing", "equal-distribution"],  # noqa: B006
-    episodes: Annotated[int, typer.Option(min=1)] = 10,
-    seed: Annotated[int, typer.Option(min=0)] = 0,
+    episodes: Episodes = 10,
+    seed: EvalSeed = 0,
     max_wait: Annotated[int, typer.Option(min=1, help="steps a request waits before leaving (waits are 0 without waiting)")] = 3,
     output: Annotated[Path, typer.Option(help="figure to write (.png); the results JSON goes beside it")] = Path("wait_map.png"),
     data_dir: DataDir = None,
@@ -531,8 +538,8 @@ def transfer(
     scenario: Annotated[str, typer.Option(help="the new city: san_francisco, nyc_brooklyn, shenzhen_downtown_west, nyc_brooklyn_event")],
     policy: Annotated[str | None, typer.Option(help="starting policy .pt, or the meta-policy (default: the study's, see marl_amod.transfer)")] = None,
     adapt_episodes: Annotated[int | None, typer.Option(min=0, help="K online episodes in the new city (fine-tune, meta-rl)")] = None,
-    episodes: Annotated[int, typer.Option(min=1)] = 10,
-    seed: Annotated[int, typer.Option(min=0)] = 0,
+    episodes: Episodes = 10,
+    seed: EvalSeed = 0,
     output: Annotated[Path | None, typer.Option(help="write the result JSON here")] = None,
     data_dir: DataDir = None,
 ) -> None:
@@ -555,8 +562,8 @@ def transfer(
 def transfer_table(
     study: Annotated[str, typer.Option(help="intercity (3 held-out cities) or event (Brooklyn special event)")],
     out: Annotated[Path, typer.Option(help="folder for <study>.md and <study>.json")] = Path("docs/meta"),
-    episodes: Annotated[int, typer.Option(min=1)] = 10,
-    seed: Annotated[int, typer.Option(min=0)] = 0,
+    episodes: Episodes = 10,
+    seed: EvalSeed = 0,
     strategy: Annotated[
         list[str] | None, typer.Option(help="rerun only these rows (repeat); the others come from <out>/<study>.json")
     ] = None,

@@ -28,7 +28,7 @@ def _commands(group, prefix=""):
 
 def test_every_command_has_help_whose_paragraphs_are_not_broken_mid_sentence():
     """Typer's --help prints a docstring's line breaks as they are: a paragraph wrapped in the source
-    shows as lines cut mid-sentence, so each paragraph is one line; every command says what it does."""
+    shows as lines cut mid-sentence, so each paragraph is one line; every command and option says what it does."""
     import inspect
 
     import typer.main
@@ -41,6 +41,8 @@ def test_every_command_has_help_whose_paragraphs_are_not_broken_mid_sentence():
         for paragraph in doc.split("\n\n"):
             assert "\n" not in paragraph, f"{name}: --help breaks the line inside {paragraph[:60]!r}"
         assert runner.invoke(app, [*name.split(), "--help"]).exit_code == 0
+        bare = [p.opts[0] for p in command.params if p.opts[0].startswith("--") and not getattr(p, "help", None)]
+        assert bare == [], f"{name}: options without help: {bare}"
 
 
 def test_python_dash_m_marl_amod_is_the_command_with_its_exit_codes(tmp_path):
