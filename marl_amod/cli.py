@@ -511,12 +511,12 @@ def wait_map(
 ) -> None:
     """Per-region mean waiting time (and service rate) of each policy on the region map, shared colour scale."""
     from marl_amod.evaluation import evaluate as run_eval
-    from marl_amod.files import check_destination, write_json
-    from marl_amod.plots import region_map
+    from marl_amod.files import write_json
+    from marl_amod.plots import figure_destination, region_map
     from marl_amod.scenario import load_city
 
     _use_data_dir(data_dir)
-    check_destination(output, what="--output")
+    figure_destination(output, what="--output")  # before the run, not after it
     city = load_city(scenario)
     policies = _make_policies(policy, city, {})
     results = []

@@ -69,11 +69,28 @@ def region_map(
     title: str | None = None,
 ) -> Path:
     """Write :func:`region_map_figure` to ``path`` atomically (format from the suffix, png by default)."""
-    from marl_amod.files import atomic_write, check_destination
+    from marl_amod.files import atomic_write
 
-    path = check_destination(path, what="figure")
+    path = figure_destination(path)
     fig = region_map_figure(results, city, rows, title)
     return atomic_write(path, lambda fh: fig.savefig(fh, format=path.suffix.lstrip(".") or "png"))
+
+
+def figure_destination(path: str | Path, *, what: str = "figure") -> Path:
+    """``path`` checked as :func:`~marl_amod.files.check_destination` does, with a suffix matplotlib
+    can write (none: png), so a figure name such as ``map.txt`` fails before the evaluation it
+    would show, not after it."""
+    from matplotlib.backend_bases import FigureCanvasBase
+
+    from marl_amod.errors import OutputError
+    from marl_amod.files import check_destination
+
+    path = check_destination(path, what=what)
+    fmt = path.suffix.lstrip(".").lower()
+    formats = FigureCanvasBase.get_supported_filetypes()
+    if fmt and fmt not in formats:
+        raise OutputError(f"{what} {path}: matplotlib cannot write .{fmt} figures; use one of {', '.join(sorted(formats))}")
+    return path
 
 
 def region_map_figure(

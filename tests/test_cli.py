@@ -188,6 +188,16 @@ def test_datasets_checks_every_behaviour_policy_before_collecting(monkeypatch, t
     assert isinstance(result.exception, ConfigError) and message in str(result.exception)
 
 
+def test_wait_map_refuses_a_figure_format_before_evaluating(monkeypatch, tmp_path):
+    """`--output map.txt` was a matplotlib traceback after every policy's episodes had run."""
+    import marl_amod.evaluation
+    from marl_amod.errors import OutputError
+
+    monkeypatch.setattr(marl_amod.evaluation, "evaluate", lambda *a, **k: pytest.fail("evaluated before the output was checked"))
+    result = runner.invoke(app, ["plot", "wait-map", "--episodes", "1", "--output", str(tmp_path / "map.txt")])
+    assert isinstance(result.exception, OutputError) and ".txt" in str(result.exception) and "png" in str(result.exception)
+
+
 def test_a_data_dir_that_is_not_a_folder_is_named_as_the_flag_the_user_gave(monkeypatch, tmp_path):
     from marl_amod.data import ENV_VAR
     from marl_amod.errors import DataError
