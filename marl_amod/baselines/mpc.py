@@ -388,7 +388,9 @@ class MPCScenarios(MPCForecast):
 
     def __init__(self, horizon: int = DEFAULT_HORIZON, scenarios: int = DEFAULT_SCENARIOS) -> None:
         super().__init__(horizon, "scipy")
-        self.scenarios = as_count(scenarios, "mpc-scenarios scenarios", lower=1)
+        if isinstance(scenarios, bool) or not isinstance(scenarios, (int, np.integer)) or scenarios < 1:
+            raise ConfigError(f"mpc-scenarios needs scenarios = an integer >= 1, got {scenarios!r}")
+        self.scenarios = int(scenarios)
         if self.scenarios != self.DEFAULT_SCENARIOS:  # results, datasets and cards say which teacher it was
             self.name = f"{MPCScenarios.name}+s{self.scenarios}"
 
