@@ -168,8 +168,8 @@ def test_every_command_and_flag_the_pages_mention_exists() -> None:
 
 
 def test_every_marl_amod_name_the_guide_pages_mention_exists() -> None:
-    """`marl_amod.x.y` in docs/** imports or resolves as an attribute."""
+    """`marl_amod.x.y` in README.md and docs/** imports or resolves as an attribute."""
     assert stale_names("`marl_amod.env.render.record_episode` and `marl_amod.integrations.nothing_here`") == [
         "marl_amod.integrations.nothing_here"]  # fmt: skip
-    for page in ALL_PAGES[1:]:  # README.md joins once its `marl_amod.integrations.joint_env` reads `...joint.joint_env`
+    for page in ALL_PAGES:
         assert stale_names(page.read_text()) == [], page.relative_to(ROOT)
