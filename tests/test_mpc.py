@@ -240,7 +240,7 @@ def test_mpc_forecast_demand_scale_names_the_policy_and_rejects_bad_values():
 class _MeanScenarios(MPCScenarios):
     """Every scenario is the expected demand: the two-stage LP must then plan as MPC-Forecast does."""
 
-    def sample_demand(self, mean: np.ndarray) -> np.ndarray:
+    def sample_demand(self, mean: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         return np.broadcast_to(mean, (self.scenarios, *mean.shape)).astype(float)
 
 
@@ -310,6 +310,38 @@ def test_mpc_scenarios_targets_are_feasible_and_runs_reproduce_by_seed(tiny_city
     assert runs[0]["per_episode"] == runs[1]["per_episode"]
     assert runs[0]["per_episode"] != runs[2]["per_episode"]
     assert runs[0]["policy"] == "mpc-scenarios+s3" and MPCScenarios().name == "mpc-scenarios"
+
+
+def test_mpc_scenarios_common_random_numbers_make_the_plan_a_function_of_the_state(small_city):
+    """With ``crn_seed`` two calls in the same state plan the same, whatever the policy rng; without
+    it they do not (the clone's labels were the teacher's own sampling noise)."""
+    system = _mid_episode(small_city, steps=2)
+    crn = MPCScenarios(horizon=5, scenarios=3, crn_seed=7)
+    sampling = MPCScenarios(horizon=5, scenarios=3)
+    for policy in (crn, sampling):
+        policy.reset(system, np.random.default_rng(0))
+    same = [crn.scenario_demand(system) for _ in range(2)]
+    crn.reset(system, np.random.default_rng(1))  # another episode's policy rng
+    same.append(crn.scenario_demand(system))
+    assert np.array_equal(same[0], same[1]) and np.array_equal(same[0], same[2])
+    assert not np.array_equal(same[0][0], same[0][1])  # still S different scenarios
+    assert not np.array_equal(sampling.scenario_demand(system), sampling.scenario_demand(system))
+    # the draws depend on the step and the seed, not on the fleet: another state at the same step
+    # shares them, the next step and another seed do not
+    other = _mid_episode(small_city, steps=2, seed=11)
+    assert np.array_equal(crn.scenario_demand(other), same[0])
+    assert not np.array_equal(MPCScenarios(horizon=5, scenarios=3, crn_seed=8).scenario_demand(system), same[0])
+    later = _mid_episode(small_city, steps=3)
+    assert not np.array_equal(crn.scenario_demand(later), same[0])
+    targets = [crn.target(system) for _ in range(3)]
+    assert all(np.array_equal(targets[0], t) for t in targets[1:])
+    assert crn.name == "mpc-scenarios+s3+crn7" and MPCScenarios(crn_seed=0).name == "mpc-scenarios+crn0"
+
+
+@pytest.mark.parametrize("bad", [-1, 2.5, "3", True])
+def test_mpc_scenarios_rejects_a_bad_crn_seed(bad):
+    with pytest.raises(ConfigError, match="crn_seed"):
+        MPCScenarios(crn_seed=bad)
 
 
 @pytest.mark.parametrize("bad", [0, -2, 2.5, "4", True])

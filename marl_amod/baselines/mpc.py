@@ -381,27 +381,41 @@ class MPCScenarios(MPCForecast):
     every later flow follow its own scenario, maximising the mean profit. Requests already
     waiting (``max_wait`` > 0) are known and added to every scenario. It sees nothing a policy
     does not: the forecast rates, the fleet, and its own random draws.
+
+    ``crn_seed`` (common random numbers) draws step t's scenarios from a generator seeded by
+    (``crn_seed``, t) instead of the policy rng, the same in every episode and on every call. The
+    plan is then a function of the state: two calls in the same state ask for the same targets,
+    so a clone of it is shown one plan per state instead of the spread of 16-draw plans.
     """
 
     name = "mpc-scenarios"
     DEFAULT_SCENARIOS = 8
 
-    def __init__(self, horizon: int = DEFAULT_HORIZON, scenarios: int = DEFAULT_SCENARIOS) -> None:
+    def __init__(
+        self, horizon: int = DEFAULT_HORIZON, scenarios: int = DEFAULT_SCENARIOS, crn_seed: int | None = None,
+    ) -> None:
         super().__init__(horizon, "scipy")
         if isinstance(scenarios, bool) or not isinstance(scenarios, (int, np.integer)) or scenarios < 1:
             raise ConfigError(f"mpc-scenarios needs scenarios = an integer >= 1, got {scenarios!r}")
+        if crn_seed is not None and (isinstance(crn_seed, bool) or not isinstance(crn_seed, (int, np.integer)) or crn_seed < 0):
+            raise ConfigError(f"mpc-scenarios needs crn_seed = an integer >= 0 (or none), got {crn_seed!r}")
         self.scenarios = int(scenarios)
+        self.crn_seed = None if crn_seed is None else int(crn_seed)
         if self.scenarios != self.DEFAULT_SCENARIOS:  # results, datasets and cards say which teacher it was
             self.name = f"{MPCScenarios.name}+s{self.scenarios}"
+        if self.crn_seed is not None:
+            self.name = f"{self.name}+crn{self.crn_seed}"
 
-    def sample_demand(self, mean: np.ndarray) -> np.ndarray:
+    def sample_demand(self, mean: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """(S, H, N, N) request counts drawn around the (H, N, N) expected demand."""
-        return self.rng.poisson(mean, size=(self.scenarios, *mean.shape)).astype(float)
+        return rng.poisson(mean, size=(self.scenarios, *mean.shape)).astype(float)
 
     def scenario_demand(self, system: FleetSystem) -> np.ndarray:
         """(S, H, N, N): the sampled future demand plus the requests already waiting."""
-        mean = self.forecast(system, system.sim.t + np.arange(self.horizon))
-        return self.add_waiting(system, self.sample_demand(mean))
+        t = system.sim.t
+        mean = self.forecast(system, t + np.arange(self.horizon))
+        rng = self.rng if self.crn_seed is None else np.random.default_rng([self.crn_seed, t])
+        return self.add_waiting(system, self.sample_demand(mean, rng))
 
     def problem(self, system: FleetSystem) -> list[PlanData]:
         """One LP's data per sampled scenario."""
