@@ -131,6 +131,19 @@ def test_policy_options_reach_the_policy(tmp_path):
     assert two["policy"] == "mpc-scenarios+s2" and two["metrics"]["profit"]["mean"] > 0
 
 
+def test_policy_option_numbers_are_read_as_python_writes_them():
+    """PyYAML reads YAML 1.1: `noise=5e-2` was the string '5e-2' (then refused as "not a finite
+    number") and `horizon=010` octal 8; other values stay YAML scalars."""
+    from marl_amod.cli import parse_policy_options
+    from marl_amod.policies import make_policy
+
+    items = ["noise=5e-2", "horizon=010", "demand_scale=1.2", "backend=cvxpy", "flag=true", "none=~", "big=1_000"]
+    options = parse_policy_options(items)
+    expected = {"noise": 0.05, "horizon": 10, "demand_scale": 1.2, "backend": "cvxpy", "flag": True, "none": None, "big": 1000}
+    assert options == expected
+    assert make_policy("mpc-forecast", noise=options["noise"]).noise == 0.05
+
+
 @pytest.mark.parametrize(
     "args, message",
     [
