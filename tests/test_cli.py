@@ -63,6 +63,17 @@ def test_python_dash_m_marl_amod_is_the_command_with_its_exit_codes(tmp_path):
     assert [line for line in bad.stdout.splitlines() if line.startswith("error:")] == [bad.stdout.strip().splitlines()[-1]]
 
 
+def test_importing_marl_amod_main_runs_no_command(monkeypatch):
+    """No import-time side effects: a tool that imports every module (docs, the docs-name test)
+    must not start the CLI, which would parse its own argv and exit."""
+    import importlib
+    import sys
+
+    monkeypatch.setattr(sys, "argv", ["pytest", "--no-such-flag"])
+    monkeypatch.delitem(sys.modules, "marl_amod.__main__", raising=False)
+    assert importlib.import_module("marl_amod.__main__").main is not None
+
+
 def test_scenarios_lists_the_default_city():
     result = runner.invoke(app, ["scenarios"])
     assert result.exit_code == 0, result.output
