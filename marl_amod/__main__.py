@@ -2,4 +2,5 @@
 
 from marl_amod.cli import main
 
-main()
+if __name__ == "__main__":  # importing the module (docs tools, the docs-name test) runs no command
+    main()

@@ -55,13 +55,11 @@ PolicyOptions = Annotated[
 
 
 def parse_policy_options(items: list[str] | None, ctx: typer.Context | None = None) -> dict[str, object]:
-    """``["demand_scale=1.2", "horizon=10"]`` -> ``{"demand_scale": 1.2, "horizon": 10}`` (values read as YAML scalars).
+    """``["demand_scale=1.2", "horizon=10"]`` -> ``{"demand_scale": 1.2, "horizon": 10}`` (see :func:`_option_value`).
 
     A key the command sets itself (``seed``, ``episodes``, ``max_wait``, ...) is refused with the
     flag of ``ctx``'s command to use: passed on, it would collide with the run's own argument."""
     import inspect
-
-    import yaml
 
     from marl_amod.evaluation import SYSTEM_OPTIONS
     from marl_amod.evaluation import evaluate as run_eval
@@ -77,12 +75,25 @@ def parse_policy_options(items: list[str] | None, ctx: typer.Context | None = No
         if key in SYSTEM_OPTIONS or key in run_keys:
             flag = f"--{key.replace('_', '-')}"
             raise ConfigError(f"{key} is the run's, not the policy's" + (f": use {flag}" if flag in flags else ""))
-        try:
-            options[key] = yaml.safe_load(value)
-        except yaml.YAMLError as exc:
-            first = str(exc).splitlines()[0]
-            raise ConfigError(f"--policy-option {key}: {value!r} is not a YAML value ({first})") from None
+        options[key] = _option_value(key, value)
     return options
+
+
+def _option_value(key: str, value: str) -> object:
+    """A number as Python writes it, else a YAML scalar: PyYAML reads YAML 1.1, where ``5e-2`` is
+    a string (and then "not a finite number") and ``010`` is octal 8."""
+    import yaml
+
+    for number in (int, float):
+        try:
+            return number(value)
+        except ValueError:
+            pass
+    try:
+        return yaml.safe_load(value)
+    except yaml.YAMLError as exc:
+        first = str(exc).splitlines()[0]
+        raise ConfigError(f"--policy-option {key}: {value!r} is not a YAML value ({first})") from None
 
 
 def _use_data_dir(data_dir: Path | None) -> None:

@@ -150,6 +150,14 @@ def test_vector_env_seeds_are_checked_like_the_parallel_envs(seed) -> None:
     np.testing.assert_array_equal(obs, venv.reset(seed=[4, 5])[0])
 
 
+@pytest.mark.parametrize("seeds", [range(4, 6), (4, 5), np.array([4, 5])])
+def test_vector_env_takes_any_sequence_of_per_episode_seeds(seeds) -> None:
+    """reset(seed=...) takes a Sequence of B seeds (a range too), as its signature says: only a
+    single value is checked as one seed."""
+    venv = marl_amod.vector_env("synthetic", num_envs=2, horizon=3)
+    np.testing.assert_array_equal(venv.reset(seed=seeds)[0], venv.reset(seed=[4, 5])[0])
+
+
 def test_vector_env_rejects_bad_actions() -> None:
     venv = marl_amod.vector_env("synthetic", num_envs=2)
     venv.reset(seed=0)

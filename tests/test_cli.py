@@ -63,6 +63,17 @@ def test_python_dash_m_marl_amod_is_the_command_with_its_exit_codes(tmp_path):
     assert [line for line in bad.stdout.splitlines() if line.startswith("error:")] == [bad.stdout.strip().splitlines()[-1]]
 
 
+def test_importing_marl_amod_main_runs_no_command(monkeypatch):
+    """No import-time side effects: a tool that imports every module (docs, the docs-name test)
+    must not start the CLI, which would parse its own argv and exit."""
+    import importlib
+    import sys
+
+    monkeypatch.setattr(sys, "argv", ["pytest", "--no-such-flag"])
+    monkeypatch.delitem(sys.modules, "marl_amod.__main__", raising=False)
+    assert importlib.import_module("marl_amod.__main__").main is not None
+
+
 def test_scenarios_lists_the_default_city():
     result = runner.invoke(app, ["scenarios"])
     assert result.exit_code == 0, result.output
@@ -129,6 +140,19 @@ def test_policy_options_reach_the_policy(tmp_path):
     assert "mpc-forecast+scale1.5" in output
     two, _ = run_eval(tmp_path, "--policy", "mpc-scenarios", "--policy-option", "horizon=3", "--policy-option", "scenarios=2")
     assert two["policy"] == "mpc-scenarios+s2" and two["metrics"]["profit"]["mean"] > 0
+
+
+def test_policy_option_numbers_are_read_as_python_writes_them():
+    """PyYAML reads YAML 1.1: `noise=5e-2` was the string '5e-2' (then refused as "not a finite
+    number") and `horizon=010` octal 8; other values stay YAML scalars."""
+    from marl_amod.cli import parse_policy_options
+    from marl_amod.policies import make_policy
+
+    items = ["noise=5e-2", "horizon=010", "demand_scale=1.2", "backend=cvxpy", "flag=true", "none=~", "big=1_000"]
+    options = parse_policy_options(items)
+    expected = {"noise": 0.05, "horizon": 10, "demand_scale": 1.2, "backend": "cvxpy", "flag": True, "none": None, "big": 1000}
+    assert options == expected
+    assert make_policy("mpc-forecast", noise=options["noise"]).noise == 0.05
 
 
 @pytest.mark.parametrize(

@@ -17,6 +17,7 @@ from marl_amod.env import actions as act
 from marl_amod.env.rewards import REWARD_MODES, RewardMode, typical_step_revenue
 from marl_amod.errors import ConfigError
 from marl_amod.scenario import City, load_city
+from marl_amod.validation import as_count, as_real
 
 
 @dataclass(frozen=True)
@@ -48,18 +49,12 @@ def env_options(
         raise ConfigError(f"reward_mode must be one of {REWARD_MODES}, got {reward_mode!r}")
     if action_mode not in act.ACTION_MODES:
         raise ConfigError(f"action_mode must be one of {act.ACTION_MODES}, got {action_mode!r}")
-    # bools are refused although Python counts them as ints: lookahead=True is a slip, not 1 step
-    if isinstance(lookahead, (bool, np.bool_)) or not isinstance(lookahead, (int, np.integer)) or lookahead < 1:
-        raise ConfigError(f"lookahead must be a positive number of steps, got {lookahead!r}")
-    if max_cycles is not None and (
-        isinstance(max_cycles, (bool, np.bool_)) or not isinstance(max_cycles, (int, np.integer)) or max_cycles < 1
-    ):
-        raise ConfigError(f"max_cycles must be None or a positive number of steps, got {max_cycles!r}")
-    if reward_scale != "auto" and (
-        isinstance(reward_scale, (bool, np.bool_))
-        or not (isinstance(reward_scale, (int, float, np.integer, np.floating)) and np.isfinite(reward_scale) and reward_scale > 0)
-    ):
-        raise ConfigError(f"reward_scale must be a positive number or 'auto', got {reward_scale!r}")
+    # counts and numbers as the policies' options are checked: lookahead=True is a slip, not 1 step
+    lookahead = as_count(lookahead, "lookahead (steps)", lower=1)
+    if max_cycles is not None:
+        max_cycles = as_count(max_cycles, "max_cycles (steps, or None)", lower=1)
+    if not (isinstance(reward_scale, str) and reward_scale == "auto"):
+        reward_scale = as_real(reward_scale, "reward_scale (or 'auto')", above=0)
     if not isinstance(strict_actions, (bool, np.bool_)):  # strict_actions="no" would be truthy
         raise ConfigError(f"strict_actions must be True or False, got {strict_actions!r}")
     if isinstance(scenario, City):

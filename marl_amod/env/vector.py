@@ -102,7 +102,7 @@ class AmodVectorEnv(HasEnvOptions):
             if self._seeds is None:
                 self._seeds = np.random.SeedSequence()
             seeds: list[Seed] = list(self._seeds.spawn(b))
-        elif not isinstance(seed, (list, tuple, np.ndarray)):
+        elif isinstance(seed, (str, bytes)) or not isinstance(seed, (Sequence, np.ndarray)):  # one seed ("a" is no list)
             first = as_seed(seed)  # as the ParallelEnv: numpy integers welcome, a negative seed a ConfigError
             self._seeds = np.random.SeedSequence(first)
             seeds = [first + k for k in range(b)]
