@@ -377,3 +377,17 @@ def test_hotspot_tasks_are_distinct_and_refuse_ranges_they_cannot_draw_from():
     for bad in ((0.0, 2.0), (0.01, 0.04), (3.0, 2.0), (2.0, float("inf"))):
         with pytest.raises(ConfigError, match="hotspot_multipliers"):
             meta.hotspot_tasks(["synthetic"], 1, bad, seed=0)
+
+
+def test_hotspot_tasks_with_distinct_regions_move_the_hotspot():
+    """With ``distinct_regions`` a city's variants sit on as many regions (without it the same
+    region recurs at other multipliers), the first variant is the one without it (its
+    demonstrations reused), and more variants than regions are refused."""
+    n = load_city("synthetic").n_regions
+    region = lambda name: meta.task_city(name).meta["hotspot"]["region"]  # noqa: E731
+    plain = meta.hotspot_tasks(["synthetic"], n, (2.0, 4.0), seed=0)
+    assert len({region(v) for v in plain}) < n  # the default repeats regions: the option changes something
+    moved = meta.hotspot_tasks(["synthetic"], n, (2.0, 4.0), seed=0, distinct_regions=True)
+    assert sorted(region(v) for v in moved) == list(range(n)) and moved[0] == plain[0]
+    with pytest.raises(ConfigError, match="each region once"):
+        meta.hotspot_tasks(["synthetic"], n + 1, (2.0, 4.0), seed=0, distinct_regions=True)

@@ -194,6 +194,23 @@ def test_a_dagger_schedule_whose_first_round_never_comes_is_refused(first, updat
     assert args_for("meta-bc", {**values, "dagger_rounds": 0}).dagger_rounds == 0  # no rounds asked: nothing to refuse
 
 
+def test_hotspot_share_sets_how_often_variants_are_drawn():
+    """``hotspot_share`` gives the variants that share of the draws (uniform within cities and
+    within variants); without it every task is drawn as often, with the draws of the runs before
+    the option (the same generator calls); a share without variants is refused."""
+    names, draws = ["a", "b", "a~hot0x2", "a~hot1x3", "b~hot0x2", "b~hot1x3"], 6000
+    rng = np.random.default_rng(0)
+    got = [mi.draw_task(names, 2, 0.25, rng) for _ in range(draws)]
+    counts = {n: got.count(n) / draws for n in names}
+    assert abs(sum(counts[n] for n in names[2:]) - 0.25) < 0.02
+    assert all(abs(counts[n] - 0.375) < 0.03 for n in names[:2]) and all(abs(counts[n] - 0.0625) < 0.015 for n in names[2:])
+    a, b = np.random.default_rng(1), np.random.default_rng(1)
+    assert [mi.draw_task(names, 2, None, a) for _ in range(50)] == [names[int(b.integers(len(names)))] for _ in range(50)]
+    with pytest.raises(ConfigError, match="no variants"):
+        args_for("meta-bc", {"hotspot_share": 0.4})
+    assert args_for("meta-bc", {"hotspot_share": 0.4, "hotspot_variants": 2}).hotspot_share == 0.4
+
+
 def test_hotspot_variants_are_tasks_with_demonstrations_and_dagger_rounds_of_their_own(tasks, tmp_path):
     """One variant per city: its own MPC-F demonstrations (``hotspot_episodes``), drawn like a city,
     driven in the DAgger rounds (here the first at update 1, not before the first update), named on
@@ -201,11 +218,12 @@ def test_hotspot_variants_are_tasks_with_demonstrations_and_dagger_rounds_of_the
     args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
                    cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=2, eval_every=2,
                    eval_episodes=2, final_eval_episodes=1, dagger_rounds=1, dagger_first=1, dagger_episodes=2,
-                   hotspot_variants=1, hotspot_episodes=4, run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
+                   hotspot_variants=1, hotspot_episodes=4, hotspot_share=0.5, run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
     plain, variants = mi.tasks(args)
     assert plain == tasks and [meta.base_city(v) for v in variants] == tasks and all(meta.HOTSPOT in v for v in variants)
     card = ALGOS["meta-bc"].train(args.model_copy(update={"updates": 1}))["card"]  # stopped before its round, then resumed
     assert card["demonstrations"]["hotspot_variants"] == variants and card["dagger"]["rounds"] == 0
+    assert card["demonstrations"]["variants_share_of_draws"] == 0.5
     assert not (tmp_path / "bc" / "dagger").exists()  # round 1 waits for update 1
     for name in variants:
         city = meta.task_city(name)

@@ -284,10 +284,13 @@ def task_city(name: str) -> City:
         raise ConfigError(f"task {name!r}: a hotspot variant is named <city>{HOTSPOT}<region>x<multiplier>") from None
 
 
-def hotspot_tasks(cities: list[str], variants: int, multipliers: tuple[float, float], seed: int) -> list[str]:
+def hotspot_tasks(cities: list[str], variants: int, multipliers: tuple[float, float], seed: int, distinct_regions: bool = False) -> list[str]:
     """``variants`` hotspot variants of each city: the region drawn by its share of the day's
     requests out (busy regions become hotspots more often), the multiplier log-uniform in
-    ``multipliers`` (one decimal); a function of the seed, so a resumed run names the same tasks."""
+    ``multipliers`` (one decimal); a function of the seed, so a resumed run names the same tasks.
+    ``distinct_regions``: a city's variants on as many different regions (redrawn otherwise), so a
+    second variant puts the hotspot somewhere else rather than the same region at another
+    multiplier; its first variant is the one without it."""
     lo, hi = map(float, multipliers)
     if variants and not (np.isfinite(hi) and 0.05 <= lo <= hi):
         raise ConfigError(f"hotspot_multipliers {list(multipliers)}: a range [low, high] with 0.05 <= low <= high (one decimal is kept)")
@@ -296,16 +299,21 @@ def hotspot_tasks(cities: list[str], variants: int, multipliers: tuple[float, fl
         city, rng = load_city(name), np.random.default_rng([seed, i, 6029])
         out = place_table(city)[:, 2].astype(np.float64)
         mine: list[str] = []
+        regions: set[int] = set()
         for _ in range(1000 * variants):  # a duplicate would be one task counted twice: draw again
             region = int(rng.choice(city.n_regions, p=out / out.sum()))
             multiplier = round(float(np.exp(rng.uniform(np.log(lo), np.log(hi)))), 1)
+            if distinct_regions and region in regions:
+                continue
             if (task := hotspot_name(name, region, multiplier)) not in mine:
                 mine.append(task)
+                regions.add(region)
             if len(mine) == variants:
                 break
         else:
             raise ConfigError(f"{variants} distinct hotspot variants of {name} not found in hotspot_multipliers {list(multipliers)} "
-                              "(one decimal) x its busy regions: ask for fewer, or widen the range")  # fmt: skip
+                              f"(one decimal) x its busy regions{' (each region once: hotspot_distinct_regions)' if distinct_regions else ''}: "
+                              "ask for fewer, or widen the range")  # fmt: skip
         names += mine
     return names
 

@@ -336,6 +336,13 @@ class Args(meta.Args):
     """the range (log-uniform) of the variants' multipliers"""
     hotspot_episodes: int = Field(32, ge=1)
     """MPC-Forecast demonstration episodes per hotspot variant"""
+    hotspot_distinct_regions: bool = False
+    """a city's variants on different regions (:func:`~marl_amod.algos.meta.hotspot_tasks`): with
+    two or more, the hotspot moves instead of the same region at another multiplier"""
+    hotspot_share: float | None = Field(None, gt=0, lt=1)
+    """the share of an update's draws that go to the variants (the rest to the cities; uniform
+    within each). None: every task as often, so with one variant a city is drawn half as often as
+    without, and with two a third (a cost the held-out city without a dominant hotspot showed)"""
     pad_cities: bool = True
     """an update's cities padded into one batch (the same losses to float rounding): 1.12-1.16x
     faster at hidden 64 x 16 trials per city, 1.4-1.8x at 4 trials (``benchmarks/meta_update.py``);
@@ -343,6 +350,8 @@ class Args(meta.Args):
 
     @model_validator(mode="after")
     def _dagger_rounds_fit(self) -> Args:
+        if self.hotspot_share is not None and not self.hotspot_variants:
+            raise ValueError(f"hotspot_share {self.hotspot_share} without hotspot_variants: there are no variants to draw")
         if self.dagger_rounds and self.dagger_first >= self.updates:
             raise ValueError(f"dagger_first {self.dagger_first} is not before the last update ({self.updates}): no DAgger round "
                              "would run (lower dagger_first, raise updates, or dagger_rounds: 0)")  # fmt: skip
@@ -393,7 +402,17 @@ def draw_trials(demos: CityDemos, args: meta.Args, rng: np.random.Generator) -> 
 
 def tasks(args: Args) -> tuple[list[str], list[str]]:
     """(the training cities, their hotspot variants): the tasks an update draws from."""
-    return list(args.cities), meta.hotspot_tasks(args.cities, args.hotspot_variants, args.hotspot_multipliers, args.seed)
+    return list(args.cities), meta.hotspot_tasks(args.cities, args.hotspot_variants, args.hotspot_multipliers, args.seed,
+                                                 args.hotspot_distinct_regions)  # fmt: skip
+
+
+def draw_task(names: list[str], plain: int, share: float | None, rng: np.random.Generator) -> str:
+    """One update's task: of ``names`` (the first ``plain`` the cities, the rest their variants)
+    uniformly, or with ``share`` a variant that often and a city otherwise (uniform within each)."""
+    if share is None:
+        return names[int(rng.integers(len(names)))]
+    group = names[plain:] if rng.random() < share else names[:plain]
+    return group[int(rng.integers(len(group)))]
 
 
 def lr_at(args: Args, step: int) -> float:
@@ -435,7 +454,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         st = C.load_state(resume, "meta-bc")
         if st.get("tasks", names) != names:  # its updates and DAgger rounds are of those tasks (older states: not recorded)
             raise DataError(f"{resume} trained on the tasks {st['tasks']}; this config names {names}: resume with the run's "
-                            "cities, seed and hotspot settings (hotspot_variants, hotspot_multipliers)")  # fmt: skip
+                            "cities, seed and hotspot settings (hotspot_variants, hotspot_multipliers, hotspot_distinct_regions)")  # fmt: skip
         model.load_state_dict(st["model"]), opt.load_state_dict(st["opt"])
         step, prior_wall, best = st["episode"], st["wall_s"], C.BestActor(st["best_val"], st["best_actor"])
         rng.bit_generator.state = st["city_rng"]
@@ -455,7 +474,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                 dagger_wall += dagger_round(args, model, k, data, cities)
             draws = []
             for _ in range(args.cities_per_update):
-                demos, graph = data[names[int(rng.integers(len(names)))]]
+                demos, graph = data[draw_task(names, len(plain), args.hotspot_share, rng)]
                 draws.append((demos, draw_trials(demos, args, rng), graph))
             ce, vl = cities_losses(model, draws, args.gamma, args.pad_cities)
             for group in opt.param_groups:
@@ -473,7 +492,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     extra = {"updates": step, "demonstrations": {"policy": "mpc-forecast", "cities": list(args.cities), "episodes_per_city": args.demo_episodes,
              "collection_wall_s": round(sum(walls.values()), 1)}, **warm}  # fmt: skip
     if variants:
-        extra["demonstrations"] |= {"hotspot_variants": variants, "episodes_per_variant": args.hotspot_episodes}
+        extra["demonstrations"] |= {"hotspot_variants": variants, "episodes_per_variant": args.hotspot_episodes,
+                                    **({"variants_share_of_draws": args.hotspot_share} if args.hotspot_share is not None else {})}  # fmt: skip
     if args.dagger_rounds:
         extra["dagger"] = {"rounds": started_rounds(args, step), "episodes_per_city": args.dagger_episodes, "shock_prob": args.dagger_shock_prob,
                            "collection_wall_s": round(dagger_wall, 1)}  # fmt: skip
