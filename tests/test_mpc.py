@@ -18,7 +18,7 @@ from marl_amod.baselines.mpc import (
     solve_scipy,
 )
 from marl_amod.errors import ConfigError, SolverError
-from marl_amod.evaluation import evaluate
+from marl_amod.evaluation import episode_seeds, evaluate
 from marl_amod.policies import make_policy
 from marl_amod.scenario import City
 from marl_amod.system import FleetSystem
@@ -336,6 +336,21 @@ def test_mpc_scenarios_common_random_numbers_make_the_plan_a_function_of_the_sta
     targets = [crn.target(system) for _ in range(3)]
     assert all(np.array_equal(targets[0], t) for t in targets[1:])
     assert crn.name == "mpc-scenarios+s3+crn7" and MPCScenarios(crn_seed=0).name == "mpc-scenarios+crn0"
+
+
+def test_mpc_scenarios_common_random_numbers_are_not_an_episode_demand_stream(small_city):
+    """Episode k of seed s draws its demand from (s, k): step t's scenarios from (crn_seed, t) would
+    be episode t's own demand stream, so at step 0 of episode 0 of seed crn_seed a scenario would
+    be the episode's future demand itself (the forecast rates are the demand rates here)."""
+    horizon = 5
+    for seed, episode in [(0, 0), (7, 0)]:
+        demand_seed, policy_rng = episode_seeds(seed, episode)
+        system = FleetSystem(small_city)
+        system.reset(demand_seed)
+        policy = MPCScenarios(horizon=horizon, scenarios=4, crn_seed=seed)
+        policy.reset(system, policy_rng)
+        future = system.sim.demand[:horizon]
+        assert not any(np.array_equal(s, future) for s in policy.scenario_demand(system))
 
 
 @pytest.mark.parametrize("bad", [-1, 2.5, "3", True])

@@ -383,13 +383,17 @@ class MPCScenarios(MPCForecast):
     does not: the forecast rates, the fleet, and its own random draws.
 
     ``crn_seed`` (common random numbers) draws step t's scenarios from a generator seeded by
-    (``crn_seed``, t) instead of the policy rng, the same in every episode and on every call. The
+    (``crn_seed``, t, :attr:`CRN_STREAM`) instead of the policy rng, the same in every episode and on every call. The
     plan is then a function of the state: two calls in the same state ask for the same targets,
     so a clone of it is shown one plan per state instead of the spread of 16-draw plans.
     """
 
     name = "mpc-scenarios"
     DEFAULT_SCENARIOS = 8
+    CRN_STREAM = 5021
+    """the third seed word of the common random numbers: (``crn_seed``, t) alone is episode t's
+    demand stream of seed ``crn_seed`` (:func:`~marl_amod.evaluation.episode_seeds`), whose
+    scenario at step 0 of episode 0 would be the episode's own future demand"""
 
     def __init__(
         self, horizon: int = DEFAULT_HORIZON, scenarios: int = DEFAULT_SCENARIOS, crn_seed: int | None = None,
@@ -414,7 +418,7 @@ class MPCScenarios(MPCForecast):
         """(S, H, N, N): the sampled future demand plus the requests already waiting."""
         t = system.sim.t
         mean = self.forecast(system, t + np.arange(self.horizon))
-        rng = self.rng if self.crn_seed is None else np.random.default_rng([self.crn_seed, t])
+        rng = self.rng if self.crn_seed is None else np.random.default_rng([self.crn_seed, t, self.CRN_STREAM])
         return self.add_waiting(system, self.sample_demand(mean, rng))
 
     def problem(self, system: FleetSystem) -> list[PlanData]:
