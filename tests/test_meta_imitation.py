@@ -229,6 +229,9 @@ def test_hotspot_variants_are_tasks_with_demonstrations_and_dagger_rounds_of_the
         city = meta.task_city(name)
         demos = mi.load_demos(tmp_path / "demos", city, 6)
         assert demos.episodes == 4 and city.name.startswith(("small~hot", "large~hot"))
+    for share in (0.25, None):  # its first update drew half its tasks from the variants: the card would name another share
+        with pytest.raises(DataError, match="hotspot_share"):
+            ALGOS["meta-bc"].train(args.model_copy(update={"hotspot_share": share}), resume=str(tmp_path / "bc" / "state.pt"))
     card = ALGOS["meta-bc"].train(args, resume=str(tmp_path / "bc" / "state.pt"))["card"]
     assert card["dagger"]["rounds"] == 1
     assert sorted(p.stem for p in (tmp_path / "bc" / "dagger" / "round1").glob("*.npz")) == sorted(meta.task_city(n).name for n in [*tasks, *variants])

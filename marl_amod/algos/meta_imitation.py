@@ -455,6 +455,9 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         if st.get("tasks", names) != names:  # its updates and DAgger rounds are of those tasks (older states: not recorded)
             raise DataError(f"{resume} trained on the tasks {st['tasks']}; this config names {names}: resume with the run's "
                             "cities, seed and hotspot settings (hotspot_variants, hotspot_multipliers, hotspot_distinct_regions)")  # fmt: skip
+        if st.get("hotspot_share") != args.hotspot_share:  # its draws were of that share (older states: every task as often)
+            raise DataError(f"{resume} drew its variants with hotspot_share {st.get('hotspot_share')}; this config sets "
+                            f"{args.hotspot_share}: resume with the run's share (the card names one)")  # fmt: skip
         model.load_state_dict(st["model"]), opt.load_state_dict(st["opt"])
         step, prior_wall, best = st["episode"], st["wall_s"], C.BestActor(st["best_val"], st["best_actor"])
         rng.bit_generator.state = st["city_rng"]
@@ -464,7 +467,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
 
     def save() -> tuple[Path, int]:
         C.save_state(C.state_path(args), algorithm="meta-bc", model=model.state_dict(), opt=opt.state_dict(), episode=step,
-                     best_val=book.best.value, best_actor=book.best.state, wall_s=timer(), city_rng=rng.bit_generator.state, tasks=names)  # fmt: skip
+                     best_val=book.best.value, best_actor=book.best.state, wall_s=timer(), city_rng=rng.bit_generator.state, tasks=names,
+                     hotspot_share=args.hotspot_share)  # fmt: skip
         return C.state_path(args), step
 
     dagger_wall = sum(dagger_round(args, model, k, data, cities) for k in range(1, started_rounds(args, step) + 1))  # resumed: read back
