@@ -209,6 +209,10 @@ def test_hotspot_share_sets_how_often_variants_are_drawn():
     with pytest.raises(ConfigError, match="no variants"):
         args_for("meta-bc", {"hotspot_share": 0.4})
     assert args_for("meta-bc", {"hotspot_share": 0.4, "hotspot_variants": 2}).hotspot_share == 0.4
+    # a city named twice is one task (the draws are over distinct tasks), and the share's split of
+    # the tasks into cities and variants would count it twice: a variant drawn as a city
+    with pytest.raises(ConfigError, match="twice"):
+        args_for("meta-bc", {"cities": ["porto", "rome", "porto"], "hotspot_share": 0.4, "hotspot_variants": 1})
 
 
 def test_hotspot_variants_are_tasks_with_demonstrations_and_dagger_rounds_of_their_own(tasks, tmp_path):

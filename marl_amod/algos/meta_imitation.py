@@ -350,6 +350,9 @@ class Args(meta.Args):
 
     @model_validator(mode="after")
     def _dagger_rounds_fit(self) -> Args:
+        if twice := sorted({c for c in self.cities if self.cities.count(c) > 1}):  # an update draws from the distinct tasks
+            raise ValueError(f"cities names {twice} twice: a city is one task however often it is listed (its "
+                             "variants would be drawn as cities under hotspot_share)")  # fmt: skip
         if self.hotspot_share is not None and not self.hotspot_variants:
             raise ValueError(f"hotspot_share {self.hotspot_share} without hotspot_variants: there are no variants to draw")
         if self.dagger_rounds and self.dagger_first >= self.updates:
