@@ -331,7 +331,7 @@ class Args(meta.Args):
     """per training city, this many :func:`~marl_amod.algos.meta.hotspot` variants as more tasks
     (one busy region's requests x ``hotspot_multipliers``, forecast included), demonstrated by
     MPC-F (``hotspot_episodes`` each) and driven in the DAgger rounds like the cities; drawn as
-    often as a city. The held-out cities' hotspots are stronger than any training city's"""
+    often as a city unless ``hotspot_share`` says otherwise. The held-out cities' hotspots are stronger than any training city's"""
     hotspot_multipliers: tuple[float, float] = (2.0, 4.0)
     """the range (log-uniform) of the variants' multipliers"""
     hotspot_episodes: int = Field(32, ge=1)

@@ -44,7 +44,7 @@ from marl_amod.baselines.base import FlowPolicy
 from marl_amod.errors import ConfigError, SolverError
 from marl_amod.scenario.types import City, step_rows
 from marl_amod.system import FleetSystem
-from marl_amod.validation import as_count, as_real
+from marl_amod.validation import as_count, as_real, as_seed
 
 if TYPE_CHECKING:
     import scipy.sparse as sp
@@ -399,12 +399,8 @@ class MPCScenarios(MPCForecast):
         self, horizon: int = DEFAULT_HORIZON, scenarios: int = DEFAULT_SCENARIOS, crn_seed: int | None = None,
     ) -> None:
         super().__init__(horizon, "scipy")
-        if isinstance(scenarios, bool) or not isinstance(scenarios, (int, np.integer)) or scenarios < 1:
-            raise ConfigError(f"mpc-scenarios needs scenarios = an integer >= 1, got {scenarios!r}")
-        if crn_seed is not None and (isinstance(crn_seed, bool) or not isinstance(crn_seed, (int, np.integer)) or crn_seed < 0):
-            raise ConfigError(f"mpc-scenarios needs crn_seed = an integer >= 0 (or none), got {crn_seed!r}")
-        self.scenarios = int(scenarios)
-        self.crn_seed = None if crn_seed is None else int(crn_seed)
+        self.scenarios = as_count(scenarios, "mpc-scenarios scenarios", lower=1)
+        self.crn_seed = None if crn_seed is None else as_seed(crn_seed, "mpc-scenarios crn_seed (or none)")
         if self.scenarios != self.DEFAULT_SCENARIOS:  # results, datasets and cards say which teacher it was
             self.name = f"{MPCScenarios.name}+s{self.scenarios}"
         if self.crn_seed is not None:
