@@ -215,7 +215,7 @@ def test_hotspot_share_sets_how_often_variants_are_drawn():
         args_for("meta-bc", {"cities": ["porto", "rome", "porto"], "hotspot_share": 0.4, "hotspot_variants": 1})
 
 
-def test_hotspot_variants_are_tasks_with_demonstrations_and_dagger_rounds_of_their_own(tasks, tmp_path):
+def test_hotspot_variants_are_tasks_with_demonstrations_and_dagger_rounds_of_their_own(tasks, tmp_path, monkeypatch):
     """One variant per city: its own MPC-F demonstrations (``hotspot_episodes``), drawn like a city,
     driven in the DAgger rounds (here the first at update 1, not before the first update), named on
     the card and counted by the transfer table."""
@@ -225,7 +225,10 @@ def test_hotspot_variants_are_tasks_with_demonstrations_and_dagger_rounds_of_the
                    hotspot_variants=1, hotspot_episodes=4, hotspot_share=0.5, run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
     plain, variants = mi.tasks(args)
     assert plain == tasks and [meta.base_city(v) for v in variants] == tasks and all(meta.HOTSPOT in v for v in variants)
+    shares, draw = [], mi.draw_task
+    monkeypatch.setattr(mi, "draw_task", lambda names, plain, share, rng: shares.append((len(names) - plain, share)) or draw(names, plain, share, rng))
     card = ALGOS["meta-bc"].train(args.model_copy(update={"updates": 1}))["card"]  # stopped before its round, then resumed
+    assert shares == [(len(variants), 0.5)] * args.cities_per_update  # the update drew with the run's share and its variants
     assert card["demonstrations"]["hotspot_variants"] == variants and card["dagger"]["rounds"] == 0
     assert card["demonstrations"]["variants_share_of_draws"] == 0.5
     assert not (tmp_path / "bc" / "dagger").exists()  # round 1 waits for update 1
