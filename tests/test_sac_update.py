@@ -7,6 +7,7 @@ both must leave the update's numbers as they were, to float rounding.
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from pathlib import Path
 
@@ -40,11 +41,27 @@ def test_clip_grad_norm_scales_gradients_as_torch_clip_grad_norm(max_norm):
 def _reference_update(monkeypatch: pytest.MonkeyPatch) -> None:
     """The update as it was: torch's clip_grad_norm_ and no_grad for the target side."""
     monkeypatch.setattr(sac, "clip_grad_norm", lambda params, max_norm: torch.nn.utils.clip_grad_norm_(params, max_norm, foreach=True))
-    monkeypatch.setattr(torch, "inference_mode", torch.no_grad)
+    # (torch.inference_mode(False), the dense graph's guard for its cached operators, does nothing there)
+    monkeypatch.setattr(torch, "inference_mode", lambda mode=True: torch.no_grad() if mode else contextlib.nullcontext())
 
 
-@pytest.mark.parametrize("num_envs, precision", [(2, "fp32"), (2, "bf16"), (1, "fp32")])  # dense (stacked critics), bf16, torch-geometric
-def test_learner_update_matches_the_reference_update_on_fixed_inputs(monkeypatch, num_envs, precision):
+def _with_local(b: dict[str, torch.Tensor], k: int = 3) -> dict[str, torch.Tensor]:
+    """A replay sample with the decentralised actor's local fields: own (B, N, F), k neighbours
+    (B, N, k, F) (here the region's own features, rolled), mask (B, N, k)."""
+    out = dict(b)
+    for p in ("", "next_"):
+        x = b[f"{p}x"]
+        out[f"{p}own"] = x
+        out[f"{p}nbrs"] = torch.stack([x.roll(j + 1, dims=1) for j in range(k)], dim=2)
+        out[f"{p}mask"] = torch.ones(*x.shape[:2], k)
+    return out
+
+
+@pytest.mark.parametrize(
+    "num_envs, precision, mode",  # dense (stacked critics), bf16, decentralised (SAGE critics, local actor), torch-geometric
+    [(2, "fp32", "centralised"), (2, "bf16", "centralised"), (2, "fp32", "decentralised"), (1, "fp32", "centralised")],
+)
+def test_learner_update_matches_the_reference_update_on_fixed_inputs(monkeypatch, num_envs, precision, mode):
     """A few updates from the same weights on the same samples and noise give the same losses and
     weights as the update with torch's clipping and no_grad targets (float rounding), with
     clipping active (a small max_grad_norm)."""
@@ -58,13 +75,13 @@ def test_learner_update_matches_the_reference_update_on_fixed_inputs(monkeypatch
             if reference:
                 _reference_update(m)
             torch.manual_seed(0)
-            args = sac.Args(scenario="synthetic", hidden=16, batch_size=8, num_envs=num_envs, precision=precision, max_grad_norm=max_grad_norm, policy_out="")
+            args = sac.Args(scenario="synthetic", hidden=16, batch_size=8, num_envs=num_envs, precision=precision, mode=mode, max_grad_norm=max_grad_norm, policy_out="")
             learner = sac.Learner(args, city, C.make_graph(city, args))
             buffer = sac_update.filled_replay(city.n_regions, 13, 32, seed=0)
             gen, losses = torch.Generator().manual_seed(0), []
             for i in range(4):
                 torch.manual_seed(100 + i)  # the same reparameterisation noise in both runs
-                out = learner.update(buffer.sample(8, gen))
+                out = learner.update(_with_local(buffer.sample(8, gen)) if mode == "decentralised" else buffer.sample(8, gen))
                 losses += [float(out["loss/q"]), float(out["loss/policy"])]
             nets = (learner.actor, learner.critic, learner.critic_targ)
             return losses, [p.detach().clone() for net in nets for p in net.parameters()]

@@ -18,8 +18,8 @@ on the dense graph path (one matmul per layer for the whole (batch, N, F) sample
 critics as one :class:`~marl_amod.models.gnn.StackedTwinQ` (both critics' weights stacked: one
 batched matmul per layer for the pair); ``critic_time`` gives the critics the time context;
 ``auto_entropy`` tunes the temperature. On these small graphs an update is dominated by per-op
-overhead, so the update does each thing once: one replay gather, fused Adam, no critic weight
-gradients in the policy step. ``precision: bf16`` runs the update's network passes in bfloat16
+overhead, so the update does each thing once: one replay gather, fused Adam, one norm for each
+clipping, no critic weight gradients in the policy step, the target side in inference mode. ``precision: bf16`` runs the update's network passes in bfloat16
 (twice as fast at 256 hidden units on CPUs with AMX; :func:`autocast`).
 """
 
