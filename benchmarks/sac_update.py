@@ -11,7 +11,7 @@ clipping and Adam step with Polyak averaging, and the replay sample. CPU time of
 one torch thread: on a shared machine it varies less than wall time.
 
     python benchmarks/sac_update.py [--city nyc_brooklyn] [--settings h64 h256 h256-bf16]
-        [--batch-size 100] [--updates 300] [--compile] [--json out.json]
+        [--batch-size 100] [--updates 300] [--compile] [--ref REV [--rounds 10]] [--json out.json]
 
 ``--compile`` wraps the actor and both critics in ``torch.compile`` (inductor) first, to compare
 with eager PyTorch (not used by training: slower here, see docs/training.md).
