@@ -73,7 +73,10 @@ class _Operators:
     def operator(self, kind: ConvKind) -> torch.Tensor:
         """The operator of a ``"gcn"`` or ``"sage"`` layer on this graph (built once)."""
         if kind not in self._ops:
-            self._ops[kind] = self._build(kind)
+            # a normal tensor even when first asked for in inference mode (SAC's target side):
+            # later passes that autograd records reuse it
+            with torch.inference_mode(False):
+                self._ops[kind] = self._build(kind)
         return self._ops[kind]
 
     def conv(self, conv: nn.Module, x: torch.Tensor) -> torch.Tensor:
