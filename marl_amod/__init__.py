@@ -32,7 +32,7 @@ def parallel_env(scenario: str | City = "synthetic", **kwargs: Any) -> AmodParal
     """The PettingZoo ParallelEnv: every region an agent (arguments: :mod:`marl_amod.env.parallel`).
 
     Keywords: reward_mode="team"|"local", action_mode="weight"|"logit", lookahead=6, max_wait=0,
-    objective="profit", reward_scale=1.0|"auto", strict_actions=False, max_cycles=None,
+    objective="profit", reward_scale=1.0|"auto", strict_actions=False, max_cycles=None, arrivals_now=False,
     render_mode=None, and scenario overrides such as horizon=10.
     """
     from marl_amod.env.parallel import parallel_env as make

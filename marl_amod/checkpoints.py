@@ -69,6 +69,9 @@ class PolicyCard(BaseModel):
     seed: int
     time_context: bool = False
     """the actor also reads the 3 time values (time of day, step fraction) on every node (``actor_time``)"""
+    arrivals_now: bool | None = None
+    """the node features end with the vehicles arriving now (``arrivals_now``, :mod:`marl_amod.env.features`);
+    absent: the paper's features"""
     env_version: str | None = None
     """the env module the policy was trained on: amod_v0 -> "v0" (results change with it)"""
     n_regions: int | None = None
@@ -257,8 +260,10 @@ def load_actor(path: str | Path, city: City) -> tuple[torch.nn.Module, dict[str,
     path = Path(path)
     blob = _read_blob(path)
     card, state = _card_of(path, blob["card"]), blob["state_dict"]
-    if card.n_features != n_features(card.lookahead):
-        raise DataError(f"{path}: card says lookahead {card.lookahead} but {card.n_features} features (expected {n_features(card.lookahead)})")
+    expected_f = n_features(card.lookahead, bool(card.arrivals_now))
+    if card.n_features != expected_f:
+        raise DataError(f"{path}: card says lookahead {card.lookahead}, arrivals_now {bool(card.arrivals_now)} but {card.n_features} features "
+                        f"(expected {expected_f})")  # fmt: skip
     if card.agent_id and card.n_regions != city.n_regions:
         raise DataError(
             f"{path}: trained with agent_id (a one-hot identity of each of {card.n_regions} regions); {city.name} has "
@@ -318,7 +323,7 @@ def architecture_args(card: Mapping[str, Any]) -> dict[str, Any]:
     return {
         "actor": card["actor"], "conv": card["conv"], "readout": card.get("readout") or "none",
         "agent_id": bool(card.get("agent_id")), "standardise_inputs": bool(card.get("standardise_inputs")), "hidden": card["hidden"],
-        "lookahead": card["lookahead"], "actor_time": card.get("time_context", False),
+        "lookahead": card["lookahead"], "actor_time": card.get("time_context", False), "arrivals_now": bool(card.get("arrivals_now")),
     }  # fmt: skip
 
 
@@ -346,19 +351,20 @@ class ActorPolicy(WeightPolicy):
 
     def __init__(
         self, actor: torch.nn.Module, city: City, lookahead: int = 6, name: str = "actor", time_context: bool = False,
-        selector: QSelector | None = None,
+        selector: QSelector | None = None, arrivals_now: bool = False,
     ) -> None:
         self.actor, self.lookahead, self.name, self.time_context, self.selector = actor, lookahead, name, time_context, selector
+        self.arrivals_now = arrivals_now
         self.edge_index = torch.tensor(np.array(city.edge_index), dtype=torch.long)
         self.agents = ob.agent_names(city.n_regions)
 
     def weights(self, system: FleetSystem) -> np.ndarray:
-        return self._mean(node_features(system, self.lookahead), ob.time_features(system.city, system.t))
+        return self._mean(node_features(system, self.lookahead, arrivals_now=self.arrivals_now), ob.time_features(system.city, system.t))
 
     def __call__(self, observations: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Actions (each agent's weight, shape (1,)) for the env's local observations."""
         stacked = np.stack([np.asarray(observations[a], dtype=np.float32) for a in self.agents])
-        own, ctx = ob.split_local(stacked, n_features(self.lookahead))[:2]  # (N, F), (N, 3)
+        own, ctx = ob.split_local(stacked, n_features(self.lookahead, self.arrivals_now))[:2]  # (N, F), (N, 3)
         w = self._mean(own, ctx[0]).astype(np.float32)  # exact: the weights are float32 values
         return {a: w[i : i + 1] for i, a in enumerate(self.agents)}
 
@@ -397,4 +403,5 @@ def load_policy(path: str | Path, city: City | str | None = None, selection: Sel
     actor, card = load_actor(path, city)
     chosen = _selection(selection if selection is not None else card.get("selection"))
     selector = QSelector(load_critic(path)[0], city, chosen) if chosen is not None and chosen.candidates else None
-    return ActorPolicy(actor, city, card["lookahead"], name=Path(path).stem, time_context=card["time_context"], selector=selector)
+    return ActorPolicy(actor, city, card["lookahead"], name=Path(path).stem, time_context=card["time_context"], selector=selector,
+                       arrivals_now=bool(card.get("arrivals_now")))  # fmt: skip

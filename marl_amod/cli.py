@@ -238,6 +238,7 @@ def collect(
     noise: Annotated[float, typer.Option(min=0, help="exploratory actions: Dirichlet around the policy's, concentration 1/noise")] = 0.0,
     lookahead: Annotated[int, typer.Option(min=1, help="look-ahead steps T of the logged features (train with the same)")] = 6,
     first_episode: Annotated[int, typer.Option(min=0, help="resume: start at the seed's episode k (merge-datasets joins the pieces)")] = 0,
+    arrivals_now: Annotated[bool, typer.Option(help="log the node column of the vehicles arriving now (train with arrivals_now: true)")] = False,
     policy_option: PolicyOptions = None,
     data_dir: DataDir = None,
 ) -> None:
@@ -245,7 +246,7 @@ def collect(
     _use_data_dir(data_dir)
     options = parse_policy_options(policy_option, ctx)
     _collect_one(
-        scenario, policy, episodes, seed, output, max_wait, eval_episodes, eval_seed, {}, noise, lookahead, options, first_episode
+        scenario, policy, episodes, seed, output, max_wait, eval_episodes, eval_seed, {}, noise, lookahead, options, first_episode, arrivals_now
     )
 
 
@@ -274,6 +275,7 @@ def merge_datasets(
 def _collect_one(
     scenario: str, policy: str, episodes: int, seed: int, output: Path, max_wait: int, eval_episodes: int, eval_seed: int,
     cache: dict, noise: float = 0.0, lookahead: int = 6, policy_options: dict | None = None, first_episode: int = 0,
+    arrivals_now: bool = False,
 ) -> None:
     from marl_amod.datasets import collect as collect_dataset
     from marl_amod.datasets import write_card
@@ -287,7 +289,7 @@ def _collect_one(
         task = bar.add_task(f"{pol.name} on {city.name}", total=episodes)
         data = collect_dataset(
             city, pol, episodes=episodes, seed=seed, lookahead=lookahead, max_wait=max_wait, noise=noise,
-            progress=lambda _k: bar.advance(task), first_episode=first_episode,
+            progress=lambda _k: bar.advance(task), first_episode=first_episode, arrivals_now=arrivals_now,
         )
     data.meta["policy_options"] = dict(policy_options or {})  # the name alone does not say e.g. the horizon
     path = save_or_fallback(output, data.save, what="the dataset")

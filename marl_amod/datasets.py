@@ -175,8 +175,8 @@ def concatenate(parts: list[OfflineDataset]) -> OfflineDataset:
         raise DataError("nothing to concatenate")
     first = parts[0].meta
     for p in parts[1:]:
-        for key in ("scenario", "n_agents", "lookahead", "max_wait"):
-            if p.meta[key] != first[key]:
+        for key in ("scenario", "n_agents", "lookahead", "max_wait", "arrivals_now"):
+            if p.meta.get(key) != first.get(key):
                 raise DataError(f"datasets differ in {key}: {first[key]} and {p.meta[key]}")
     arrays = _stack(parts)
     policies = sorted({p.meta["policy"] for p in parts})
@@ -206,7 +206,7 @@ def _stack(parts: list[OfflineDataset]) -> dict[str, np.ndarray]:
 # logged the same way on the same city. Seeds and episode counts are what may differ.
 SAME_COLLECTION = (
     "format_version", "scenario", "policy", "policy_options", "rollout_policy", "noise", "lookahead", "max_wait",
-    "n_agents", "n_features",
+    "n_agents", "n_features", "arrivals_now",
 )  # fmt: skip
 
 
@@ -349,7 +349,7 @@ def collection_seed(seed: int, episode: int) -> int:
 
 def collect(
     city: City, policy: Policy, *, episodes: int, seed: int = 0, lookahead: int = 6, max_wait: int = 0, noise: float = 0.0,
-    labeller: Policy | None = None, progress: Callable[[int], None] | None = None, first_episode: int = 0,
+    labeller: Policy | None = None, progress: Callable[[int], None] | None = None, first_episode: int = 0, arrivals_now: bool = False,
 ) -> OfflineDataset:
     """Roll ``policy`` through the PettingZoo env for ``episodes`` episodes on the collection seeds
     (``noise``: exploratory actions around the policy's, see :class:`EnvActionPolicy`).
@@ -360,14 +360,16 @@ def collect(
     names the labeller (whose actions are logged), ``meta["rollout_policy"]`` the policy driven.
 
     ``first_episode`` k0 collects the seed's episodes k0..k0+episodes-1 (their ``episode_ids``),
-    the same demand and policy draws as one longer collection: a piece that resumes another."""
+    the same demand and policy draws as one longer collection: a piece that resumes another.
+    ``arrivals_now`` logs the env's opt-in node column of the vehicles arriving now (the meta
+    records it, and an offline run must set the same)."""
     from marl_amod import parallel_env
     from marl_amod.env.features import n_features
 
     if as_count(episodes, "episodes") < 1:
         raise ConfigError(f"episodes must be >= 1, got {episodes}")
     seed, first_episode = as_seed(seed), as_count(first_episode, "first_episode")
-    env = parallel_env(city, reward_mode="local", action_mode="weight", lookahead=lookahead, max_wait=max_wait)
+    env = parallel_env(city, reward_mode="local", action_mode="weight", lookahead=lookahead, max_wait=max_wait, arrivals_now=arrivals_now)
     behaviour = EnvActionPolicy(policy, noise)
     expert = EnvActionPolicy(labeller) if labeller is not None else None
     agents = list(env.possible_agents)
@@ -413,7 +415,7 @@ def collect(
     meta = {
         "format_version": FORMAT_VERSION, "scenario": city.name, "policy": expert.name if expert else behaviour.name, "noise": noise,
         "seed": seed, "first_episode": first_episode, "streams": [[seed, first_episode, episodes]], "episodes": episodes, "transitions": int(len(arrays["team_rewards"])), "lookahead": lookahead,
-        "max_wait": max_wait, "n_agents": len(agents), "n_features": n_features(lookahead),
+        "max_wait": max_wait, "n_agents": len(agents), "n_features": n_features(lookahead, arrivals_now),
         "observation_dim": int(arrays["observations"].shape[-1]), "state_dim": int(arrays["states"].shape[-1]),
         "agents": agents, "demand_seeds": "episode k: marl_amod.datasets.collection_seed(seed, k)",
         "episode_profit_mean": float(np.mean(returns)), "episode_profit_std": float(np.std(returns)),
@@ -421,6 +423,8 @@ def collect(
     }  # fmt: skip
     if expert is not None:
         meta["rollout_policy"] = behaviour.name
+    if arrivals_now:  # absent: the default features (every older dataset)
+        meta["arrivals_now"] = True
     return OfflineDataset(**arrays, edge_index=graph["edge_index"], edge_attr=graph["edge_attr"], meta=meta)
 
 

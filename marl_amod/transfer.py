@@ -79,7 +79,8 @@ def fine_tune(policy_path: str, scenario: str, episodes: int = K_FINE_TUNE, seed
         summary = a2c.train(args)
         city = load_city(scenario)
         actor, _ = load_actor(summary["policy"], city)
-    return ActorPolicy(actor, city, card["lookahead"], name=f"fine-tune({Path(policy_path).stem})", time_context=card.get("time_context", False))
+    return ActorPolicy(actor, city, card["lookahead"], name=f"fine-tune({Path(policy_path).stem})", time_context=card.get("time_context", False),
+                       arrivals_now=bool(card.get("arrivals_now")))  # fmt: skip
 
 
 # --------------------------------------------------------------------------------------------

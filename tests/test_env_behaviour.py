@@ -350,7 +350,8 @@ def test_bad_configuration_raises_config_error(tiny_city) -> None:
     for bad in (0, 2.5, True):
         with pytest.raises(ConfigError, match="max_cycles"):
             marl_amod.parallel_env(tiny_city, max_cycles=bad)
-    for key, bad in (("lookahead", True), ("reward_scale", True), ("strict_actions", "no"), ("strict_actions", 0)):
+    for key, bad in (("lookahead", True), ("reward_scale", True), ("strict_actions", "no"), ("strict_actions", 0),
+                     ("arrivals_now", 1)):
         for make in (marl_amod.parallel_env, marl_amod.vector_env):  # the two faces read the same options
             with pytest.raises(ConfigError, match=key):
                 make(tiny_city, **{key: bad})

@@ -156,7 +156,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     city = load_city(args.scenario)
     rollout = C.make_rollout(city, args)
     graph = C.make_graph(city, args)
-    n_features = feature_count(args.lookahead)
+    n_features = feature_count(args.lookahead, args.arrivals_now)
     local_critic = args.mode == "decentralised" and not args.central_critic
     actor = C.make_actor(args, city)
     critic_in = C.critic_features(n_features, args)

@@ -81,6 +81,10 @@ class RunArgs(CommonArgs):
     actor_time: bool = False
     """the centralised actor also reads the time context on every node: without it a GNN cannot
     tell the last steps, where a move no longer pays back, from the first (the card records it)"""
+    arrivals_now: bool = False
+    """every node also reads the vehicles arriving at it in the current step (idle from the next;
+    in no default column, yet MPC's plan starts from them: :mod:`marl_amod.env.features`); the card
+    records it, so evaluation and warm starts build the same features"""
     init_actor: str = ""
     """a policy .pt whose weights start the actor (offline -> online, macro -> SUMO fine-tuning);
     same actor, hidden, conv; the critic and optimisers start fresh (A2C validates the start first)"""
@@ -113,8 +117,8 @@ class RunArgs(CommonArgs):
 def make_rollout(city: City, args: RunArgs) -> Rollout | BatchRollout:
     """The rollout driver of a run: one episode at a time, or ``num_envs`` in lockstep."""
     if args.num_envs > 1:
-        return BatchRollout(city, args.mode, args.lookahead, args.num_envs)
-    return Rollout(city, args.mode, args.lookahead)
+        return BatchRollout(city, args.mode, args.lookahead, args.num_envs, args.arrivals_now)
+    return Rollout(city, args.mode, args.lookahead, args.arrivals_now)
 
 
 def make_graph(city: City, args: RunArgs) -> torch.Tensor | DenseGraph:
@@ -132,7 +136,7 @@ def actor_features(n_features: int, args: RunArgs) -> int:
 def make_actor(args: RunArgs, city: City) -> torch.nn.Module:
     """The run's actor: the local (SAGE) GNN on each agent's observation for decentralised runs,
     else ``args.actor`` on the global graph (reading the time context too with ``actor_time``)."""
-    f = n_features(args.lookahead)
+    f = n_features(args.lookahead, args.arrivals_now)
     if args.mode == "decentralised":
         return LocalActor(f, args.hidden)
     return build_actor(args.actor, city, actor_features(f, args), args.hidden, args.conv, args.readout, args.agent_id, args.standardise_inputs)
@@ -223,7 +227,7 @@ class Timer:
 # --------------------------------------------------------------------------------------------
 def evaluate_actor(
     actor: torch.nn.Module, city: City, episodes: int, seed: int, lookahead: int = 6, time_context: bool = False,
-    selector: QSelector | None = None,
+    selector: QSelector | None = None, arrivals_now: bool = False,
 ) -> dict[str, Any]:
     """Deterministic (Dirichlet mean, or Q-guided with ``selector``) evaluation with the same loop
     and JSON as the baselines."""
@@ -232,7 +236,8 @@ def evaluate_actor(
     was_training = actor.training
     actor.eval()
     try:
-        return evaluate(ActorPolicy(actor, city, lookahead, time_context=time_context, selector=selector), city, episodes, seed)
+        policy = ActorPolicy(actor, city, lookahead, time_context=time_context, selector=selector, arrivals_now=arrivals_now)
+        return evaluate(policy, city, episodes, seed)
     finally:
         actor.train(was_training)
 
@@ -259,8 +264,8 @@ class BestActor:
 
     def validate(self, actor: torch.nn.Module, city: City, args: ValidationArgs) -> float:
         """Mean profit of the deterministic actor on the validation seeds; kept when it is the best yet."""
-        time = getattr(args, "actor_time", False)  # RLlib's actors read node features only
-        val = evaluate_actor(actor, city, args.eval_episodes, args.eval_seed, args.lookahead, time)["metrics"]["profit"]["mean"]
+        time, arrivals = getattr(args, "actor_time", False), getattr(args, "arrivals_now", False)  # RLlib's actors: neither
+        val = evaluate_actor(actor, city, args.eval_episodes, args.eval_seed, args.lookahead, time, None, arrivals)["metrics"]["profit"]["mean"]
         if val > self.value:
             self.value, self.state = val, copy.deepcopy(actor.state_dict())
         return val
@@ -440,14 +445,15 @@ def finish_run(
     selector = None
     if critic is not None and critic.selection is not None and critic.selection.candidates:
         selector = QSelector(critic.critic, city, critic.selection)
-    result = evaluate_actor(actor, city, args.final_eval_episodes, args.final_eval_seed, args.lookahead, args.actor_time, selector)
+    result = evaluate_actor(actor, city, args.final_eval_episodes, args.final_eval_seed, args.lookahead, args.actor_time, selector, args.arrivals_now)
     profit = result["metrics"]["profit"]
     card = make_card(
         scenario=city.name, n_regions=city.n_regions, algorithm=algorithm, mode=args.mode,
         actor="local" if args.mode == "decentralised" else args.actor,
         conv="sage" if args.mode == "decentralised" else args.conv, readout=None if args.readout == "none" else args.readout,
         agent_id=args.agent_id or None, standardise_inputs=args.standardise_inputs or None,
-        hidden=args.hidden, n_features=n_features(args.lookahead), lookahead=args.lookahead, seed=args.seed, time_context=args.actor_time,
+        hidden=args.hidden, n_features=n_features(args.lookahead, args.arrivals_now), lookahead=args.lookahead, seed=args.seed, time_context=args.actor_time,
+        arrivals_now=args.arrivals_now or None,
         episodes_trained=episodes_done, eval_episodes=args.final_eval_episodes, eval_seed=args.final_eval_seed,
         profit_mean=profit["mean"], profit_std=profit["std"], served_demand_mean=result["metrics"]["served_demand"]["mean"],
         training_wall_s=round(wall_s, 1), torch_threads=torch.get_num_threads(),

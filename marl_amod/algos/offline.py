@@ -109,6 +109,8 @@ class Data:
             raise DataError(f"{path} was collected on {meta['scenario']} ({meta['n_agents']} regions), this run is on {city.name}")
         if meta["lookahead"] != args.lookahead:
             raise ConfigError(f"{path} has lookahead {meta['lookahead']}; set lookahead: {meta['lookahead']} in the config")
+        if bool(meta.get("arrivals_now")) != args.arrivals_now:
+            raise ConfigError(f"{path} has arrivals_now {bool(meta.get('arrivals_now'))}; set arrivals_now: {str(bool(meta.get('arrivals_now'))).lower()} in the config")
         view = data.global_view()
         t = lambda a: torch.tensor(a, dtype=torch.float32)  # noqa: E731 - a copy: npz arrays are read-only
         self.tensors: dict[str, torch.Tensor] = {
@@ -240,7 +242,7 @@ def fit(
     spec = None
     if critic is not None:
         net, hidden, conv = critic
-        spec = C.CriticSpec(net, {"n_features": n_features(args.lookahead), "hidden": hidden, "conv": conv}, getattr(args, "selection", None))
+        spec = C.CriticSpec(net, {"n_features": n_features(args.lookahead, args.arrivals_now), "hidden": hidden, "conv": conv}, getattr(args, "selection", None))
     return C.finish_run(args, algorithm, actor, city, timer(), 0, config_path, extra=extra, critic=spec)
 
 

@@ -41,15 +41,15 @@ class Obs:
 class Rollout:
     """Drives one city episode by episode; ``step(weights)`` takes (N,) non-negative weights."""
 
-    def __init__(self, city: City, mode: Mode = "centralised", lookahead: int = 6) -> None:
+    def __init__(self, city: City, mode: Mode = "centralised", lookahead: int = 6, arrivals_now: bool = False) -> None:
         from marl_amod import parallel_env
         from marl_amod.env.features import n_features
         from marl_amod.env.observations import LocalLayout, neighbour_table
 
-        self.city, self.mode, self.lookahead = city, mode, lookahead
-        self.layout = LocalLayout(neighbour_table(city), n_features(lookahead))
+        self.city, self.mode, self.lookahead, self.arrivals_now = city, mode, lookahead, arrivals_now
+        self.layout = LocalLayout(neighbour_table(city), n_features(lookahead, arrivals_now))
         if mode == "decentralised":  # agents act on their own PettingZoo observations
-            self.env = parallel_env(city, reward_mode="team", action_mode="weight", lookahead=lookahead)
+            self.env = parallel_env(city, reward_mode="team", action_mode="weight", lookahead=lookahead, arrivals_now=arrivals_now)
             self.system = self.env.system
         else:
             self.env = None
@@ -62,11 +62,11 @@ class Rollout:
         from marl_amod.env.features import node_features
         from marl_amod.env.observations import local_observations, split_local, time_features
 
-        x = torch.as_tensor(node_features(self.system, self.lookahead))
+        x = torch.as_tensor(node_features(self.system, self.lookahead, arrivals_now=self.arrivals_now))
         ctx = torch.as_tensor(time_features(self.city, self.system.t))
         if self.mode == "centralised":
             return Obs(x, ctx=ctx)
-        local = local_observations(self.system, self.lookahead, layout=self.layout)
+        local = local_observations(self.system, self.lookahead, layout=self.layout, arrivals_now=self.arrivals_now)
         own, _ctx, nbrs, mask = split_local(torch.as_tensor(local), x.shape[1])
         return Obs(x, own, nbrs, mask, ctx)
 
@@ -115,13 +115,15 @@ class BatchRollout:
     :func:`train_seed` exactly as :class:`Rollout` would draw it.
     """
 
-    def __init__(self, city: City, mode: Mode = "centralised", lookahead: int = 6, num_envs: int = 16) -> None:
+    def __init__(self, city: City, mode: Mode = "centralised", lookahead: int = 6, num_envs: int = 16, arrivals_now: bool = False) -> None:
         from marl_amod.batch_system import BatchFleetSystem
         from marl_amod.env.vector import AmodVectorEnv
 
-        self.city, self.mode, self.lookahead, self.num_envs = city, mode, lookahead, num_envs
+        self.city, self.mode, self.lookahead, self.num_envs, self.arrivals_now = city, mode, lookahead, num_envs, arrivals_now
         if mode == "decentralised":  # agents act on their own observations, as the ParallelEnv gives them
-            self.env: AmodVectorEnv | None = AmodVectorEnv(city, num_envs, reward_mode="team", action_mode="weight", lookahead=lookahead)
+            self.env: AmodVectorEnv | None = AmodVectorEnv(
+                city, num_envs, reward_mode="team", action_mode="weight", lookahead=lookahead, arrivals_now=arrivals_now
+            )
             self.system = self.env.system
         else:
             self.env = None
@@ -134,7 +136,7 @@ class BatchRollout:
         from marl_amod.env.observations import split_local, time_features
 
         sim = self.system.sim
-        x = torch.as_tensor(state_features(self.city, sim.t, sim.idle, sim.arrivals, self.lookahead))  # (B, N, F)
+        x = torch.as_tensor(state_features(self.city, sim.t, sim.idle, sim.arrivals, self.lookahead, arrivals_now=self.arrivals_now))  # (B, N, F)
         ctx = torch.as_tensor(time_features(self.city, sim.t)).expand(self.num_envs, -1)  # (B, 3)
         if local is None:
             return Obs(x, ctx=ctx)

@@ -6,7 +6,11 @@ For region i at step t, with look-ahead T (6 by default) and scale 0.01:
 * ``supply[k]``: idle now plus vehicles arriving at i in step t+k, k = 1..T (T columns);
 * ``value[k]``: expected requests out of i in step t+k times their price, summed over
   destinations, k = 1..T (T columns); expected = ``city.forecast_rate``, which does not know a
-  scenario's events (policies see a demand shock only through the state it leaves).
+  scenario's events (policies see a demand shock only through the state it leaves);
+* ``arrivals_now`` (opt-in, ``arrivals_now=True``): vehicles arriving at i during step t, idle
+  from t+1 (1 column). ``supply[1]`` counts idle now plus the arrivals of step t+1, so these are in
+  no other column, yet they are the fleet MPC's plan starts from at its first step; the paper's
+  observation leaves them out, so the default does too (docs/training.md, synthetic city).
 
 Steps past the tabulated horizon count as zero (:func:`~marl_amod.scenario.types.step_rows`).
 """
@@ -24,26 +28,28 @@ from marl_amod.system import FleetSystem
 FEATURE_SCALE = 0.01
 
 
-def n_features(lookahead: int) -> int:
-    """F = 1 + 2T: columns of :func:`node_features` for a look-ahead of T steps."""
-    return 1 + 2 * lookahead
+def n_features(lookahead: int, arrivals_now: bool = False) -> int:
+    """F = 1 + 2T (+ 1 with ``arrivals_now``): columns of :func:`node_features` for a look-ahead of T steps."""
+    return 1 + 2 * lookahead + int(arrivals_now)
 
 
-def feature_names(lookahead: int = 6) -> list[str]:
+def feature_names(lookahead: int = 6, arrivals_now: bool = False) -> list[str]:
     """Column names of :func:`node_features`."""
-    return ["idle"] + [f"supply_t+{k}" for k in range(1, lookahead + 1)] + [f"value_t+{k}" for k in range(1, lookahead + 1)]
+    steps = range(1, lookahead + 1)
+    return ["idle"] + [f"supply_t+{k}" for k in steps] + [f"value_t+{k}" for k in steps] + ["arrivals_now"] * arrivals_now
 
 
-def node_features(system: FleetSystem, lookahead: int = 6, scale: float = FEATURE_SCALE) -> np.ndarray:
-    """(N, 1 + 2T) float32 features of every region (the paper's GNN input)."""
+def node_features(system: FleetSystem, lookahead: int = 6, scale: float = FEATURE_SCALE, arrivals_now: bool = False) -> np.ndarray:
+    """(N, F) float32 features of every region (the paper's GNN input, F = :func:`n_features`)."""
     sim = system.sim
-    return state_features(system.city, sim.t, sim.idle, sim.arrivals, lookahead, scale)
+    return state_features(system.city, sim.t, sim.idle, sim.arrivals, lookahead, scale, arrivals_now)
 
 
 def state_features(
-    city: City, t: int, idle: np.ndarray, arrivals: np.ndarray, lookahead: int = 6, scale: float = FEATURE_SCALE
+    city: City, t: int, idle: np.ndarray, arrivals: np.ndarray, lookahead: int = 6, scale: float = FEATURE_SCALE,
+    arrivals_now: bool = False,
 ) -> np.ndarray:
-    """(..., N, 1 + 2T) float32 features from idle (..., N) and arrivals (..., L, N) at step t.
+    """(..., N, F) float32 features from idle (..., N) and arrivals (..., L, N) at step t.
 
     The leading axes are a batch of episodes in lockstep (:mod:`marl_amod.sim.batch`); the single
     env passes none, so both paths run this one function. Every value is the float64 count or
@@ -55,11 +61,16 @@ def state_features(
     else:  # nothing arrives past the buffer, as in step_rows
         rows, inside = _arrival_rows(t, length, lookahead)
         arriving = arrivals[..., rows, :] * inside
-    feats = np.empty((*idle.shape, 1 + 2 * lookahead), dtype=np.float32)  # (..., N, 1 + 2T)
+    feats = np.empty((*idle.shape, n_features(lookahead, arrivals_now)), dtype=np.float32)  # (..., N, F)
     np.multiply(idle, scale, out=feats[..., 0])
     supply = idle[..., None, :] + arriving  # (..., T, N) idle now plus arrivals in t+1..t+T
     np.multiply(supply, scale, out=feats[..., 1 : 1 + lookahead].swapaxes(-1, -2))
-    feats[..., 1 + lookahead :] = _value_table(city, lookahead, scale)[t]  # value, the same in every episode
+    feats[..., 1 + lookahead : 1 + 2 * lookahead] = _value_table(city, lookahead, scale)[t]  # value, the same in every episode
+    if arrivals_now:  # arriving during step t (nothing past the buffer)
+        if t < length:
+            np.multiply(arrivals[..., t, :], scale, out=feats[..., -1])
+        else:
+            feats[..., -1] = 0.0
     return feats
 
 
@@ -94,14 +105,14 @@ def _value_table(city: City, lookahead: int, scale: float) -> np.ndarray:
     return per_city[(lookahead, scale)]
 
 
-def feature_high(city: City, lookahead: int = 6, scale: float = FEATURE_SCALE) -> np.ndarray:
-    """(1 + 2T,) finite upper bounds of :func:`node_features` on ``city``.
+def feature_high(city: City, lookahead: int = 6, scale: float = FEATURE_SCALE, arrivals_now: bool = False) -> np.ndarray:
+    """(F,) finite upper bounds of :func:`node_features` on ``city``.
 
-    Idle and supply count disjoint vehicles, so neither exceeds the fleet; the request value is
-    a function of the city's tables alone. Finite bounds keep observation spaces usable by
-    learners that normalise or sample them.
+    Idle, supply and the arrivals now count disjoint vehicles, so none exceeds the fleet; the
+    request value is a function of the city's tables alone. Finite bounds keep observation spaces
+    usable by learners that normalise or sample them.
     """
     fleet = city.fleet_size * scale
     value = float(city.expected_fares.max()) * scale
-    high = np.concatenate([np.full(1 + lookahead, fleet), np.full(lookahead, value)])
+    high = np.concatenate([np.full(1 + lookahead, fleet), np.full(lookahead, value), np.full(int(arrivals_now), fleet)])
     return (high * (1 + 1e-6)).astype(np.float32)

@@ -1,7 +1,8 @@
 """Local and global observations of the multi-agent env: one fixed layout for every region.
 
 Every agent (region i) sees a float32 vector of length ``D = F + 3 + K * (F + 1)`` where
-``F = 1 + 2T`` node features (T = ``lookahead``, 13 by default) and ``K = max_degree`` neighbour
+``F = 1 + 2T`` node features (T = ``lookahead``, 13 by default; one more, last, with the opt-in
+``arrivals_now`` column: :mod:`marl_amod.env.features`) and ``K = max_degree`` neighbour
 slots (the largest in-degree of the city graph unless given). In order:
 
 ===================  =========  =====================================================================
@@ -97,6 +98,7 @@ def local_observations(
     *,
     table: tuple[np.ndarray, np.ndarray] | None = None,
     layout: LocalLayout | None = None,
+    arrivals_now: bool = False,
 ) -> np.ndarray:
     """(N, D) float32 local observations of every region (layout in the module docstring).
 
@@ -104,9 +106,9 @@ def local_observations(
     ``table`` (a cached :func:`neighbour_table`) skip rebuilding them.
     """
     if layout is None:
-        layout = LocalLayout(table if table is not None else neighbour_table(system.city, max_degree), n_features(lookahead))
+        layout = LocalLayout(table if table is not None else neighbour_table(system.city, max_degree), n_features(lookahead, arrivals_now))
     city = system.city
-    return layout(node_features(system, lookahead), _time_features(city.start_hour, city.tstep, city.horizon, system.t))
+    return layout(node_features(system, lookahead, arrivals_now=arrivals_now), _time_features(city.start_hour, city.tstep, city.horizon, system.t))
 
 
 def local_from_features(feats: np.ndarray, context: np.ndarray, table: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
@@ -190,9 +192,9 @@ def split_local(obs: Any, n_features: int = 13) -> tuple[Any, Any, Any, Any]:
     return own, context, neighbours, mask
 
 
-def global_state(system: FleetSystem, lookahead: int = 6) -> np.ndarray:
+def global_state(system: FleetSystem, lookahead: int = 6, arrivals_now: bool = False) -> np.ndarray:
     """(N*F + 3,) float32: every region's features, row by row, then the time features."""
-    return state_from_features(node_features(system, lookahead), time_features(system.city, system.t))
+    return state_from_features(node_features(system, lookahead, arrivals_now=arrivals_now), time_features(system.city, system.t))
 
 
 def state_from_features(feats: np.ndarray, context: np.ndarray) -> np.ndarray:
@@ -202,13 +204,13 @@ def state_from_features(feats: np.ndarray, context: np.ndarray) -> np.ndarray:
     return np.concatenate([feats.reshape(*lead, n * f), ctx], axis=-1).astype(np.float32)
 
 
-def graph(system: FleetSystem, lookahead: int = 6) -> dict[str, np.ndarray]:
+def graph(system: FleetSystem, lookahead: int = 6, arrivals_now: bool = False) -> dict[str, np.ndarray]:
     """The city as a torch-geometric style graph of numpy arrays (``torch.from_numpy`` each one).
 
     ``x`` (N, F) float32 node features, ``edge_index`` (2, E) int64 source -> target,
     ``edge_attr`` (E, 2) float32: rebalancing time in steps and rebalancing cost of the edge.
     """
-    return {"x": node_features(system, lookahead), **graph_edges(system.city)}
+    return {"x": node_features(system, lookahead, arrivals_now=arrivals_now), **graph_edges(system.city)}
 
 
 def graph_edges(city: City) -> dict[str, np.ndarray]:

@@ -31,6 +31,7 @@ class EnvOptions:
     strict_actions: bool
     max_cycles: int  # control steps per episode: min(horizon - 1, max_cycles)
     reward_scale: float  # multiplies every reward ("auto": 1 / the city's expected fares per step)
+    arrivals_now: bool  # the opt-in node column of the vehicles arriving now (env/features.py)
 
 
 def env_options(
@@ -43,6 +44,7 @@ def env_options(
     strict_actions: bool,
     max_cycles: int | None,
     scenario_overrides: dict[str, Any],
+    arrivals_now: bool = False,
 ) -> EnvOptions:
     """The options checked (a ConfigError naming the bad one) and the city loaded."""
     if reward_mode not in REWARD_MODES:
@@ -57,6 +59,8 @@ def env_options(
         reward_scale = as_real(reward_scale, "reward_scale (or 'auto')", above=0)
     if not isinstance(strict_actions, (bool, np.bool_)):  # strict_actions="no" would be truthy
         raise ConfigError(f"strict_actions must be True or False, got {strict_actions!r}")
+    if not isinstance(arrivals_now, (bool, np.bool_)):
+        raise ConfigError(f"arrivals_now must be True or False, got {arrivals_now!r}")
     if isinstance(scenario, City):
         if scenario_overrides:
             raise ConfigError(f"scenario overrides {sorted(scenario_overrides)} need a scenario name, not a City")
@@ -73,6 +77,7 @@ def env_options(
         strict_actions=bool(strict_actions),
         max_cycles=city.horizon - 1 if max_cycles is None else min(int(max_cycles), city.horizon - 1),
         reward_scale=1.0 / typical_step_revenue(city) if reward_scale == "auto" else float(reward_scale),
+        arrivals_now=bool(arrivals_now),
     )
 
 
@@ -86,6 +91,7 @@ class HasEnvOptions:
     strict_actions: bool
     max_cycles: int  # control steps per episode: min(horizon - 1, max_cycles)
     reward_scale: float  # multiplies every reward ("auto": 1 / the city's expected fares per step)
+    arrivals_now: bool  # the opt-in node column of the vehicles arriving now
 
     def adopt_options(self, options: EnvOptions) -> None:
         """Every option but the city as an attribute of the same name."""

@@ -11,7 +11,7 @@ Import              ``from marl_amod import amod_v0`` (or ``from marl_amod impor
 Agents              ``region_0`` ... ``region_{N-1}``, all alive for the whole episode
 Parallel API        yes (``env()`` is the AEC version through ``parallel_to_aec``)
 Action space        ``Box(0, 1, (1,), float32)``, identical for every agent
-Observation space   ``Box(float32, (F + 3 + K(F + 1),))``, F = 1 + 2 * lookahead (13), K = max in-degree; finite bounds
+Observation space   ``Box(float32, (F + 3 + K(F + 1),))``, F = 1 + 2 * lookahead (13; + 1 with ``arrivals_now``), K = max in-degree; finite bounds
 State space         ``Box(float32, (N * F + 3,))``
 Episode             ``min(horizon - 1, max_cycles)`` steps (reset dispatches step 0), then every agent is truncated
 ==================  ===================================================================================
@@ -53,7 +53,8 @@ Arguments: ``scenario`` (a name from ``marl-amod scenarios``, a YAML path or a `
 scenario such as ``sumo_grid`` or ``lux`` runs the same env in SUMO's mesoscopic model),
 ``reward_mode``, ``action_mode``, ``lookahead`` (T), ``max_wait`` (steps a request waits),
 ``objective`` (dispatch objective, ``"profit"`` or ``"revenue"``), ``reward_scale``,
-``strict_actions``, ``max_cycles`` (PettingZoo's cap on the number of steps; the episode is
+``strict_actions``, ``arrivals_now`` (False; True appends each region's vehicles arriving in the
+current step, idle from the next, as a last node feature: :mod:`marl_amod.env.features`), ``max_cycles`` (PettingZoo's cap on the number of steps; the episode is
 truncated after ``min(horizon - 1, max_cycles)`` steps), ``render_mode`` (``"human"`` or
 ``"rgb_array"``), ``validate`` (False; True re-checks every flow the coordinator hands the
 simulator, a debug mode: :class:`~marl_amod.system.FleetSystem`), and scenario overrides (e.g.
@@ -67,7 +68,7 @@ Version History (the version changes whenever learning results could change):
 
 * v0: first release. Options added later without changing results at their defaults:
   ``max_cycles`` (None), ``reward_scale`` (1.0), ``strict_actions`` (False; negative finite
-  actions, which used to raise, are now clipped to 0 like values above 1).
+  actions, which used to raise, are now clipped to 0 like values above 1), ``arrivals_now`` (False).
 """
 
 from __future__ import annotations
@@ -115,6 +116,7 @@ class AmodParallelEnv(HasEnvOptions, ParallelEnv):
         reward_scale: float | Literal["auto"] = 1.0,
         strict_actions: bool = False,
         max_cycles: int | None = None,
+        arrivals_now: bool = False,
         render_mode: str | None = None,
         validate: bool = False,
         **scenario_overrides: Any,
@@ -124,6 +126,7 @@ class AmodParallelEnv(HasEnvOptions, ParallelEnv):
         opts = env_options(
             scenario, reward_mode=reward_mode, action_mode=action_mode, lookahead=lookahead, reward_scale=reward_scale,
             strict_actions=strict_actions, max_cycles=max_cycles, scenario_overrides=scenario_overrides,
+            arrivals_now=arrivals_now,
         )
         city = opts.city
         self.adopt_options(opts)
@@ -134,8 +137,8 @@ class AmodParallelEnv(HasEnvOptions, ParallelEnv):
         self.possible_agents = ob.agent_names(n)
         self.agents: list[str] = []
         self.max_degree = ob.max_in_degree(city)
-        self._layout = ob.LocalLayout(ob.neighbour_table(city, self.max_degree), n_features(self.lookahead))
-        feature_high = feature_bounds(city, self.lookahead)
+        self._layout = ob.LocalLayout(ob.neighbour_table(city, self.max_degree), n_features(self.lookahead, self.arrivals_now))
+        feature_high = feature_bounds(city, self.lookahead, arrivals_now=self.arrivals_now)
         self._observation_space = spaces.Box(*ob.local_bounds(feature_high, self.max_degree), dtype=np.float32)
         self._action_space = spaces.Box(0.0, 1.0, shape=(1,), dtype=np.float32)
         self.observation_spaces = {a: self._observation_space for a in self.possible_agents}
@@ -213,11 +216,11 @@ class AmodParallelEnv(HasEnvOptions, ParallelEnv):
     # ------------------------------------------------------------------ global view
     def state(self) -> np.ndarray:
         """(N * F + 3,) float32: every region's features, then time of day and step fraction."""
-        return ob.global_state(self.system, self.lookahead)
+        return ob.global_state(self.system, self.lookahead, self.arrivals_now)
 
     def graph(self) -> dict[str, np.ndarray]:
         """Node features, edge_index (2, E) and edge_attr (E, 2) for a torch-geometric model."""
-        return ob.graph(self.system, self.lookahead)
+        return ob.graph(self.system, self.lookahead, self.arrivals_now)
 
     # ------------------------------------------------------------------ rendering
     def render(self) -> np.ndarray | None:
@@ -242,7 +245,7 @@ class AmodParallelEnv(HasEnvOptions, ParallelEnv):
 
     # ------------------------------------------------------------------ helpers
     def _observations(self) -> dict[str, np.ndarray]:
-        obs = ob.local_observations(self.system, self.lookahead, layout=self._layout)
+        obs = ob.local_observations(self.system, self.lookahead, layout=self._layout, arrivals_now=self.arrivals_now)
         return dict(zip(self.possible_agents, obs, strict=True))  # row views, as obs[i]
 
     def _render_args(self) -> tuple[np.ndarray, float | None]:

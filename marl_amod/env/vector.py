@@ -63,6 +63,7 @@ class AmodVectorEnv(HasEnvOptions):
         reward_scale: float | Literal["auto"] = 1.0,
         strict_actions: bool = False,
         max_cycles: int | None = None,
+        arrivals_now: bool = False,
         validate: bool = False,
         **scenario_overrides: Any,
     ) -> None:
@@ -71,6 +72,7 @@ class AmodVectorEnv(HasEnvOptions):
         opts = env_options(
             scenario, reward_mode=reward_mode, action_mode=action_mode, lookahead=lookahead, reward_scale=reward_scale,
             strict_actions=strict_actions, max_cycles=max_cycles, scenario_overrides=scenario_overrides,
+            arrivals_now=arrivals_now,
         )
         city = opts.city
         self.adopt_options(opts)
@@ -81,8 +83,8 @@ class AmodVectorEnv(HasEnvOptions):
         self.num_agents = n
         self.possible_agents = ob.agent_names(n)
         self.max_degree = ob.max_in_degree(city)
-        self._layout = ob.LocalLayout(ob.neighbour_table(city, self.max_degree), n_features(self.lookahead))
-        high = feature_high(city, self.lookahead)
+        self._layout = ob.LocalLayout(ob.neighbour_table(city, self.max_degree), n_features(self.lookahead, self.arrivals_now))
+        high = feature_high(city, self.lookahead, arrivals_now=self.arrivals_now)
         self.observation_space = spaces.Box(*ob.local_bounds(high, self.max_degree), dtype=np.float32)  # one agent
         self.action_space = spaces.Box(0.0, 1.0, shape=(1,), dtype=np.float32)  # one agent
         self.state_space = spaces.Box(*ob.state_bounds(high, n), dtype=np.float32)  # one episode
@@ -138,7 +140,7 @@ class AmodVectorEnv(HasEnvOptions):
     def node_features(self) -> np.ndarray:
         """(B, N, F) float32 features of every region of every episode."""
         sim = self.system.sim
-        return state_features(self.city, sim.t, sim.idle, sim.arrivals, self.lookahead)
+        return state_features(self.city, sim.t, sim.idle, sim.arrivals, self.lookahead, arrivals_now=self.arrivals_now)
 
     def state(self) -> np.ndarray:
         """(B, N * F + 3) float32: every region's features, then time of day and step fraction."""

@@ -1,0 +1,139 @@
+"""The opt-in ``arrivals_now`` node column (vehicles arriving in the current step, idle from the
+next): the same column on both env faces, in the training rollouts, on the policy card and back."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+import marl_amod
+from marl_amod.algos.registry import ALGOS, args_for
+from marl_amod.algos.rollout import BatchRollout, Rollout, train_seed
+from marl_amod.checkpoints import architecture_args, load_policy
+from marl_amod.datasets import collect
+from marl_amod.env.features import feature_high, feature_names, n_features, node_features
+from marl_amod.errors import ConfigError
+from marl_amod.evaluation import evaluate
+from marl_amod.policies import make_policy
+from marl_amod.scenario import load_city
+
+
+def _moving_weights(rng: np.random.Generator, shape: tuple[int, ...]) -> np.ndarray:
+    return rng.uniform(0.0, 1.0, shape).astype(np.float32)
+
+
+def test_the_column_is_the_arrivals_of_this_step_after_the_default_columns(small_city) -> None:
+    """Appended last, so the default columns are unchanged; it is ``arrivals[t]`` times 0.01, which
+    becomes idle at t + 1 (the next step's idle count minus what arrives later cannot tell it)."""
+    env = marl_amod.parallel_env(small_city, arrivals_now=True)
+    plain = marl_amod.parallel_env(small_city)
+    env.reset(seed=3)
+    plain.reset(seed=3)
+    rng = np.random.default_rng(0)
+    seen = 0.0
+    while env.agents:
+        x, base = env.graph()["x"], plain.graph()["x"]
+        sim = env.system.sim
+        assert x.shape == (16, n_features(6, True)) == (16, 14) and x.dtype == np.float32
+        np.testing.assert_array_equal(x[:, :-1], base)
+        np.testing.assert_array_equal(x[:, -1], (sim.arrivals[sim.t] * 0.01).astype(np.float32))
+        seen += float(x[:, -1].sum())
+        obs = env._observations()
+        assert all(env.observation_space(a).contains(o) for a, o in obs.items())
+        w = _moving_weights(rng, (16,))
+        for e in (env, plain):
+            e.step({a: w[i : i + 1] for i, a in enumerate(e.possible_agents)})
+    assert seen > 0  # vehicles did arrive mid-step: the column is not all zeros
+    assert feature_names(6, True)[-1] == "arrivals_now" and len(feature_names(6, True)) == 14
+    assert len(feature_high(small_city, 6, arrivals_now=True)) == 14
+    assert n_features(6) == 13 and plain.observation_space("region_0").shape[0] < env.observation_space("region_0").shape[0]
+
+
+def test_vector_env_and_parallel_env_agree_with_the_column() -> None:
+    b, seed = 3, 11
+    venv = marl_amod.vector_env("synthetic", num_envs=b, arrivals_now=True)
+    envs = [marl_amod.parallel_env("synthetic", arrivals_now=True) for _ in range(b)]
+    obs, _ = venv.reset(seed=seed)
+    singles = [env.reset(seed=seed + k)[0] for k, env in enumerate(envs)]
+    rng = np.random.default_rng(2)
+    while True:
+        for k, env in enumerate(envs):
+            np.testing.assert_array_equal(obs[k], np.stack([singles[k][a] for a in env.possible_agents]))
+            np.testing.assert_array_equal(venv.state()[k], env.state())
+            np.testing.assert_array_equal(venv.graph()["x"][k], env.graph()["x"])
+        w = _moving_weights(rng, (b, venv.num_agents))
+        obs, _r, _te, trunc, _ = venv.step(w)
+        singles = [env.step({a: w[k, j : j + 1] for j, a in enumerate(env.possible_agents)})[0] for k, env in enumerate(envs)]
+        if trunc.all():
+            break
+    assert obs.shape[-1] == venv.observation_space.shape[0]
+
+
+@pytest.mark.parametrize("mode", ["centralised", "decentralised"])
+def test_training_rollouts_read_the_column_on_both_paths(small_city, mode) -> None:
+    """The batched rollout (A2C's num_envs > 1) and the one-episode rollout give the same features."""
+    batch, single = BatchRollout(small_city, mode, 6, 2, arrivals_now=True), Rollout(small_city, mode, 6, arrivals_now=True)
+    ob_b = batch.reset(seed=5, first_episode=0)
+    ob_s = single.reset(train_seed(5, 0))  # episode 0 of the batch
+    rng = np.random.default_rng(4)
+    for _ in range(4):
+        assert ob_b.x.shape == (2, 16, 14)
+        torch.testing.assert_close(ob_b.x[0], ob_s.x, rtol=0, atol=0)
+        if mode == "decentralised":
+            torch.testing.assert_close(ob_b.own[0], ob_s.own, rtol=0, atol=0)
+        w = rng.uniform(0.1, 1.0, (2, 16))
+        ob_b, _ = batch.step(w)
+        ob_s, _ = single.step(w[0])
+    np.testing.assert_array_equal(ob_s.x.numpy(), node_features(single.system, 6, arrivals_now=True))
+
+
+def test_options_are_checked_on_both_faces(tiny_city) -> None:
+    for make in (marl_amod.parallel_env, marl_amod.vector_env):
+        with pytest.raises(ConfigError, match="arrivals_now"):
+            make(tiny_city, arrivals_now="yes")
+
+
+@pytest.fixture(scope="module")
+def tiny_arrivals_dataset(tmp_path_factory) -> tuple[str, str]:
+    root = tmp_path_factory.mktemp("arrivals")
+    scenario = root / "tiny.yaml"
+    scenario.write_text(yaml.safe_dump({"name": "tiny", "source": "synthetic", "rows": 3, "cols": 3, "horizon": 6, "vehicles_per_region": 5}))
+    city = load_city(str(scenario))
+    data = collect(city, make_policy("prop", city), episodes=3, seed=0, arrivals_now=True)
+    assert data.meta["arrivals_now"] is True and data.meta["n_features"] == 14
+    assert "arrivals_now" not in collect(city, make_policy("prop", city), episodes=1, seed=0).meta  # the default meta as before
+    return str(scenario), str(data.save(root / "tiny_prop_arrivals.npz"))
+
+
+def test_bc_card_records_the_column_and_evaluation_and_warm_starts_rebuild_it(tmp_path, tiny_arrivals_dataset) -> None:
+    from marl_amod.algos import a2c
+
+    scenario, dataset = tiny_arrivals_dataset
+    args = {"scenario": scenario, "dataset": dataset, "updates": 4, "batch_size": 8, "eval_every": 4, "eval_episodes": 1,
+            "final_eval_episodes": 2, "hidden": 8, "conv": "sage", "actor_time": True, "run_dir": str(tmp_path / "run"),
+            "policy_out": str(tmp_path / "p.pt")}  # fmt: skip
+    with pytest.raises(ConfigError, match="arrivals_now"):  # the data's features, not the default ones
+        ALGOS["bc"].train(args_for("bc", args))
+    summary = ALGOS["bc"].train(args_for("bc", {**args, "arrivals_now": True}))
+    card = json.loads((tmp_path / "p.json").read_text())
+    assert card["arrivals_now"] is True and card["n_features"] == 14
+    city = load_city(scenario)
+    policy = load_policy(str(tmp_path / "p.pt"), city)
+    assert policy.arrivals_now
+    res = evaluate(str(tmp_path / "p.pt"), city, episodes=2, seed=0)
+    assert res["metrics"]["profit"]["mean"] == pytest.approx(summary["card"]["profit_mean"])
+    # the policy is also a callable on the env's observations: the same weights from the local layout
+    env = marl_amod.parallel_env(city, arrivals_now=True)
+    obs, _ = env.reset(seed=1)
+    acts = policy(obs)
+    np.testing.assert_allclose(np.concatenate([acts[a] for a in env.possible_agents]), policy.weights(env.system).astype(np.float32), rtol=1e-6)
+
+    tuned = a2c.train(a2c.Args(scenario=scenario, **architecture_args(card), init_actor=str(tmp_path / "p.pt"), episodes=4, num_envs=2,
+                               episodes_per_update=2, critic_time=True, eval_every=4, eval_episodes=1, final_eval_episodes=1,
+                               run_dir=str(tmp_path / "a2c"), policy_out=str(tmp_path / "ft.pt")))  # fmt: skip
+    assert tuned["card"]["arrivals_now"] is True and tuned["card"]["n_features"] == 14
+    assert evaluate(str(tmp_path / "ft.pt"), city, episodes=1, seed=0)["metrics"]["profit"]["mean"] > 0
