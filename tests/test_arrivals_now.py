@@ -137,3 +137,31 @@ def test_bc_card_records_the_column_and_evaluation_and_warm_starts_rebuild_it(tm
                                run_dir=str(tmp_path / "a2c"), policy_out=str(tmp_path / "ft.pt")))  # fmt: skip
     assert tuned["card"]["arrivals_now"] is True and tuned["card"]["n_features"] == 14
     assert evaluate(str(tmp_path / "ft.pt"), city, episodes=1, seed=0)["metrics"]["profit"]["mean"] > 0
+
+
+@pytest.mark.parametrize("algo", ["iql", "cql"])
+def test_offline_critics_read_the_column(tmp_path, tiny_arrivals_dataset, algo) -> None:
+    """IQL's and CQL's critics take the data's F (14), as the actor does: a critic built for 13
+    columns failed on the first batch; the shipped critic's card says 14."""
+    scenario, dataset = tiny_arrivals_dataset
+    args = {"scenario": scenario, "dataset": dataset, "arrivals_now": True, "updates": 2, "batch_size": 4, "eval_every": 2,
+            "eval_episodes": 1, "final_eval_episodes": 1, "hidden": 8, "critic_hidden": 8, "run_dir": str(tmp_path / "run"),
+            "policy_out": str(tmp_path / "p.pt")}  # fmt: skip
+    if algo == "cql":
+        args["bc_steps"] = 1  # one BC step, then one step on the critic's Q
+    summary = ALGOS[algo].train(args_for(algo, args))
+    assert summary["card"]["arrivals_now"] is True and summary["card"]["n_features"] == 14
+
+
+def test_sac_critic_reads_the_column(tiny_city) -> None:
+    """SAC's twin critics take the rollout's F (14) with arrivals_now, as its actor does."""
+    from marl_amod.algos import common as C
+    from marl_amod.algos import sac
+
+    args = sac.Args(scenario="synthetic", hidden=8, batch_size=4, arrivals_now=True, policy_out="")
+    learner = sac.Learner(args, tiny_city, C.make_graph(tiny_city, args))
+    x = torch.as_tensor(Rollout(tiny_city, "centralised", 6, arrivals_now=True).reset(0).x)
+    b = {"x": x.expand(4, -1, -1), "next_x": x.expand(4, -1, -1), "action": torch.full((4, 9), 1 / 9), "reward": torch.ones(4),
+         "done": torch.zeros(4)}  # fmt: skip
+    learner.update(b)  # the critics read (B, N, 14)
+

@@ -29,7 +29,6 @@ from pydantic import Field, model_validator
 
 from marl_amod.algos import common as C
 from marl_amod.algos.rollout import Obs, train_seed
-from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import GNNValueCritic, LocalValueCritic, dirichlet, gamma, gamma_log_prob
 from marl_amod.models.gnn import Graph
 from marl_amod.scenario import load_city
@@ -156,7 +155,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     city = load_city(args.scenario)
     rollout = C.make_rollout(city, args)
     graph = C.make_graph(city, args)
-    n_features = feature_count(args.lookahead, args.arrivals_now)
+    n_features = C.run_features(args)
     local_critic = args.mode == "decentralised" and not args.central_critic
     actor = C.make_actor(args, city)
     critic_in = C.critic_features(n_features, args)

@@ -133,10 +133,16 @@ def actor_features(n_features: int, args: RunArgs) -> int:
     return actor_inputs(n_features, args.actor_time)
 
 
+def run_features(args: RunArgs) -> int:
+    """F of a run's node features (its lookahead and the opt-in ``arrivals_now`` column): one place,
+    so every network of a run (actor, critics, the card) reads the width its rollout or data has."""
+    return n_features(args.lookahead, args.arrivals_now)
+
+
 def make_actor(args: RunArgs, city: City) -> torch.nn.Module:
     """The run's actor: the local (SAGE) GNN on each agent's observation for decentralised runs,
     else ``args.actor`` on the global graph (reading the time context too with ``actor_time``)."""
-    f = n_features(args.lookahead, args.arrivals_now)
+    f = run_features(args)
     if args.mode == "decentralised":
         return LocalActor(f, args.hidden)
     return build_actor(args.actor, city, actor_features(f, args), args.hidden, args.conv, args.readout, args.agent_id, args.standardise_inputs)
@@ -452,7 +458,7 @@ def finish_run(
         actor="local" if args.mode == "decentralised" else args.actor,
         conv="sage" if args.mode == "decentralised" else args.conv, readout=None if args.readout == "none" else args.readout,
         agent_id=args.agent_id or None, standardise_inputs=args.standardise_inputs or None,
-        hidden=args.hidden, n_features=n_features(args.lookahead, args.arrivals_now), lookahead=args.lookahead, seed=args.seed, time_context=args.actor_time,
+        hidden=args.hidden, n_features=run_features(args), lookahead=args.lookahead, seed=args.seed, time_context=args.actor_time,
         arrivals_now=args.arrivals_now or None,
         episodes_trained=episodes_done, eval_episodes=args.final_eval_episodes, eval_seed=args.final_eval_seed,
         profit_mean=profit["mean"], profit_std=profit["std"], served_demand_mean=result["metrics"]["served_demand"]["mean"],

@@ -29,7 +29,6 @@ from pydantic import Field
 from marl_amod.algos import common as C
 from marl_amod.algos import offline as O
 from marl_amod.algos.sac import policy_sample
-from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import TwinQ, dirichlet
 
 
@@ -66,7 +65,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     n, k = city.n_regions, args.n_actions
     actor = C.make_actor(args, city)
     conv = "sage" if local else args.conv
-    critic = TwinQ(feature_count(args.lookahead), args.critic_hidden, conv)
+    critic = TwinQ(C.run_features(args), args.critic_hidden, conv)
     critic_targ = copy.deepcopy(critic).requires_grad_(False)
     opt_a = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
     opt_c = torch.optim.Adam(critic.parameters(), lr=args.lr_critic)

@@ -28,7 +28,6 @@ from pydantic import Field
 
 from marl_amod.algos import common as C
 from marl_amod.algos import offline as O
-from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import GNNValueCritic, TwinQ
 
 
@@ -62,7 +61,7 @@ def expectile_loss(diff: torch.Tensor, tau: float) -> torch.Tensor:
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
     """Learn from the dataset with IQL; keep the best validation actor; write its card."""
     city, data, local, graph, gen = O.setup(args)
-    f = feature_count(args.lookahead)
+    f = C.run_features(args)
     conv = "sage" if local else args.conv
     actor = C.make_actor(args, city)
     q = TwinQ(f, args.critic_hidden, conv)

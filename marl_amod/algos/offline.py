@@ -27,7 +27,7 @@ from pydantic import Field
 
 from marl_amod.algos import common as C
 from marl_amod.datasets import OfflineDataset, normalised_score, read_card
-from marl_amod.env.features import FEATURE_SCALE, n_features
+from marl_amod.env.features import FEATURE_SCALE
 from marl_amod.env.observations import split_local
 from marl_amod.errors import ConfigError, DataError
 from marl_amod.models.dense import DenseGraph
@@ -242,7 +242,7 @@ def fit(
     spec = None
     if critic is not None:
         net, hidden, conv = critic
-        spec = C.CriticSpec(net, {"n_features": n_features(args.lookahead, args.arrivals_now), "hidden": hidden, "conv": conv}, getattr(args, "selection", None))
+        spec = C.CriticSpec(net, {"n_features": C.run_features(args), "hidden": hidden, "conv": conv}, getattr(args, "selection", None))
     return C.finish_run(args, algorithm, actor, city, timer(), 0, config_path, extra=extra, critic=spec)
 
 

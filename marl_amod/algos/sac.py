@@ -40,7 +40,6 @@ from torch.distributions import Dirichlet
 
 from marl_amod.algos import common as C
 from marl_amod.algos.rollout import Obs, train_seed
-from marl_amod.env.features import n_features as feature_count
 from marl_amod.models import TwinQ, dirichlet, gamma, gamma_log_prob
 from marl_amod.models.dense import DenseGraph
 from marl_amod.models.gnn import Graph, StackedTwinQ
@@ -242,7 +241,7 @@ class Learner:
     def __init__(self, args: Args, city: City, edge_index: Graph) -> None:
         self.args, self.edge_index = args, edge_index
         self.local = local = args.mode == "decentralised"
-        n_features = feature_count(args.lookahead)
+        n_features = C.run_features(args)
         self.actor = C.make_actor(args, city)  # (SAC's actor reads no time context: actor_time is not a SAC key)
         C.warm_start(self.actor, args, city)  # offline -> online: start from a trained policy
         self.twin = TwinQ(C.critic_features(n_features, args), args.hidden, "sage" if local else args.conv)
