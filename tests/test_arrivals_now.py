@@ -165,3 +165,9 @@ def test_sac_critic_reads_the_column(tiny_city) -> None:
          "done": torch.zeros(4)}  # fmt: skip
     learner.update(b)  # the critics read (B, N, 14)
 
+
+
+def test_meta_runs_refuse_the_column(tmp_path) -> None:
+    """Meta-RL builds its own task features: arrivals_now there would be silently dropped."""
+    with pytest.raises(ConfigError, match="arrivals_now is not read"):
+        args_for("meta", {"arrivals_now": True, "run_dir": str(tmp_path)})

@@ -470,7 +470,8 @@ class Args(C.RunArgs):
     def ignored_keys(self) -> dict[str, str]:
         return {"actor": "meta-RL always uses the recurrent GNN", "mode": "meta-RL is centralised",
                 "central_critic": "meta-RL is centralised", "critic_time": "the recurrent critic reads t / horizon already",
-                "actor_time": "the recurrent actor reads t / horizon already"}  # fmt: skip
+                "actor_time": "the recurrent actor reads t / horizon already",
+                "arrivals_now": "meta-RL reads its own task features (task_features), not the env's node columns"}  # fmt: skip
 
 
 def make_model(args: Args) -> RecurrentGNN:
