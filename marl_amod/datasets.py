@@ -177,7 +177,7 @@ def concatenate(parts: list[OfflineDataset]) -> OfflineDataset:
     for p in parts[1:]:
         for key in ("scenario", "n_agents", "lookahead", "max_wait", "arrivals_now"):
             if p.meta.get(key) != first.get(key):
-                raise DataError(f"datasets differ in {key}: {first[key]} and {p.meta[key]}")
+                raise DataError(f"datasets differ in {key}: {first.get(key)!r} and {p.meta.get(key)!r}")  # older metas lack arrivals_now
     arrays = _stack(parts)
     policies = sorted({p.meta["policy"] for p in parts})
     meta = {

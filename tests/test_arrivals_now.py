@@ -171,3 +171,17 @@ def test_meta_runs_refuse_the_column(tmp_path) -> None:
     """Meta-RL builds its own task features: arrivals_now there would be silently dropped."""
     with pytest.raises(ConfigError, match="arrivals_now is not read"):
         args_for("meta", {"arrivals_now": True, "run_dir": str(tmp_path)})
+
+
+def test_concatenate_refuses_datasets_with_and_without_the_column(tiny_arrivals_dataset) -> None:
+    """A DataError naming the key (the message read the key of the part that lacks it: KeyError)."""
+    from marl_amod.datasets import OfflineDataset, concatenate
+    from marl_amod.errors import DataError
+
+    with_col = OfflineDataset.load(tiny_arrivals_dataset[1])
+    city = load_city(tiny_arrivals_dataset[0])
+    plain = collect(city, make_policy("prop", city), episodes=1, seed=0)
+    for parts in ([with_col, plain], [plain, with_col]):
+        with pytest.raises(DataError, match="arrivals_now"):
+            concatenate(parts)
+
