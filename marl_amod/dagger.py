@@ -64,7 +64,8 @@ def dagger(
         if not data_path.is_file():
             say(f"round {k}: rolling {policy} for {episodes} episodes, labels from {expert}")
             part = collect(city, make_policy(policy, city), episodes=episodes, seed=seed + k - 1,
-                           lookahead=base.get("lookahead", 6), labeller=make_policy(expert, city))  # fmt: skip
+                           lookahead=base.get("lookahead", 6), labeller=make_policy(expert, city),
+                           arrivals_now=bool(base.get("arrivals_now", False)))  # the base data's features  # fmt: skip
             part.save(data_path)
         parts.append(OfflineDataset.load(data_path))
         if not policy_path.is_file() or len(done) < k:

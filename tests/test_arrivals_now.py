@@ -185,3 +185,19 @@ def test_concatenate_refuses_datasets_with_and_without_the_column(tiny_arrivals_
         with pytest.raises(DataError, match="arrivals_now"):
             concatenate(parts)
 
+
+
+def test_dagger_rounds_log_the_column_of_the_bc_config(tmp_path, tiny_arrivals_dataset) -> None:
+    """DAgger's rounds are collected with the config's arrivals_now, so they join its dataset."""
+    from marl_amod.dagger import dagger
+    from marl_amod.datasets import OfflineDataset
+
+    scenario, dataset = tiny_arrivals_dataset
+    values = {"scenario": scenario, "dataset": dataset, "arrivals_now": True, "updates": 2, "batch_size": 4, "eval_every": 2,
+              "eval_episodes": 1, "final_eval_episodes": 1, "hidden": 8, "run_dir": str(tmp_path / "bc"), "policy_out": str(tmp_path / "clone.pt")}  # fmt: skip
+    ALGOS["bc"].train(args_for("bc", values))
+    config = tmp_path / "bc.yaml"
+    config.write_text(yaml.safe_dump({"algo": "bc", "args": {**values, "policy_out": ""}}))
+    dagger(config, start=str(tmp_path / "clone.pt"), expert="prop", rounds=1, episodes=1, run_root=tmp_path / "dagger")
+    part = OfflineDataset.load(tmp_path / "dagger" / "round1.npz")
+    assert part.meta["arrivals_now"] is True and part.meta["n_features"] == 14
