@@ -201,3 +201,23 @@ def test_dagger_rounds_log_the_column_of_the_bc_config(tmp_path, tiny_arrivals_d
     dagger(config, start=str(tmp_path / "clone.pt"), expert="prop", rounds=1, episodes=1, run_root=tmp_path / "dagger")
     part = OfflineDataset.load(tmp_path / "dagger" / "round1.npz")
     assert part.meta["arrivals_now"] is True and part.meta["n_features"] == 14
+
+
+def test_a_warm_start_names_the_column_it_was_trained_with(tmp_path, tiny_arrivals_dataset) -> None:
+    """An init_actor trained with the column, in a run without it, is refused by name: the
+    features differ (the weights' shapes may even agree: lookahead 5 with actor_time has 14 inputs too)."""
+    from marl_amod.algos import a2c
+    from marl_amod.algos import common as C
+    from marl_amod.errors import DataError
+
+    scenario, dataset = tiny_arrivals_dataset
+    ALGOS["bc"].train(args_for("bc", {"scenario": scenario, "dataset": dataset, "arrivals_now": True, "updates": 1, "batch_size": 4,
+                                      "eval_every": 1, "eval_episodes": 1, "final_eval_episodes": 1, "hidden": 8, "conv": "sage",
+                                      "run_dir": str(tmp_path / "bc"), "policy_out": str(tmp_path / "p.pt")}))  # fmt: skip
+    city = load_city(scenario)
+    for other in ({}, {"lookahead": 5, "actor_time": True}):  # 13 inputs; 11 + 3 = 14 inputs, as the file's
+        args = a2c.Args(scenario=scenario, hidden=8, conv="sage", init_actor=str(tmp_path / "p.pt"), **other)
+        with pytest.raises(DataError, match="arrivals_now True"):
+            C.warm_start(C.make_actor(args, city), args, city)
+    args = a2c.Args(scenario=scenario, hidden=8, conv="sage", arrivals_now=True, init_actor=str(tmp_path / "p.pt"))
+    C.warm_start(C.make_actor(args, city), args, city)  # the same features: it loads

@@ -332,6 +332,12 @@ def warm_start(actor: torch.nn.Module, args: RunArgs, city: City) -> None:
     from marl_amod.checkpoints import load_actor
 
     source, card = load_actor(args.init_actor, city)
+    features = (card["lookahead"], bool(card.get("arrivals_now")))
+    if features != (args.lookahead, args.arrivals_now):  # other columns: the weights would read the wrong ones, if they fit at all
+        raise DataError(
+            f"init_actor {args.init_actor} reads the features of lookahead {features[0]}, arrivals_now {features[1]}; this run's are "
+            f"lookahead {args.lookahead}, arrivals_now {args.arrivals_now} (set both to match)"
+        )
     theirs, ours = source.state_dict(), actor.state_dict()
     if set(theirs) != set(ours) or any(theirs[k].shape != ours[k].shape for k in ours):
         raise DataError(
