@@ -221,3 +221,19 @@ def test_a_warm_start_names_the_column_it_was_trained_with(tmp_path, tiny_arriva
             C.warm_start(C.make_actor(args, city), args, city)
     args = a2c.Args(scenario=scenario, hidden=8, conv="sage", arrivals_now=True, init_actor=str(tmp_path / "p.pt"))
     C.warm_start(C.make_actor(args, city), args, city)  # the same features: it loads
+
+
+def test_an_outside_policy_for_the_column_env_sees_its_observations(small_city) -> None:
+    """A callable written for ``parallel_env(arrivals_now=True)`` (an SB3 or TorchRL model) is
+    evaluated on the observations it was trained on (the option was refused: no way to give it)."""
+    env = marl_amod.parallel_env(small_city, arrivals_now=True)
+    dim = env.observation_space("region_0").shape[0]
+    seen = []
+
+    def fn(obs):
+        seen.append(obs["region_0"].copy())
+        return {a: np.ones(1, dtype=np.float32) for a in obs}
+
+    evaluate(make_policy(fn, small_city, arrivals_now=True), small_city, episodes=1, seed=0)
+    assert seen and all(o.shape == (dim,) for o in seen)
+    assert any(o[n_features(6, True) - 1] > 0 for o in seen)  # the own row's last column: vehicles arriving now

@@ -26,12 +26,13 @@ ObservationFn = Callable[[dict[str, np.ndarray]], Mapping[str, Any]]
 class ObservationPolicy(Policy):
     """Runs ``fn`` on the env's local observations each step; its actions become the coordinator's target.
 
-    ``lookahead`` and ``action_mode`` must match the env ``fn`` was written for (the env's
-    defaults: 6 and ``"weight"``). ``name`` defaults to ``fn.name`` or the function's name.
+    ``lookahead``, ``action_mode`` and ``arrivals_now`` must match the env ``fn`` was written for
+    (the env's defaults: 6, ``"weight"`` and False). ``name`` defaults to ``fn.name`` or the function's name.
     """
 
     def __init__(
-        self, fn: ObservationFn, *, lookahead: int = 6, action_mode: act.ActionMode = "weight", name: str | None = None
+        self, fn: ObservationFn, *, lookahead: int = 6, action_mode: act.ActionMode = "weight", name: str | None = None,
+        arrivals_now: bool = False,
     ) -> None:
         if not callable(fn):
             raise ConfigError(f"a policy must be a name, a checkpoint path or a callable, got {type(fn).__name__}")
@@ -39,15 +40,17 @@ class ObservationPolicy(Policy):
             raise ConfigError(f"action_mode must be one of {act.ACTION_MODES}, got {action_mode!r}")
         if not isinstance(lookahead, (int, np.integer)) or lookahead < 1:
             raise ConfigError(f"lookahead must be a positive number of steps, got {lookahead!r}")
-        self.fn, self.lookahead, self.action_mode = fn, int(lookahead), action_mode
+        if not isinstance(arrivals_now, (bool, np.bool_)):
+            raise ConfigError(f"arrivals_now must be True or False, got {arrivals_now!r}")
+        self.fn, self.lookahead, self.action_mode, self.arrivals_now = fn, int(lookahead), action_mode, bool(arrivals_now)
         self.name = name or getattr(fn, "name", None) or getattr(fn, "__name__", type(fn).__name__)
 
     def reset(self, system: FleetSystem, rng: np.random.Generator) -> None:
         super().reset(system, rng)
         self.agents = ob.agent_names(system.city.n_regions)
-        self._layout = ob.LocalLayout(ob.neighbour_table(system.city), n_features(self.lookahead))
+        self._layout = ob.LocalLayout(ob.neighbour_table(system.city), n_features(self.lookahead, self.arrivals_now))
 
     def target(self, system: FleetSystem) -> np.ndarray:
-        obs = ob.local_observations(system, self.lookahead, layout=self._layout)
+        obs = ob.local_observations(system, self.lookahead, layout=self._layout, arrivals_now=self.arrivals_now)
         actions = self.fn({a: obs[i] for i, a in enumerate(self.agents)})
         return act.targets(system, actions, self.agents, self.action_mode)
