@@ -355,6 +355,7 @@ class ActorPolicy(WeightPolicy):
     ) -> None:
         self.actor, self.lookahead, self.name, self.time_context, self.selector = actor, lookahead, name, time_context, selector
         self.arrivals_now = arrivals_now
+        self.min_degree = ob.max_in_degree(city)  # the env's neighbour slots: this many, or more when padded
         self.edge_index = torch.tensor(np.array(city.edge_index), dtype=torch.long)
         self.agents = ob.agent_names(city.n_regions)
 
@@ -364,7 +365,13 @@ class ActorPolicy(WeightPolicy):
     def __call__(self, observations: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """Actions (each agent's weight, shape (1,)) for the env's local observations."""
         stacked = np.stack([np.asarray(observations[a], dtype=np.float32) for a in self.agents])
-        own, ctx = ob.split_local(stacked, n_features(self.lookahead, self.arrivals_now))[:2]  # (N, F), (N, 3)
+        f = n_features(self.lookahead, self.arrivals_now)
+        d = stacked.shape[-1]
+        k, rest = divmod(d - f - ob.N_CONTEXT, f + 1)
+        if rest or k < self.min_degree:  # another F: the layout would not fit, or fit with the wrong columns
+            raise ConfigError(f"{self.name} reads the env's observations with lookahead {self.lookahead}, arrivals_now {self.arrivals_now} "
+                              f"(F = {f}); these ({d} values) are another env's: make it with the same options")  # fmt: skip
+        own, ctx = ob.split_local(stacked, f)[:2]  # (N, F), (N, 3)
         w = self._mean(own, ctx[0]).astype(np.float32)  # exact: the weights are float32 values
         return {a: w[i : i + 1] for i, a in enumerate(self.agents)}
 

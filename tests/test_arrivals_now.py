@@ -237,3 +237,20 @@ def test_an_outside_policy_for_the_column_env_sees_its_observations(small_city) 
     evaluate(make_policy(fn, small_city, arrivals_now=True), small_city, episodes=1, seed=0)
     assert seen and all(o.shape == (dim,) for o in seen)
     assert any(o[n_features(6, True) - 1] > 0 for o in seen)  # the own row's last column: vehicles arriving now
+
+
+def test_a_policy_with_the_column_refuses_an_env_without_it_by_name(small_city) -> None:
+    """The policy as a callable on an env made with other feature options: a ConfigError that says
+    which (it was a ValueError about layouts, and an env whose widths happen to fit was read wrongly)."""
+    from marl_amod.algos import a2c
+    from marl_amod.algos import common as C
+    from marl_amod.checkpoints import ActorPolicy
+
+    for arrivals in (True, False):
+        actor = C.make_actor(a2c.Args(scenario="synthetic", hidden=8, arrivals_now=arrivals), small_city)
+        policy = ActorPolicy(actor, small_city, 6, arrivals_now=arrivals)
+        obs, _ = marl_amod.parallel_env(small_city, arrivals_now=not arrivals).reset(seed=0)
+        with pytest.raises(ConfigError, match=f"arrivals_now {arrivals}"):
+            policy(obs)
+        obs, _ = marl_amod.parallel_env(small_city, arrivals_now=arrivals).reset(seed=0)
+        assert len(policy(obs)) == 16
