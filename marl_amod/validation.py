@@ -91,6 +91,13 @@ def as_count(value: Any, what: str, *, lower: int = 0, upper: int | None = None,
     return int(value)
 
 
+def as_flag(value: Any, what: str) -> bool:
+    """A bool (numpy's too), else a ConfigError: a switch given as ``"no"`` or 1 would read as on."""
+    if not isinstance(value, (bool, np.bool_)):
+        raise ConfigError(f"{what} must be True or False, got {value!r}")
+    return bool(value)
+
+
 def as_real(value: Any, what: str, *, minimum: float | None = None, above: float | None = None) -> float:
     """A finite real number, ``>= minimum`` and ``> above`` where given (numpy scalars welcome;
     strings, bools and None not), else a ConfigError: a policy option read from the command line

@@ -19,6 +19,7 @@ from marl_amod.env import observations as ob
 from marl_amod.env.features import n_features
 from marl_amod.errors import ConfigError
 from marl_amod.system import FleetSystem
+from marl_amod.validation import as_flag
 
 ObservationFn = Callable[[dict[str, np.ndarray]], Mapping[str, Any]]
 
@@ -40,9 +41,8 @@ class ObservationPolicy(Policy):
             raise ConfigError(f"action_mode must be one of {act.ACTION_MODES}, got {action_mode!r}")
         if not isinstance(lookahead, (int, np.integer)) or lookahead < 1:
             raise ConfigError(f"lookahead must be a positive number of steps, got {lookahead!r}")
-        if not isinstance(arrivals_now, (bool, np.bool_)):
-            raise ConfigError(f"arrivals_now must be True or False, got {arrivals_now!r}")
-        self.fn, self.lookahead, self.action_mode, self.arrivals_now = fn, int(lookahead), action_mode, bool(arrivals_now)
+        self.fn, self.lookahead, self.action_mode = fn, int(lookahead), action_mode
+        self.arrivals_now = as_flag(arrivals_now, "arrivals_now")
         self.name = name or getattr(fn, "name", None) or getattr(fn, "__name__", type(fn).__name__)
 
     def reset(self, system: FleetSystem, rng: np.random.Generator) -> None:

@@ -11,13 +11,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any, Literal
 
-import numpy as np
-
 from marl_amod.env import actions as act
 from marl_amod.env.rewards import REWARD_MODES, RewardMode, typical_step_revenue
 from marl_amod.errors import ConfigError
 from marl_amod.scenario import City, load_city
-from marl_amod.validation import as_count, as_real
+from marl_amod.validation import as_count, as_flag, as_real
 
 
 @dataclass(frozen=True)
@@ -57,10 +55,8 @@ def env_options(
         max_cycles = as_count(max_cycles, "max_cycles (steps, or None)", lower=1)
     if not (isinstance(reward_scale, str) and reward_scale == "auto"):
         reward_scale = as_real(reward_scale, "reward_scale (or 'auto')", above=0)
-    if not isinstance(strict_actions, (bool, np.bool_)):  # strict_actions="no" would be truthy
-        raise ConfigError(f"strict_actions must be True or False, got {strict_actions!r}")
-    if not isinstance(arrivals_now, (bool, np.bool_)):
-        raise ConfigError(f"arrivals_now must be True or False, got {arrivals_now!r}")
+    strict_actions = as_flag(strict_actions, "strict_actions")  # strict_actions="no" would be truthy
+    arrivals_now = as_flag(arrivals_now, "arrivals_now")
     if isinstance(scenario, City):
         if scenario_overrides:
             raise ConfigError(f"scenario overrides {sorted(scenario_overrides)} need a scenario name, not a City")
@@ -74,10 +70,10 @@ def env_options(
         reward_mode=reward_mode,
         action_mode=action_mode,
         lookahead=int(lookahead),
-        strict_actions=bool(strict_actions),
+        strict_actions=strict_actions,
         max_cycles=city.horizon - 1 if max_cycles is None else min(int(max_cycles), city.horizon - 1),
         reward_scale=1.0 / typical_step_revenue(city) if reward_scale == "auto" else float(reward_scale),
-        arrivals_now=bool(arrivals_now),
+        arrivals_now=arrivals_now,
     )
 
 
