@@ -366,12 +366,13 @@ class ActorPolicy(WeightPolicy):
         """Actions (each agent's weight, shape (1,)) for the env's local observations."""
         stacked = np.stack([np.asarray(observations[a], dtype=np.float32) for a in self.agents])
         f = n_features(self.lookahead, self.arrivals_now)
-        d = stacked.shape[-1]
-        k, rest = divmod(d - f - ob.N_CONTEXT, f + 1)
-        if rest or k < self.min_degree:  # another F: the layout would not fit, or fit with the wrong columns
+        try:
+            own, ctx, neighbours, _ = ob.split_local(stacked, f)  # (N, F), (N, 3), (N, K, F)
+        except ValueError:  # the layout does not fit this F
+            neighbours = None
+        if neighbours is None or neighbours.shape[-2] < self.min_degree:  # another F: no fit, or a fit with the wrong columns
             raise ConfigError(f"{self.name} reads the env's observations with lookahead {self.lookahead}, arrivals_now {self.arrivals_now} "
-                              f"(F = {f}); these ({d} values) are another env's: make it with the same options")  # fmt: skip
-        own, ctx = ob.split_local(stacked, f)[:2]  # (N, F), (N, 3)
+                              f"(F = {f}); these ({stacked.shape[-1]} values) are another env's: make it with the same options")  # fmt: skip
         w = self._mean(own, ctx[0]).astype(np.float32)  # exact: the weights are float32 values
         return {a: w[i : i + 1] for i, a in enumerate(self.agents)}
 
