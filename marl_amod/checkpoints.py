@@ -327,6 +327,13 @@ def architecture_args(card: Mapping[str, Any]) -> dict[str, Any]:
     }  # fmt: skip
 
 
+def feature_args(card: Mapping[str, Any]) -> dict[str, Any]:
+    """What a card's actor reads (``lookahead``, ``time_context``, ``arrivals_now``), as the
+    keywords of :class:`ActorPolicy` and ``evaluate_actor``: a policy rebuilt from a file sees the
+    features it was trained on."""
+    return {"lookahead": card["lookahead"], "time_context": bool(card.get("time_context")), "arrivals_now": bool(card.get("arrivals_now"))}
+
+
 def actor_inputs(n_node_features: int, time_context: bool) -> int:
     """Input columns of an actor: the node features F, plus the 3 time values with ``time_context``."""
     return n_node_features + ob.N_CONTEXT if time_context else n_node_features
@@ -411,5 +418,4 @@ def load_policy(path: str | Path, city: City | str | None = None, selection: Sel
     actor, card = load_actor(path, city)
     chosen = _selection(selection if selection is not None else card.get("selection"))
     selector = QSelector(load_critic(path)[0], city, chosen) if chosen is not None and chosen.candidates else None
-    return ActorPolicy(actor, city, card["lookahead"], name=Path(path).stem, time_context=card["time_context"], selector=selector,
-                       arrivals_now=bool(card.get("arrivals_now")))  # fmt: skip
+    return ActorPolicy(actor, city, name=Path(path).stem, selector=selector, **feature_args(card))

@@ -29,7 +29,7 @@ import numpy as np
 
 from marl_amod.algos import a2c
 from marl_amod.algos.common import evaluate_actor, read_curve
-from marl_amod.checkpoints import architecture_args, load_actor, read_card
+from marl_amod.checkpoints import architecture_args, feature_args, load_actor, read_card
 from marl_amod.errors import ConfigError
 from marl_amod.evaluation import evaluate
 from marl_amod.files import write_json
@@ -63,9 +63,7 @@ def finetune_curve(
         "scratch": a2c.Args(**{**common, "standardise_inputs": False}, lr_actor=lr_actor, run_dir=str(Path(run_root) / "scratch")),  # no start: no statistics
     }
     val = {"episodes": eval_episodes, "seed": runs["scratch"].eval_seed}
-    pretrained = evaluate_actor(
-        actor, city, eval_episodes, val["seed"], card["lookahead"], card.get("time_context", False), arrivals_now=bool(card.get("arrivals_now"))
-    )["metrics"]["profit"]["mean"]
+    pretrained = evaluate_actor(actor, city, eval_episodes, val["seed"], **feature_args(card))["metrics"]["profit"]["mean"]
     beh = evaluate(behaviour, city, eval_episodes, val["seed"])["metrics"]["profit"]["mean"]
     out: dict[str, Any] = {
         "scenario": city.name, "policy": str(policy), "policy_algorithm": card["algorithm"], "behaviour_policy": behaviour,

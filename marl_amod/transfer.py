@@ -68,7 +68,7 @@ def fine_tune(policy_path: str, scenario: str, episodes: int = K_FINE_TUNE, seed
     import tempfile
 
     from marl_amod.algos import a2c
-    from marl_amod.checkpoints import ActorPolicy, architecture_args, load_actor
+    from marl_amod.checkpoints import ActorPolicy, architecture_args, feature_args, load_actor
 
     card = _card(policy_path)
     with tempfile.TemporaryDirectory(prefix="marl-amod-fine-tune-") as tmp:
@@ -79,8 +79,7 @@ def fine_tune(policy_path: str, scenario: str, episodes: int = K_FINE_TUNE, seed
         summary = a2c.train(args)
         city = load_city(scenario)
         actor, _ = load_actor(summary["policy"], city)
-    return ActorPolicy(actor, city, card["lookahead"], name=f"fine-tune({Path(policy_path).stem})", time_context=card.get("time_context", False),
-                       arrivals_now=bool(card.get("arrivals_now")))  # fmt: skip
+    return ActorPolicy(actor, city, name=f"fine-tune({Path(policy_path).stem})", **feature_args(card))
 
 
 # --------------------------------------------------------------------------------------------
