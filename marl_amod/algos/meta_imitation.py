@@ -349,7 +349,7 @@ class Args(meta.Args):
     False: one city after another, as fast at hidden 128 x 16 trials (0.97x padded)"""
 
     @model_validator(mode="after")
-    def _dagger_rounds_fit(self) -> Args:
+    def _consistent(self) -> Args:
         if twice := sorted({c for c in self.cities if self.cities.count(c) > 1}):  # an update draws from the distinct tasks
             raise ValueError(f"cities names {twice} twice: a city is one task however often it is listed (its "
                              "variants would be drawn as cities under hotspot_share)")  # fmt: skip
