@@ -66,12 +66,13 @@ def sac_at(rev: str) -> ModuleType:
     """``marl_amod/algos/sac.py`` as of git revision ``rev``, imported beside this tree's."""
     root = Path(__file__).resolve().parent.parent
     source = subprocess.run(["git", "-C", str(root), "show", f"{rev}:marl_amod/algos/sac.py"], capture_output=True, text=True, check=True).stdout
-    path = Path(tempfile.mkdtemp()) / "sac_ref.py"
-    path.write_text(source)
-    spec = importlib.util.spec_from_file_location("sac_ref", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["sac_ref"] = module  # pydantic resolves the Args annotations through it
-    spec.loader.exec_module(module)
+    with tempfile.TemporaryDirectory(prefix="sac-ref-") as tmp:  # read once, by the import
+        path = Path(tmp) / "sac_ref.py"
+        path.write_text(source)
+        spec = importlib.util.spec_from_file_location("sac_ref", path)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules["sac_ref"] = module  # pydantic resolves the Args annotations through it
+        spec.loader.exec_module(module)
     return module
 
 
