@@ -137,6 +137,20 @@ def test_a_scenario_extends_another_and_changes_only_what_it_names(tmp_path):
         load_spec(str(tmp_path / "orphan.yaml"))
 
 
+def test_a_variant_without_a_name_is_named_after_its_file_not_its_base(tmp_path):
+    """A variant that omits ``name`` must not report its base's: evaluate's JSON, policy cards and
+    results_tables.py --add file results under the city's name, so a 3x4 grid named "synthetic"
+    would land in the synthetic table."""
+    (tmp_path / "small_grid.yaml").write_text("extends: synthetic\nrows: 3\n")
+    city = load_city(str(tmp_path / "small_grid.yaml"))
+    assert (city.name, city.n_regions) == ("small_grid", 12)
+    (tmp_path / "smaller.yaml").write_text("extends: small_grid.yaml\ncols: 2\n")  # two levels: still its own file
+    assert load_spec(str(tmp_path / "smaller.yaml")).name == "smaller"
+    (tmp_path / "named.yaml").write_text("extends: small_grid.yaml\nname: my_grid\n")  # a name given is kept
+    assert load_spec(str(tmp_path / "named.yaml")).name == "my_grid"
+    assert load_spec("nyc_brooklyn_event").name == "nyc_brooklyn_event"
+
+
 @pytest.mark.parametrize("rows, cols", [(2, 2), (5, 10), (20, 20), (21, 21)])
 def test_synthetic_cities_from_4_to_over_400_regions(rows, cols):
     city = grid_city(rows, cols, seed=3)

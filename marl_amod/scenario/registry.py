@@ -161,7 +161,9 @@ def _find(name_or_path: str) -> Path:
 
 def _read_scenario(path: Path, chain: tuple[Path, ...]) -> dict[str, Any]:
     """A scenario's keys; ``extends: <scenario>`` starts from another scenario's keys (so a
-    variant names only what it changes instead of copying its base)."""
+    variant names only what it changes instead of copying its base). The base's ``name`` is never
+    inherited: a variant without one is named after its file, since results, policy cards and
+    ``results_tables.py --add`` file everything under the city's name."""
     raw = read_yaml(path, "scenario file")
     base = raw.pop("extends", None)
     if base is None:
@@ -171,7 +173,7 @@ def _read_scenario(path: Path, chain: tuple[Path, ...]) -> dict[str, Any]:
     base_path = _find(str(path.parent / base) if base.endswith((".yaml", ".yml")) else base)
     if base_path.resolve() in (*chain, path.resolve()):
         raise ConfigError(f"{path}: 'extends: {base}' makes a cycle")
-    return {**_read_scenario(base_path, (*chain, path.resolve())), **raw}
+    return {**_read_scenario(base_path, (*chain, path.resolve())), "name": path.stem, **raw}
 
 
 def load_spec(name_or_path: str, **overrides: Any) -> ScenarioSpec:
