@@ -87,6 +87,13 @@ def test_malformed_city_content_is_reported(tmp_path, changes, message):
         load(write_city(tmp_path, **changes))
 
 
+def test_a_start_hour_outside_the_trip_records_names_the_hours_they_cover(tmp_path):
+    """RL4AMOD files hold a few hours of one day (Brooklyn 19:00-22:00): a start_hour outside them
+    must say which hours would work, not only that nothing falls in the episode."""
+    with pytest.raises(DataError, match=r"starting at hour 8: its requests run from 18:59 to 19:03"):
+        load(write_city(tmp_path), start_hour=8)
+
+
 def test_missing_data_file_and_missing_data_dir(monkeypatch, tmp_path):
     monkeypatch.setenv("MARL_AMOD_DATA", str(tmp_path))
     with pytest.raises(DataError, match="data file not found"):

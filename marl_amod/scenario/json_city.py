@@ -114,7 +114,11 @@ def load_json_city(
     step = np.floor_divide(ts - 60 * start_hour, tstep).astype(int)
     keep = (step >= 0) & (step < n_steps)
     if not keep.any():
-        raise DataError(f"{path}: no demand falls in the episode starting at hour {start_hour}")
+        first, last = (int(m) for m in (ts.min(), ts.max()))  # minutes of the day
+        raise DataError(
+            f"{path}: no demand falls in the episode starting at hour {start_hour}: its requests run from "
+            f"{first // 60:02d}:{first % 60:02d} to {last // 60:02d}:{last % 60:02d} (start_hour picks a clock hour in that window)"
+        )
     step, o, d, rate, tt, price = step[keep], o[keep], d[keep], rate[keep], tt[keep], price[keep]
     w = rate * demand_ratio
     shape = (n_steps, n, n)
