@@ -173,3 +173,25 @@ def test_every_marl_amod_name_the_guide_pages_mention_exists() -> None:
         "marl_amod.integrations.nothing_here"]  # fmt: skip
     for page in ALL_PAGES:
         assert stale_names(page.read_text()) == [], page.relative_to(ROOT)
+
+
+# ------------------------------------------------------------------ scenario files the pages show
+SCENARIO_BLOCK = re.compile(r"^```yaml\n# envs/(\w+)\.yaml[^\n]*\n(.*?)^```", re.DOTALL | re.MULTILINE)
+
+
+def test_scenario_yaml_blocks_build_their_city(tmp_path: Path) -> None:
+    """A scenario file a page shows (a ```yaml block headed ``# envs/<name>.yaml``) builds its city as
+    written, under its own name (json cities only where MARL_AMOD_DATA is set)."""
+    from conftest import has_data
+
+    from marl_amod.scenario import load_city, load_spec
+
+    blocks = [(name, body) for page in ALL_PAGES for name, body in SCENARIO_BLOCK.findall(page.read_text())]
+    assert blocks, "docs/extending.md shows a scenario variant"
+    for name, body in blocks:
+        path = tmp_path / f"{name}.yaml"
+        path.write_text(body)
+        spec = load_spec(str(path))
+        assert spec.name == name
+        if spec.source != "json" or has_data():
+            assert load_city(str(path)).name == name
