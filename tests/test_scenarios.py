@@ -144,6 +144,15 @@ def test_a_scenario_extends_another_and_changes_only_what_it_names(tmp_path):
         load_spec(str(tmp_path / "orphan.yaml"))
 
 
+def test_extends_by_bare_name_of_a_file_beside_it_says_to_write_the_file_name(tmp_path):
+    """``extends: base`` looks up bundled scenarios; when base.yaml sits beside the file, the error
+    says how to name it (``extends: base.yaml``) instead of only listing the bundled names."""
+    (tmp_path / "base.yaml").write_text("name: base\nsource: synthetic\nrows: 2\ncols: 3\n")
+    (tmp_path / "variant.yaml").write_text("extends: base\nname: variant\n")
+    with pytest.raises(ConfigError, match=r"variant\.yaml: 'extends: base'.*write 'extends: base\.yaml'"):
+        load_spec(str(tmp_path / "variant.yaml"))
+
+
 def test_a_variant_without_a_name_is_named_after_its_file_not_its_base(tmp_path):
     """A variant that omits ``name`` must not report its base's: evaluate's JSON, policy cards and
     results_tables.py --add file results under the city's name, so a 3x4 grid named "synthetic"

@@ -170,6 +170,8 @@ def _read_scenario(path: Path, chain: tuple[Path, ...]) -> dict[str, Any]:
         return raw
     if not isinstance(base, str):
         raise ConfigError(f"{path}: 'extends' must name one scenario, got {base!r}")
+    if not base.endswith((".yaml", ".yml")) and base not in available() and (path.parent / f"{base}.yaml").is_file():
+        raise ConfigError(f"{path}: 'extends: {base}' names a bundled scenario; for {base}.yaml beside it write 'extends: {base}.yaml'")
     base_path = _find(str(path.parent / base) if base.endswith((".yaml", ".yml")) else base)
     if base_path.resolve() in (*chain, path.resolve()):
         raise ConfigError(f"{path}: 'extends: {base}' makes a cycle")
