@@ -68,7 +68,9 @@ def to_d3rlpy(data: OfflineDataset) -> Any:
 
 def to_minari(data: OfflineDataset, dataset_id: str, *, card: dict[str, Any] | None = None) -> Any:
     """A Minari dataset ``dataset_id`` (e.g. ``"marl_amod/nyc_brooklyn/prop-v0"``) of the centralised
-    view; ``card`` (the dataset card) adds the ED / MPC-Oracle references as Minari's score range."""
+    view; ``card`` (the dataset card) adds the ED / MPC-Oracle references as Minari's score range, in
+    episode profit as ``marl_amod.evaluate`` reports it (the reset's dispatch included, which no
+    reward carries: a sum of the env's rewards is that much lower)."""
     minari = _need("minari", "minari")
     from gymnasium import spaces
     from minari.data_collector import EpisodeBuffer
@@ -79,16 +81,17 @@ def to_minari(data: OfflineDataset, dataset_id: str, *, card: dict[str, Any] | N
         obs = np.concatenate([a["observations"][rows], a["next_observations"][rows][-1:]])  # (T + 1, D)
         buffers.append(EpisodeBuffer(id=k, observations=obs, actions=a["actions"][rows], rewards=a["rewards"][rows],
                                      terminations=a["terminations"][rows], truncations=a["truncations"][rows]))  # fmt: skip
-    refs = (card or {}).get("reference_scores", {})
-    scores = {}
-    if refs:
-        scores = {"ref_min_score": refs["equal-distribution"]["mean"], "ref_max_score": refs["mpc-oracle"]["mean"]}
     meta = data.meta
-    return minari.create_dataset_from_buffers(
+    dataset = minari.create_dataset_from_buffers(
         dataset_id, buffers, algorithm_name=str(meta.get("policy")), author="marl_amod", data_format="arrow",
         observation_space=spaces.Box(-np.inf, np.inf, a["observations"].shape[1:], np.float32),
         action_space=spaces.Box(0.0, 1.0, a["actions"].shape[1:], np.float32),
         description=f"marl_amod {meta.get('scenario')} logged by {meta.get('policy')}: centralised view (env.state(), joint action "
                     "on the simplex, team reward); the per-agent view is in the .npz (marl_amod.datasets)",
-        **scores,
     )  # fmt: skip
+    refs = (card or {}).get("reference_scores", {})
+    if refs:  # Minari stores ref_min/max_score only beside an eval env (we have no gymnasium id): written apart
+        dataset.storage.update_metadata(
+            {"ref_min_score": refs["equal-distribution"]["mean"], "ref_max_score": refs["mpc-oracle"]["mean"]}
+        )
+    return dataset

@@ -44,7 +44,7 @@ def test_d3rlpy_trains_on_the_exported_dataset(data):
 
 
 def test_minari_holds_the_episodes(data, tmp_path, monkeypatch):
-    pytest.importorskip("minari")
+    minari = pytest.importorskip("minari")
     from marl_amod.export import to_minari
 
     monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path))
@@ -55,6 +55,9 @@ def test_minari_holds_the_episodes(data, tmp_path, monkeypatch):
     rows = episodes(data)[0]
     assert np.allclose(ep.actions, centralised_arrays(data)["actions"][rows])
     assert ep.observations.shape[0] == rows.stop - rows.start + 1
+    # the card's references are Minari's score range (Minari keeps them only with an eval env, so
+    # they must be written apart): ED's profit scores 0, MPC-Oracle's 1
+    assert np.allclose(minari.get_normalized_score(ds, np.array([1.0, 1.5, 2.0])), [0.0, 0.5, 1.0])
 
 
 def test_a_missing_library_is_a_config_error_naming_the_extra(data, monkeypatch):
