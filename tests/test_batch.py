@@ -225,6 +225,28 @@ def test_torchrl_vector_env_passes_check_env_specs_and_replays_the_vector_env() 
         np.testing.assert_allclose(td["next", "agents", "reward"][:, k, :, 0].numpy(), rew.astype(np.float32))
 
 
+def test_torchrl_vector_env_refuses_a_partial_reset_and_auto_resets_all_at_the_horizon() -> None:
+    """The B episodes run in lockstep: a ``_reset`` mask for some of them would restart all of them
+    while TorchRL believes the others continue, so it is an error; past the horizon (all done) every
+    episode restarts together."""
+    pytest.importorskip("torchrl")
+    import torch
+    from tensordict import TensorDict
+
+    from marl_amod.integrations.torchrl import torchrl_vector_env
+
+    env = torchrl_vector_env("synthetic", num_envs=3, horizon=4)
+    env.set_seed(1)
+    td = env.rand_step(env.reset())["next"]
+    with pytest.raises(ConfigError, match="lockstep"):
+        env.reset(TensorDict({"_reset": torch.tensor([[True], [False], [False]])}, batch_size=[3]))
+    assert env.vector.system.t == 1  # nothing was restarted
+    env.reset(TensorDict({"_reset": torch.ones(3, 1, dtype=torch.bool)}, batch_size=[3]))
+    assert env.vector.system.t == 0
+    td = env.rollout(9, break_when_any_done=False)  # 3 steps an episode, then all reset at once
+    assert td["next", "done"][:, :, 0].all(dim=0).tolist() == [False, False, True] * 3
+
+
 def test_vector_env_copy_continues_identically() -> None:
     """Vector wrappers and workers copy envs: a pickled copy (solver state rebuilt) steps the same."""
     import pickle

@@ -14,7 +14,8 @@ key                         shape             meaning
 ==========================  ================  ===============================================
 
 ``env.set_seed(s)`` makes the next reset seed episode b with s + b (the ParallelEnv's episode of
-that seed). Rollouts that continue past the horizon reset all episodes at once.
+that seed). Rollouts that continue past the horizon reset all episodes at once; a ``_reset`` mask
+that selects only some episodes is a ConfigError (they share one clock).
 
     pip install "marl-amod[torchrl]"
 """
@@ -99,6 +100,12 @@ def torchrl_vector_env(scenario: Any = "synthetic", num_envs: int = 16, device: 
             )
 
         def _reset(self, tensordict: Any = None, **kwargs: Any) -> Any:
+            mask = None if tensordict is None else tensordict.get("_reset", None)
+            if mask is not None and not bool(mask.all()):  # restarting all would desync the others silently
+                raise ConfigError(
+                    f"the {self.batch_size[0]} episodes run in lockstep and reset together; got a _reset mask "
+                    f"for {int(mask.sum())} of them (reset all, or step until every episode is done)"
+                )
             seed, self._seed = self._seed, None
             obs, _ = self.vector.reset(seed=seed)
             return self._out(obs, False)
