@@ -137,6 +137,10 @@ def test_vector_env_reset_without_seed_continues_the_seeded_sequence() -> None:
     b.reset(seed=5)
     np.testing.assert_array_equal(a.reset()[0], b.reset()[0])
     assert not np.array_equal(a.system.sim.demand[0], a.system.sim.demand[1])  # distinct episodes
+    a.reset(seed=[5, 9])  # a list of seeds is a seeded reset too: what follows is reproducible
+    fresh = marl_amod.vector_env("synthetic", num_envs=2)  # whatever came before
+    fresh.reset(seed=[5, 9])
+    np.testing.assert_array_equal(a.reset()[0], fresh.reset()[0])
 
 
 @pytest.mark.parametrize("seed", [-3, 1.5, "a", True, [1, -1], [0, 1.5]])

@@ -21,7 +21,8 @@ state()             (B, N * F + 3) float32; ``graph()``: ``x`` (B, N, F), ``edge
 Resets are explicit, not automatic: every episode has the same horizon and all run in lockstep,
 so they all end at the same step (truncations all True); the next ``step`` raises until
 ``reset()`` starts B new episodes. A ``reset()`` without a seed draws B seeds from a sequence
-started by the last seeded reset, as the ParallelEnv does. Macro-simulator cities only.
+started by the last seeded reset (one seed, or a list of B integers), as the ParallelEnv does.
+Macro-simulator cities only.
 """
 
 from __future__ import annotations
@@ -113,6 +114,8 @@ class AmodVectorEnv(HasEnvOptions):
                      for k, s in enumerate(seed)]  # fmt: skip
             if len(seeds) != b:
                 raise ConfigError(f"reset needs one seed per episode ({b}), got {len(seeds)}")
+            if all(isinstance(s, int) for s in seeds):  # a seeded reset: the next unseeded ones follow from it
+                self._seeds = np.random.SeedSequence(seeds)
         self.last_outcome = self.system.reset(seeds)
         self._steps = 0
         self._running = True
