@@ -53,6 +53,7 @@ evaluation seeds, for normalised scores (:func:`normalised_score`: 0 = ED, 100 =
 from __future__ import annotations
 
 import json
+import zipfile
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -120,7 +121,15 @@ class OfflineDataset:
         path = Path(path)
         if not path.is_file():
             raise DataError(f"no dataset at {path} (make one with `marl-amod collect` or `marl-amod datasets`)")
-        with np.load(path, allow_pickle=False) as f:
+        try:
+            archive = np.load(path, allow_pickle=False)
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:  # numpy's own advice is to unpickle it
+            card = f" ({path.name} is a dataset card: load {path.with_suffix('.npz').name} beside it)" if path.suffix == ".json" else ""
+            why = "" if isinstance(exc, ValueError) else f": {exc}"  # numpy's ValueError suggests unpickling the file
+            raise DataError(f"{path} is not a marl_amod dataset (an .npz written by `marl-amod collect`){card}{why}") from None
+        if not isinstance(archive, np.lib.npyio.NpzFile):  # a bare .npy array
+            raise DataError(f"{path} is not a marl_amod dataset (an .npz written by `marl-amod collect`)")
+        with archive as f:
             if "meta" not in f:
                 raise DataError(f"{path} is not a marl_amod dataset: no meta")
             meta = json.loads(str(f["meta"]))

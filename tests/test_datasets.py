@@ -131,6 +131,13 @@ def test_loading_a_foreign_or_old_file_is_a_data_error(tmp_path, dataset):
     np.savez(tmp_path / "v1.npz", meta=np.array(json.dumps({"format_version": 1})))
     with pytest.raises(DataError, match="format 1"):
         OfflineDataset.load(tmp_path / "v1.npz")
+    # the card beside a dataset, or any file that is no .npz: a DataError, not numpy's advice to unpickle it
+    (tmp_path / "data.json").write_text('{"policy": "prop"}')
+    with pytest.raises(DataError, match=r"data\.json is not a marl_amod dataset .*card"):
+        OfflineDataset.load(tmp_path / "data.json")
+    (tmp_path / "cut.npz").write_bytes(b"PK\x03\x04 truncated")
+    with pytest.raises(DataError, match=r"cut\.npz is not a marl_amod dataset"):
+        OfflineDataset.load(tmp_path / "cut.npz")
 
 
 def test_cli_collect_writes_a_dataset_and_its_card(tmp_path):
