@@ -259,9 +259,9 @@ def merge_datasets(
 
     Refuses pieces of different collections (city, behaviour policy and its options, logging) or that hold an episode twice; pieces with different --seed, or one resumed with --first-episode where another stopped, never do.
     """  # one line per paragraph: --help prints a docstring's line breaks as they are
-    from marl_amod.datasets import OfflineDataset, card_path, merge, merge_cards
+    from marl_amod.datasets import OfflineDataset, card_path, dataset_destination, merge, merge_cards
 
-    output = check_destination(output, what="--output")
+    output = dataset_destination(output)
     if output.resolve() in {p.resolve() for p in pieces}:
         raise ConfigError(f"--output {output} is one of the pieces: write the merged dataset to a new file")
     data = merge([OfflineDataset.load(p) for p in pieces], names=[str(p) for p in pieces])
@@ -278,11 +278,11 @@ def _collect_one(
     arrivals_now: bool = False,
 ) -> None:
     from marl_amod.datasets import collect as collect_dataset
-    from marl_amod.datasets import write_card
+    from marl_amod.datasets import dataset_destination, write_card
     from marl_amod.policies import make_policy
     from marl_amod.scenario import load_city
 
-    output = check_destination(output, what="--output")  # before the run, not after it
+    output = dataset_destination(output)  # before the run, not after it
     city = load_city(scenario)
     pol = make_policy(policy, city, **(policy_options or {}))
     with progress_bar() as bar:

@@ -110,7 +110,7 @@ class OfflineDataset:
     def save(self, path: str | Path) -> Path:
         """Write atomically (a reader never sees half a dataset); a file handle keeps numpy from
         appending '.npz'."""
-        path = check_destination(path, what="dataset")
+        path = dataset_destination(path, what="dataset")
         return atomic_write(path, lambda fh: np.savez_compressed(
             fh, **{k: getattr(self, k) for k in ARRAY_KEYS}, edge_index=self.edge_index, edge_attr=self.edge_attr,
             meta=np.array(json.dumps(self.meta)),
@@ -442,6 +442,15 @@ def collect(
 # --------------------------------------------------------------------------------------------
 def card_path(path: str | Path) -> Path:
     return Path(path).with_suffix(".json")
+
+
+def dataset_destination(path: str | Path, what: str = "--output") -> Path:
+    """``path`` checked as a place to write a dataset, whose card goes beside it as ``.json``: a
+    dataset named ``*.json`` would be overwritten by its own card."""
+    path = check_destination(path, what=what)
+    if path.suffix == ".json":
+        raise ConfigError(f"{what} {path}: a dataset is an .npz ({path.with_suffix('.npz')}); its card goes beside it as {path.name}")
+    return path
 
 
 def reference_scores(city: City, episodes: int, seed: int, cache: dict | None = None) -> dict[str, dict[str, float]]:

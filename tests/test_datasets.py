@@ -21,7 +21,7 @@ from marl_amod.datasets import (
     read_card,
     write_card,
 )
-from marl_amod.errors import DataError
+from marl_amod.errors import ConfigError, DataError
 from marl_amod.evaluation import episode_seeds, evaluate
 from marl_amod.policies import make_policy
 
@@ -148,6 +148,17 @@ def test_cli_collect_writes_a_dataset_and_its_card(tmp_path):
     data = OfflineDataset.load(out)
     assert data.meta["policy"] == "dtv" and data.truncations.sum() == 1
     assert read_card(out)["behaviour_score"]["mean"] > 0
+
+
+def test_a_dataset_named_like_its_card_is_refused_before_collecting(tmp_path, dataset):
+    """The card is written beside the dataset as <name>.json: a dataset path ending in .json would be
+    overwritten by its own card, so collect refuses it before the run and save() refuses it too."""
+    out = tmp_path / "data.json"
+    args = ["collect", "--policy", "prop", "--episodes", "1", "--output", str(out), "--eval-episodes", "1"]
+    result = CliRunner().invoke(app, args)
+    assert isinstance(result.exception, ConfigError) and "card" in str(result.exception) and not out.exists()
+    with pytest.raises(ConfigError, match=r"data\.json.*\.npz"):
+        dataset.save(out)
 
 
 def test_cli_collect_passes_policy_options_and_names_the_teacher(tmp_path):
