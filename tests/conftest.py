@@ -45,6 +45,16 @@ def _private_network_cache(tmp_path_factory):
         yield
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _private_sb3_logs(tmp_path_factory):
+    """SB3 makes a log folder per ``learn()`` (``/tmp/SB3-<time>`` unless SB3_LOGDIR is set), even at
+    verbose=0: the suite's, the docs' blocks' and the examples' (subprocesses inherit it) go to a
+    folder the test session owns, so runs leave nothing behind."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("SB3_LOGDIR", str(tmp_path_factory.mktemp("sb3_logs")))
+        yield
+
+
 @pytest.fixture
 def tiny_city() -> City:
     """A 3x3 grid with a 6-step horizon: fast enough for per-step property tests."""
