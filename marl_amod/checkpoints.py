@@ -125,6 +125,13 @@ def make_card(**fields: Any) -> PolicyCard:
 # --------------------------------------------------------------------------------------------
 # Writing
 # --------------------------------------------------------------------------------------------
+def training_scenario(card: dict[str, Any] | PolicyCard) -> str:
+    """The scenario to load the card's city from: its training ``args.scenario`` as given (a YAML
+    path for a user's scenario, whose city name ``scenario`` is no bundled name), else ``scenario``."""
+    card = card.to_dict() if isinstance(card, PolicyCard) else card
+    return str((card.get("args") or {}).get("scenario") or card["scenario"])
+
+
 def card_markdown(path: Path, card: dict[str, Any]) -> str:
     """The human-readable view of the card of policy ``path`` (policies/x.md)."""
     lines = [f"# Policy `{path.stem}`", "", "| field | value |", "|---|---|"]
@@ -143,7 +150,7 @@ def card_markdown(path: Path, card: dict[str, Any]) -> str:
         else:
             backend = " --backend rllib" if str(card.get("algorithm", "")).startswith("rllib") else ""
             lines += ["", f"Reproduce: `marl-amod train{backend} --config {config}`"]
-    lines += ["", f"Evaluate: `marl-amod evaluate --scenario {card['scenario']} --policy {path} --episodes 10`", ""]
+    lines += ["", f"Evaluate: `marl-amod evaluate --scenario {training_scenario(card)} --policy {path} --episodes 10`", ""]
     return "\n".join(lines)
 
 
@@ -410,7 +417,7 @@ def load_policy(path: str | Path, city: City | str | None = None, selection: Sel
     if not isinstance(city, City):
         from marl_amod.scenario import load_city
 
-        city = load_city(city if city is not None else card.scenario)
+        city = load_city(city if city is not None else training_scenario(card))
     if card.algorithm in ("meta", "meta-bc"):  # a recurrent meta-policy: adapt to the city first (no gradient step)
         from marl_amod.algos import meta
 

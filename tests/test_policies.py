@@ -140,6 +140,22 @@ def test_load_policy_defaults_to_the_city_on_the_card():
     assert policy.name == "a2c_gnn_synthetic" and len(policy.agents) == load_city("synthetic").n_regions
 
 
+def test_a_policy_trained_on_a_scenario_file_loads_and_evaluates_from_its_card(tmp_path, monkeypatch):
+    """A run on a user's YAML records the city's name ("mine"), which is no bundled scenario: the
+    card's training args keep the file, and load_policy and the card's Evaluate line use it."""
+    from marl_amod.checkpoints import card_markdown
+
+    monkeypatch.chdir(tmp_path)
+    Path("mine.yaml").write_text("extends: synthetic\nrows: 3\n")
+    city = load_city("mine.yaml")
+    torch.manual_seed(0)
+    card = {"scenario": city.name, "algorithm": "a2c", "mode": "centralised", "actor": "gnn", "conv": "gcn", "hidden": 8,
+            "n_features": 13, "lookahead": 6, "seed": 0, "args": {"scenario": "mine.yaml"}}
+    path = save_policy(tmp_path / "mine.pt", build_actor("gnn", city, 13, 8), card)
+    assert len(marl_amod.load_policy(path).agents) == 12
+    assert "--scenario mine.yaml " in card_markdown(path, card)
+
+
 def test_record_episode_runs_a_shipped_policy():
     from marl_amod.env.render import record_episode
 
