@@ -4,6 +4,8 @@ parallel API and seed tests run over every scenario in tests/test_scenarios_all.
 from __future__ import annotations
 
 import pickle
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -134,9 +136,6 @@ def test_supersuit_sb3_ppo_trains_one_shared_policy() -> None:
     before = [p.detach().clone() for p in model.policy.parameters()]
     model.learn(total_timesteps=3 * 8 * vec.num_envs)
     assert model.num_timesteps >= 3 * 8 * vec.num_envs
-    import tempfile
-    from pathlib import Path
-
     # SB3 makes a log folder per learn() even at verbose=0; the suite's go to its own tmp folder, not /tmp/SB3-*
     assert Path(model.logger.get_dir()).parent != Path(tempfile.gettempdir())
     changed = any(not torch.equal(a, b) for a, b in zip(before, model.policy.parameters(), strict=True))
