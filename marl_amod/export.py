@@ -10,15 +10,21 @@ truncations stay apart (the env never terminates; the horizon truncates).
   rllib or torchrl extras, which need gymnasium >= 1.1).
 * :func:`to_minari` -> a Minari dataset (``pip install "marl-amod[minari]"``; Minari 0.5 has no
   multi-agent datasets). It is written where Minari keeps datasets (``MINARI_DATASETS_PATH``).
+
+:func:`state_policy` goes the way back: a policy learnt on that view (state -> joint action) as
+the observations -> actions callable that ``marl_amod.evaluate`` scores (each agent's observation
+holds its region's features and the time values, so the state is rebuilt exactly).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 
 from marl_amod.datasets import OfflineDataset, action_share
+from marl_amod.env.observations import split_local, state_from_features
 from marl_amod.errors import ConfigError
 
 
@@ -95,3 +101,17 @@ def to_minari(data: OfflineDataset, dataset_id: str, *, card: dict[str, Any] | N
             {"ref_min_score": refs["equal-distribution"]["mean"], "ref_max_score": refs["mpc-oracle"]["mean"]}
         )
     return dataset
+
+
+def state_policy(predict: Callable[[np.ndarray], Any], n_features: int = 13) -> Callable[[dict[str, Any]], dict[str, np.ndarray]]:
+    """``predict`` (``env.state()`` (N F + 3,) -> the joint action (N,), e.g. ``lambda s: algo.predict(s[None])[0]``)
+    as a callable on the env's observations dict, for ``marl_amod.evaluate``; ``n_features`` is the
+    dataset's F (``data.n_features``: 13 at look-ahead 6, one more with ``arrivals_now``)."""
+
+    def act(observations: dict[str, Any]) -> dict[str, np.ndarray]:
+        agents = sorted(observations, key=lambda a: int(a.rsplit("_", 1)[1]))  # region_0 .. region_{N-1}
+        own, context, _, _ = split_local(np.stack([np.asarray(observations[a]) for a in agents]), n_features)
+        joint = np.asarray(predict(state_from_features(own, context[0])), dtype=np.float32).reshape(len(agents))
+        return {a: joint[i : i + 1] for i, a in enumerate(agents)}
+
+    return act

@@ -14,10 +14,14 @@ from marl_amod.scenario import load_city
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
+def city(tmp_path_factory):
     scenario = tmp_path_factory.mktemp("export") / "tiny.yaml"
     scenario.write_text(yaml.safe_dump({"name": "tiny", "source": "synthetic", "rows": 3, "cols": 3, "horizon": 6, "vehicles_per_region": 5}))
-    city = load_city(str(scenario))
+    return load_city(str(scenario))
+
+
+@pytest.fixture(scope="module")
+def data(city):
     return collect(city, make_policy("prop", city), episodes=3, seed=0)
 
 
@@ -68,3 +72,22 @@ def test_a_missing_library_is_a_config_error_naming_the_extra(data, monkeypatch)
 
     with pytest.raises(ConfigError, match=r"marl-amod\[d3rlpy\]"):
         to_d3rlpy(data)
+
+
+def test_a_policy_on_the_exported_view_plays_through_evaluate(city):
+    """What an offline library learns from the export reads env.state() and answers the joint action;
+    state_policy turns it into the observations -> actions callable that marl_amod.evaluate scores."""
+    import marl_amod
+    from marl_amod.export import state_policy
+
+    env = marl_amod.parallel_env(city)
+    seen = []
+    policy = state_policy(lambda state: seen.append(state) or np.ones(city.n_regions), n_features=13)
+    obs, _ = env.reset(seed=2)
+    while env.agents:
+        actions = policy(obs)
+        np.testing.assert_array_equal(seen[-1], env.state())  # the exported observation, exactly
+        assert set(actions) == set(env.agents) and all(a.shape == (1,) for a in actions.values())
+        obs, *_ = env.step(actions)
+    ed = marl_amod.evaluate("equal-distribution", city, episodes=2, seed=0)["metrics"]
+    assert marl_amod.evaluate(policy, city, episodes=2, seed=0)["metrics"] == ed  # all ones: equal distribution
