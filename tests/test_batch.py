@@ -178,6 +178,15 @@ def test_vector_env_rejects_bad_actions() -> None:
     with pytest.raises(ActionError, match="region_3 in episode 1 is -0.5, outside"):
         strict.step(bad)
     venv.step(bad)  # clipped to 0 like the ParallelEnv does
+    # what the ParallelEnv refuses as an action (strings it would read as numbers, complex values whose
+    # imaginary part numpy drops, bools) the vector env refuses too, before any episode moves
+    for wrong in (np.full((2, n), "0.5"), np.full((2, n), 0.5 + 1j), np.ones((2, n), dtype=bool)):
+        with pytest.raises(ActionError, match="real numbers"):
+            venv.step(wrong)
+    assert venv.system.t == 1
+    import torch
+
+    venv.step(torch.full((2, n), 0.5))  # a tensor of numbers is fine
 
 
 def test_rebalancer_reusing_its_network_equals_a_fresh_solve_and_pickles() -> None:
