@@ -53,3 +53,6 @@ def test_joint_env_keeps_the_action_rules(tiny_city) -> None:
         env.step(np.full(n, np.nan))
     with pytest.raises(ActionError):
         env.step(np.ones(n + 1))
+    for wrong in (np.full(n, "0.5"), np.full(n, 0.5 + 1j), np.ones(n, dtype=bool)):  # refused as the ParallelEnv does
+        with pytest.raises(ActionError, match="real numbers"):
+            env.step(wrong)

@@ -113,6 +113,19 @@ def _stacked(actions: Mapping[str, Any], agents: Sequence[str]) -> np.ndarray | 
     return stacked.reshape(n) if stacked.shape in ((n,), (n, 1)) else None
 
 
+def real_array(actions: Any, what: str = "actions") -> np.ndarray:
+    """An array of actions for the array envs (vector, joint), refused unless it holds real numbers,
+    as the ParallelEnv refuses them: numpy would read "0.5" as 0.5, drop a complex number's
+    imaginary part and take bools as 0/1."""
+    try:
+        a = np.asarray(actions)
+    except (TypeError, ValueError) as exc:  # ragged lists, tensors that live on another device
+        raise ActionError(f"{what} must be a numeric array: {exc}") from exc
+    if a.dtype.kind not in "iuf":
+        raise ActionError(f"{what} must be real numbers (an int or float array), got dtype {a.dtype}")
+    return a
+
+
 def _numeric(value: Any) -> bool:
     """Real numbers only: numpy would read "0.5" as 0.5 and drop a complex number's imaginary part."""
     try:

@@ -162,13 +162,7 @@ class AmodVectorEnv(HasEnvOptions):
 
     def _joint(self, actions: Any) -> np.ndarray:
         """(B, N) float64 actions clipped into [0, 1]; the ParallelEnv's rules, checked in one pass."""
-        try:
-            a = np.asarray(actions)
-        except (TypeError, ValueError) as exc:
-            raise ActionError(f"actions must be a numeric array of shape (B, N) or (B, N, 1): {exc}") from exc
-        if a.dtype.kind not in "iuf":  # as the ParallelEnv: no strings read as numbers, no complex, no bools
-            raise ActionError(f"actions must be real numbers (an int or float array), got dtype {a.dtype}")
-        a = a.astype(np.float64, copy=False)
+        a = act.real_array(actions).astype(np.float64, copy=False)
         shape = (self.num_envs, self.num_agents)
         if a.shape == (*shape, 1):
             a = a[..., 0]

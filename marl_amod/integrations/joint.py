@@ -28,6 +28,7 @@ import gymnasium
 import numpy as np
 from gymnasium import spaces
 
+from marl_amod.env.actions import real_array
 from marl_amod.env.parallel import AmodParallelEnv, parallel_env
 from marl_amod.errors import ActionError
 
@@ -54,7 +55,7 @@ class JointEnv(gymnasium.Env):
         return self._stack(obs), self._info(infos)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        action = np.asarray(action, dtype=np.float32)
+        action = real_array(action, "the joint action").astype(np.float32, copy=False)
         if action.size != len(self.agents):
             raise ActionError(f"the joint action needs one value per region ({len(self.agents)}), got shape {action.shape}")
         action = action.reshape(len(self.agents), 1)  # (N,) or (N, 1): one (1,) action per region
