@@ -127,6 +127,7 @@ def state_policy(predict: Callable[[np.ndarray], Any], n_features: int = 13) -> 
         joint = np.asarray(predict(state_from_features(own, context[0])), dtype=np.float32).reshape(len(agents))
         return {a: joint[i : i + 1] for i, a in enumerate(agents)}
 
+    act.name = "state-policy"  # type: ignore[attr-defined]  # evaluate's record (and the results tables) name it so; name= overrides
     return act
 
 
