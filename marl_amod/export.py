@@ -117,9 +117,10 @@ def state_policy(predict: Callable[[np.ndarray], Any], n_features: int = 13) -> 
         local = np.stack([np.asarray(observations[a]) for a in agents])
         try:
             own, context, _, mask = split_local(local, n_features)
-        except ValueError:
-            own = context = mask = None
-        if context is None or not _layout_fits(context, mask):
+            fits = _layout_fits(context, mask)
+        except ValueError:  # no K fits its length
+            fits = False
+        if not fits:
             raise ConfigError(
                 f"observations of length {local.shape[-1]} do not hold n_features={n_features} features a region: "
                 f"evaluate the policy on the env it was learnt on ({options})"
@@ -136,6 +137,8 @@ def _layout_fits(context: np.ndarray, mask: np.ndarray) -> bool:
     all (sin, cos on the unit circle, a step fraction in [0, 1]) and a mask of zeros and ones."""
     sin, cos, frac = context[0]
     return bool(
-        (context == context[0]).all() and abs(sin * sin + cos * cos - 1.0) < 1e-3 and 0.0 <= frac <= 1.0
+        (context == context[0]).all()
+        and abs(sin * sin + cos * cos - 1.0) < 1e-3
+        and 0.0 <= frac <= 1.0
         and np.isin(mask, (0.0, 1.0)).all()
     )
