@@ -106,12 +106,39 @@ def to_minari(data: OfflineDataset, dataset_id: str, *, card: dict[str, Any] | N
 def state_policy(predict: Callable[[np.ndarray], Any], n_features: int = 13) -> Callable[[dict[str, Any]], dict[str, np.ndarray]]:
     """``predict`` (``env.state()`` (N F + 3,) -> the joint action (N,), e.g. ``lambda s: algo.predict(s[None])[0]``)
     as a callable on the env's observations dict, for ``marl_amod.evaluate``; ``n_features`` is the
-    dataset's F (``data.n_features``: 13 at look-ahead 6, one more with ``arrivals_now``)."""
+    dataset's F (``data.n_features``: 13 at look-ahead 6, one more with ``arrivals_now``), and the
+    env's observations must hold as many (``evaluate(..., lookahead=T, arrivals_now=...)``): else a
+    ConfigError, since on some cities another F also splits them, into a state of wrong numbers."""
+    lookahead, arrivals_now = divmod(int(n_features) - 1, 2)  # F = 1 + 2T (+ 1)
+    options = f"lookahead={lookahead}" + (", arrivals_now=True" if arrivals_now else "")
 
     def act(observations: dict[str, Any]) -> dict[str, np.ndarray]:
         agents = sorted(observations, key=lambda a: int(a.rsplit("_", 1)[1]))  # region_0 .. region_{N-1}
-        own, context, _, _ = split_local(np.stack([np.asarray(observations[a]) for a in agents]), n_features)
+        local = np.stack([np.asarray(observations[a]) for a in agents])
+        try:
+            own, context, _, mask = split_local(local, n_features)
+            fits = _layout_fits(context, mask)
+        except ValueError:  # no K fits its length
+            fits = False
+        if not fits:
+            raise ConfigError(
+                f"observations of length {local.shape[-1]} do not hold n_features={n_features} features a region: "
+                f"evaluate the policy on the env it was learnt on ({options})"
+            )
         joint = np.asarray(predict(state_from_features(own, context[0])), dtype=np.float32).reshape(len(agents))
         return {a: joint[i : i + 1] for i, a in enumerate(agents)}
 
+    act.name = "state-policy"  # type: ignore[attr-defined]  # evaluate's record (and the results tables) name it so; name= overrides
     return act
+
+
+def _layout_fits(context: np.ndarray, mask: np.ndarray) -> bool:
+    """Whether a split of every agent's observation found the blocks where they are: one clock for
+    all (sin, cos on the unit circle, a step fraction in [0, 1]) and a mask of zeros and ones."""
+    sin, cos, frac = context[0]
+    return bool(
+        (context == context[0]).all()
+        and abs(sin * sin + cos * cos - 1.0) < 1e-3
+        and 0.0 <= frac <= 1.0
+        and np.isin(mask, (0.0, 1.0)).all()
+    )

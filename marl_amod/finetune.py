@@ -29,7 +29,7 @@ import numpy as np
 
 from marl_amod.algos import a2c
 from marl_amod.algos.common import evaluate_actor, read_curve
-from marl_amod.checkpoints import architecture_args, feature_args, load_actor, read_card
+from marl_amod.checkpoints import architecture_args, feature_args, load_actor, read_card, training_scenario
 from marl_amod.errors import ConfigError
 from marl_amod.evaluation import evaluate
 from marl_amod.files import write_json
@@ -47,13 +47,14 @@ def finetune_curve(
     """Fine-tune ``policy`` (an offline policy file) online and train from scratch with the same budget;
     returns the curves and the study's numbers (see the module docstring)."""
     trained = read_card(policy)
-    city = load_city(trained.get("args", {}).get("scenario") or trained["scenario"])  # the scenario file it was trained on
+    scenario = training_scenario(trained)  # the scenario file it was trained on, where it was one
+    city = load_city(scenario)
     actor, card = load_actor(policy, city)
     behaviour = card.get("dataset", {}).get("policy")
     if not behaviour:
         raise ConfigError(f"{policy} has no dataset on its card: the study starts from an offline policy (bc, iql, cql)")
     common = {
-        "scenario": trained.get("args", {}).get("scenario") or city.name, "mode": "centralised", **architecture_args(card), "episodes": episodes, "num_envs": num_envs, "episodes_per_update": num_envs,
+        "scenario": scenario, "mode": "centralised", **architecture_args(card), "episodes": episodes, "num_envs": num_envs, "episodes_per_update": num_envs,
         "eval_every": eval_every, "eval_episodes": eval_episodes, "seed": seed, "gamma": 0.97, "reward_scale": 0.001,
         "final_eval_episodes": 1, "policy_out": "",
     }  # fmt: skip

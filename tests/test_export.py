@@ -90,4 +90,23 @@ def test_a_policy_on_the_exported_view_plays_through_evaluate(city):
         assert set(actions) == set(env.agents) and all(a.shape == (1,) for a in actions.values())
         obs, *_ = env.step(actions)
     ed = marl_amod.evaluate("equal-distribution", city, episodes=2, seed=0)["metrics"]
-    assert marl_amod.evaluate(policy, city, episodes=2, seed=0)["metrics"] == ed  # all ones: equal distribution
+    record = marl_amod.evaluate(policy, city, episodes=2, seed=0)
+    assert record["metrics"] == ed  # all ones: equal distribution
+    # the record's policy name (results tables file rows by it) says what it is, not the inner function's "act"
+    assert record["policy"] == "state-policy"
+    assert marl_amod.evaluate(policy, city, episodes=1, seed=0, name="bc-d3rlpy")["policy"] == "bc-d3rlpy"
+
+
+@pytest.mark.parametrize("n_features, hint", [(7, r"lookahead=3\)"), (14, "lookahead=6, arrivals_now=True")])
+def test_a_state_policy_on_observations_of_another_look_ahead_is_refused(n_features, hint):
+    """The env's observations must hold the dataset's F features: on a city whose neighbour slots
+    K = 3 an F = 13 observation also splits as F = 7 (13 + 3 + 3 * 14 = 7 + 3 + 5 * 8), which gave
+    a state of the right size for a look-ahead-3 model built from the wrong numbers."""
+    import marl_amod
+    from marl_amod.export import state_policy
+
+    city = load_city("synthetic", rows=2, cols=3)  # in-degrees 2 and 3: K = 3
+    obs, _ = marl_amod.parallel_env(city).reset(seed=0)  # look-ahead 6: F = 13
+    policy = state_policy(lambda state: np.ones(city.n_regions), n_features=n_features)
+    with pytest.raises(ConfigError, match=f"n_features={n_features}.*{hint}"):
+        policy(obs)
