@@ -35,6 +35,8 @@ from marl_amod.models.gnn import Graph
 from marl_amod.scenario import City
 from marl_amod.selection import Selection
 
+Imitation = Literal["ce", "l1"]
+
 
 class OfflineArgs(C.RunArgs):
     """What every offline run has; ``episodes`` is replaced by ``updates`` (no env episodes)."""
@@ -55,6 +57,12 @@ class OfflineArgs(C.RunArgs):
     """decay every learning rate linearly to zero over the updates: the shipped (last) actor is then
     a settled one, not a random point of a noisy descent (DTV's targets react to requests the
     actor cannot see, and its validation profit swung by 8k between checkpoints without it)"""
+    imitation: Imitation = "ce"
+    """the imitation loss of the logged action (BC's, IQL's advantage-weighted one, CQL's cloning
+    phase; :func:`imitation_loss`): ce, the cross-entropy of the logged shares under the policy's
+    mean; l1, the absolute error of the mean's shares, i.e. the vehicles a step off as a share of
+    the fleet, every vehicle alike in every region (the cross-entropy weighs a share error at region i
+    by about 1 / y_i, least at the busiest regions)"""
     keep: Literal["last", "best"] = "last"
     """the actor shipped: the last one (no env interaction at all: offline RL proper) or the best
     on the validation seeds (uses ``eval_episodes`` env episodes per validation, as online runs do:
@@ -140,23 +148,35 @@ def concentrations(
     return actor(C.with_time(b[f"{prefix}x"], b.get(f"{prefix}ctx"), time), edge_index)
 
 
-def imitation_loss(actor: torch.nn.Module, b: Batch, graph: Graph, local: bool, time: bool = False) -> torch.Tensor:
-    """Per-transition loss (B,) of imitating the logged action: the cross-entropy
-    -sum_i y_i log mean_i of the logged distribution y under the Dirichlet mean alpha / sum(alpha).
+def imitation_loss(
+    actor: torch.nn.Module, b: Batch, graph: Graph, local: bool, time: bool = False, kind: Imitation = "ce"
+) -> torch.Tensor:
+    """Per-transition loss (B,) of imitating the logged action y (normalised) with the policy's
+    Dirichlet mean m = alpha / sum(alpha), which is what the deterministic policy plays.
 
-    Why not the likelihood log Dir(y; alpha): maximum likelihood fits the Dirichlet's geometric
-    mean (E log y), and the logged targets of INF, DTV and MPC are mostly zeros (78% of INF's),
-    whose clamped logs dominate it, so the arithmetic mean the deterministic policy plays lands
-    far from the behaviour (on INF 27 vehicles a step off against 15 with this loss). The
-    cross-entropy is minimised by the conditional mean of y: a proper score for what is played.
-    It leaves the total concentration (how widely sampled actions spread) free; fitting that by
-    the likelihood as well moves every alpha_i by the same amount (d sum / d alpha_i = 1), which
-    drags the mean towards uniform (INF: 45k instead of 55k on the validation seeds).
+    ``ce``: the cross-entropy -sum_i y_i log m_i. Why not the likelihood log Dir(y; alpha): maximum
+    likelihood fits the Dirichlet's geometric mean (E log y), and the logged targets of INF, DTV and
+    MPC are mostly zeros (78% of INF's), whose clamped logs dominate it, so the arithmetic mean the
+    deterministic policy plays lands far from the behaviour (on INF 27 vehicles a step off against 15
+    with this loss). The cross-entropy is minimised by the conditional mean of y: a proper score for
+    what is played. It leaves the total concentration (how widely sampled actions spread) free;
+    fitting that by the likelihood as well moves every alpha_i by the same amount (d sum / d alpha_i
+    = 1), which drags the mean towards uniform (INF: 45k instead of 55k on the validation seeds).
+
+    ``l1``: sum_i |m_i - y_i|, twice the vehicles a step off over the fleet M. Near its optimum the
+    cross-entropy is sum_i (m_i - y_i)^2 / (2 y_i): a vehicle off at a region holding a third of the
+    fleet costs some 30 times less than at one holding 1%, so a clone that cannot fit every region
+    spends its error at the busiest ones, where MPC sends its vehicles. The absolute error prices every
+    vehicle alike (and is minimised by the median, not the mean, where the logged targets are tied).
     """
     alpha = concentrations(actor, b, graph, local, time=time)  # (B, N)
     mean = alpha / alpha.sum(-1, keepdim=True)
     y = b["action"] / b["action"].sum(-1, keepdim=True).clamp_min(1e-12)
-    return -(y * torch.log(mean.clamp_min(1e-8))).sum(-1)
+    if kind == "ce":
+        return -(y * torch.log(mean.clamp_min(1e-8))).sum(-1)
+    if kind == "l1":
+        return (mean - y).abs().sum(-1)
+    raise ConfigError(f"unknown imitation loss {kind!r}; known: ce, l1")
 
 
 def sink_margin_targets(x: torch.Tensor, action: torch.Tensor, margin: float, scale: float = FEATURE_SCALE) -> torch.Tensor:
