@@ -23,7 +23,7 @@ from typing import Any, Literal, Protocol
 
 import numpy as np
 import torch
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from marl_amod.algos import common as C
 from marl_amod.datasets import OfflineDataset, normalised_score, read_card
@@ -63,11 +63,22 @@ class OfflineArgs(C.RunArgs):
     mean; l1, the absolute error of the mean's shares, i.e. the vehicles a step off as a share of
     the fleet, every vehicle alike in every region (the cross-entropy weighs a share error at region i
     by about 1 / y_i, least at the busiest regions)"""
+    shortfall_weight: float = Field(0.0, ge=0)
+    """``imitation: l1`` only: a vehicle short of the logged target at a region that receives vehicles
+    (logged target above its idle count) costs 1 + this, a vehicle over costs 1: short there, requests
+    go unserved; over, a vehicle was moved that need not have been"""
     keep: Literal["last", "best"] = "last"
     """the actor shipped: the last one (no env interaction at all: offline RL proper) or the best
     on the validation seeds (uses ``eval_episodes`` env episodes per validation, as online runs do:
     online policy selection, as D4RL papers report it; with ``init_actor`` the start is a candidate
     too, so an improvement step is kept only where the validation seeds confirm it)"""
+
+    @model_validator(mode="after")
+    def _shortfall_prices_l1(self) -> OfflineArgs:
+        if self.shortfall_weight and self.imitation != "l1":
+            raise ValueError(f"shortfall_weight weighs the vehicles of imitation: l1; imitation is {self.imitation} "
+                             "(set imitation: l1, or shortfall_weight: 0)")  # fmt: skip
+        return self
 
     def ignored_keys(self) -> dict[str, str]:
         return {**super().ignored_keys(), "episodes": "offline runs take no env episodes; set updates"}
@@ -149,7 +160,8 @@ def concentrations(
 
 
 def imitation_loss(
-    actor: torch.nn.Module, b: Batch, graph: Graph, local: bool, time: bool = False, kind: Imitation = "ce"
+    actor: torch.nn.Module, b: Batch, graph: Graph, local: bool, time: bool = False, kind: Imitation = "ce",
+    shortfall: float = 0.0,
 ) -> torch.Tensor:
     """Per-transition loss (B,) of imitating the logged action y (normalised) with the policy's
     Dirichlet mean m = alpha / sum(alpha), which is what the deterministic policy plays.
@@ -168,6 +180,9 @@ def imitation_loss(
     fleet costs some 30 times less than at one holding 1%, so a clone that cannot fit every region
     spends its error at the busiest ones, where MPC sends its vehicles. The absolute error prices every
     vehicle alike (and is minimised by the median, not the mean, where the logged targets are tied).
+    ``shortfall`` prices a vehicle short at a receiving region (logged target above its idle count, read
+    from the node features as :func:`sink_margin_targets` does) 1 + ``shortfall`` times one over: the
+    quantile loss of the receivers' targets, where a vehicle short leaves requests unserved.
     """
     alpha = concentrations(actor, b, graph, local, time=time)  # (B, N)
     mean = alpha / alpha.sum(-1, keepdim=True)
@@ -175,7 +190,12 @@ def imitation_loss(
     if kind == "ce":
         return -(y * torch.log(mean.clamp_min(1e-8))).sum(-1)
     if kind == "l1":
-        return (mean - y).abs().sum(-1)
+        short, over = (y - mean).clamp_min(0), (mean - y).clamp_min(0)
+        if shortfall:
+            idle = torch.round(b["x"][..., 0] / FEATURE_SCALE)  # (B, N) vehicles
+            receives = y * idle.sum(-1, keepdim=True) > idle + 0.5
+            short = short * (1 + shortfall * receives)
+        return (short + over).sum(-1)
     raise ConfigError(f"unknown imitation loss {kind!r}; known: ce, l1")
 
 
