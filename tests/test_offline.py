@@ -211,7 +211,8 @@ def test_the_imitation_option_reaches_bc_iql_and_cql_and_the_card(tmp_path, tiny
     for algo in ("bc", "iql", "cql"):
         kinds.clear()
         extra = {"critic_hidden": 8} if algo != "bc" else {}
-        summary = ALGOS[algo].train(args_for(algo, _args(tmp_path, tiny, imitation="l1", shortfall_weight=2.0, updates=3, **extra)))
+        run = _args(tmp_path, tiny, imitation="l1", shortfall_weight=2.0, updates=3, **extra)
+        summary = ALGOS[algo].train(args_for(algo, run))
         assert kinds and set(kinds) == {("l1", 2.0)}, algo
         assert summary["card"]["args"]["imitation"] == "l1" and summary["card"]["args"]["shortfall_weight"] == 2.0
     with pytest.raises(ConfigError, match="imitation: Input should be 'ce' or 'l1'"):

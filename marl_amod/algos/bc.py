@@ -44,7 +44,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     opt = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
 
     def update(b: O.Batch, step: int) -> dict[str, float]:
-        loss = O.imitation_loss(actor, b, graph, local, args.actor_time, kind=args.imitation, shortfall=args.shortfall_weight).mean()
+        loss = O.imitation_loss(actor, b, graph, local, args.actor_time, kind=args.imitation, shortfall=args.shortfall_weight)
+        loss = loss.mean()
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(actor.parameters(), args.max_grad_norm)

@@ -178,8 +178,9 @@ def imitation_loss(
     ``l1``: sum_i |m_i - y_i|, twice the vehicles a step off over the fleet M. Near its optimum the
     cross-entropy is sum_i (m_i - y_i)^2 / (2 y_i): a vehicle off at a region holding a third of the
     fleet costs some 30 times less than at one holding 1%, so a clone that cannot fit every region
-    spends its error at the busiest ones, where MPC sends its vehicles. The absolute error prices every
-    vehicle alike (and is minimised by the median, not the mean, where the logged targets are tied).
+    may spend its error at the busiest ones, where MPC sends its vehicles. The absolute error prices
+    every vehicle alike (and is minimised by the median, not the mean, where the logged targets are
+    tied). What each did on MPC-Forecast: docs/offline "BC fidelity" 11.
     ``shortfall`` prices a vehicle short at a receiving region (logged target above its idle count, read
     from the node features as :func:`sink_margin_targets` does) 1 + ``shortfall`` times one over: the
     quantile loss of the receivers' targets, where a vehicle short leaves requests unserved.
