@@ -153,6 +153,74 @@ def test_imitation_loss_fits_the_mean_action_of_sparse_targets():
     assert (alpha / alpha.sum()).tolist() == pytest.approx([0.75, 0.125, 0.125], abs=0.02)
 
 
+def test_l1_imitation_fits_the_median_action_and_ce_the_mean():
+    """imitation: l1 prices every vehicle alike: where the logged action is tied between two plans, it
+    fits the more frequent one (the per-region median), while the cross-entropy fits their average."""
+    y = torch.tensor([[0.8, 0.1, 0.1]] * 6 + [[0.2, 0.4, 0.4]] * 4)  # mean (0.56, 0.22, 0.22)
+    b = O.Batch({"x": torch.zeros(10, 3, 1), "action": y})
+    fitted = {}
+    for kind in ("ce", "l1"):
+        actor = _FreeAlpha(3)
+        opt = torch.optim.Adam(actor.parameters(), lr=0.05)
+        for _ in range(800):
+            loss = O.imitation_loss(actor, b, None, local=False, kind=kind).mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        alpha = actor(b["x"], None)[0].detach()
+        fitted[kind] = (alpha / alpha.sum()).tolist()
+    assert fitted["ce"] == pytest.approx([0.56, 0.22, 0.22], abs=0.02)
+    assert fitted["l1"] == pytest.approx([0.8, 0.1, 0.1], abs=0.02)
+    with pytest.raises(ConfigError, match="imitation loss 'l2'"):
+        O.imitation_loss(actor, b, None, local=False, kind="l2")  # type: ignore[arg-type]
+
+
+def test_shortfall_weight_moves_a_receiving_regions_share_up_to_its_higher_logged_target():
+    """Region 0 holds no idle vehicle and receives 3 or 5 of the 10 (60% / 40%): the plain absolute error
+    fits 3, a shortfall priced 4 times the overshoot (where requests go unserved) fits 5; region 1, which
+    sends, is weighted as before. Refused with the cross-entropy, whose vehicles it does not weigh."""
+    y = torch.tensor([[0.3, 0.7]] * 6 + [[0.5, 0.5]] * 4)
+    x = torch.tensor([[0.0], [0.1]]).expand(10, 2, 1)  # idle vehicles times FEATURE_SCALE: 0 and 10
+    b = O.Batch({"x": x, "action": y})
+    fitted = {}
+    for shortfall in (0.0, 3.0):
+        actor = _FreeAlpha(2)
+        opt = torch.optim.Adam(actor.parameters(), lr=0.02)
+        for _ in range(1500):
+            loss = O.imitation_loss(actor, b, None, local=False, kind="l1", shortfall=shortfall).mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        alpha = actor(b["x"], None)[0].detach()
+        fitted[shortfall] = float(alpha[0] / alpha.sum())
+    assert fitted[0.0] == pytest.approx(0.3, abs=0.02)
+    assert fitted[3.0] == pytest.approx(0.5, abs=0.02)
+
+
+def test_the_imitation_option_reaches_bc_iql_and_cql_and_the_card(tmp_path, tiny, monkeypatch):
+    """imitation: l1 and its shortfall weight are what BC, IQL and CQL clone with (their one imitation term),
+    recorded on the card."""
+    kinds: list[tuple[str, float]] = []
+    real = O.imitation_loss
+
+    def spy(*a, **k):
+        kinds.append((k.get("kind", "ce"), k.get("shortfall", 0.0)))
+        return real(*a, **k)
+
+    monkeypatch.setattr(O, "imitation_loss", spy)
+    for algo in ("bc", "iql", "cql"):
+        kinds.clear()
+        extra = {"critic_hidden": 8} if algo != "bc" else {}
+        run = _args(tmp_path, tiny, imitation="l1", shortfall_weight=2.0, updates=3, **extra)
+        summary = ALGOS[algo].train(args_for(algo, run))
+        assert kinds and set(kinds) == {("l1", 2.0)}, algo
+        assert summary["card"]["args"]["imitation"] == "l1" and summary["card"]["args"]["shortfall_weight"] == 2.0
+    with pytest.raises(ConfigError, match="imitation: Input should be 'ce' or 'l1'"):
+        args_for("bc", _args(tmp_path, tiny, imitation="l2"))
+    with pytest.raises(ConfigError, match="shortfall_weight weighs the vehicles of imitation: l1; imitation is ce"):
+        args_for("iql", _args(tmp_path, tiny, shortfall_weight=1.0))
+
+
 @pytest.mark.parametrize("algo", ["bc", "iql"])
 def test_offline_actor_time_reads_the_logged_time_values_and_evaluates_as_trained(tmp_path, tiny, algo):
     """actor_time offline: the minibatches carry the dataset's time values, the card says so, and the

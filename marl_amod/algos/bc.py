@@ -2,8 +2,9 @@
 
 Read top to bottom: Args, then ``train``. The loss is :func:`marl_amod.algos.offline.imitation_loss`
 over minibatches of the dataset: the cross-entropy of the logged action under the Dirichlet mean
-alpha / sum(alpha), which is what the deterministic policy plays (:mod:`marl_amod.algos.offline`
-has the data, both modes and the loop).
+alpha / sum(alpha), which is what the deterministic policy plays, or (``imitation: l1``) the
+absolute error of that mean's shares (:mod:`marl_amod.algos.offline` has the data, both modes and
+the loop).
 """
 
 from __future__ import annotations
@@ -43,7 +44,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     opt = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
 
     def update(b: O.Batch, step: int) -> dict[str, float]:
-        loss = O.imitation_loss(actor, b, graph, local, args.actor_time).mean()
+        loss = O.imitation_loss(actor, b, graph, local, args.actor_time, kind=args.imitation, shortfall=args.shortfall_weight)
+        loss = loss.mean()
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(actor.parameters(), args.max_grad_norm)

@@ -92,7 +92,9 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         step_on(opt_q, loss_q, q)
         # ---- actor: advantage-weighted log-likelihood of the logged action ----
         weight = torch.exp(args.beta * (q_min - v_s.detach())).clamp(max=args.max_weight)  # (B,)
-        loss_pi = (weight * O.imitation_loss(actor, b, graph, local, args.actor_time)).mean()
+        imitation = O.imitation_loss(actor, b, graph, local, args.actor_time, kind=args.imitation,
+                                     shortfall=args.shortfall_weight)  # fmt: skip
+        loss_pi = (weight * imitation).mean()
         step_on(opt_a, loss_pi, actor)
         with torch.no_grad():
             for p, pt in zip(q.parameters(), q_targ.parameters(), strict=True):

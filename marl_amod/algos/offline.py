@@ -23,7 +23,7 @@ from typing import Any, Literal, Protocol
 
 import numpy as np
 import torch
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from marl_amod.algos import common as C
 from marl_amod.datasets import OfflineDataset, normalised_score, read_card
@@ -34,6 +34,8 @@ from marl_amod.models.dense import DenseGraph
 from marl_amod.models.gnn import Graph
 from marl_amod.scenario import City
 from marl_amod.selection import Selection
+
+Imitation = Literal["ce", "l1"]
 
 
 class OfflineArgs(C.RunArgs):
@@ -55,11 +57,28 @@ class OfflineArgs(C.RunArgs):
     """decay every learning rate linearly to zero over the updates: the shipped (last) actor is then
     a settled one, not a random point of a noisy descent (DTV's targets react to requests the
     actor cannot see, and its validation profit swung by 8k between checkpoints without it)"""
+    imitation: Imitation = "ce"
+    """the imitation loss of the logged action (BC's, IQL's advantage-weighted one, CQL's cloning
+    phase; :func:`imitation_loss`): ce, the cross-entropy of the logged shares under the policy's
+    mean; l1, the absolute error of the mean's shares, i.e. the vehicles a step off as a share of
+    the fleet, every vehicle alike in every region (the cross-entropy weighs a share error at region i
+    by about 1 / y_i, least at the busiest regions)"""
+    shortfall_weight: float = Field(0.0, ge=0)
+    """``imitation: l1`` only: a vehicle short of the logged target at a region that receives vehicles
+    (logged target above its idle count) costs 1 + this, a vehicle over costs 1: short there, requests
+    go unserved; over, a vehicle was moved that need not have been"""
     keep: Literal["last", "best"] = "last"
     """the actor shipped: the last one (no env interaction at all: offline RL proper) or the best
     on the validation seeds (uses ``eval_episodes`` env episodes per validation, as online runs do:
     online policy selection, as D4RL papers report it; with ``init_actor`` the start is a candidate
     too, so an improvement step is kept only where the validation seeds confirm it)"""
+
+    @model_validator(mode="after")
+    def _shortfall_prices_l1(self) -> OfflineArgs:
+        if self.shortfall_weight and self.imitation != "l1":
+            raise ValueError(f"shortfall_weight weighs the vehicles of imitation: l1; imitation is {self.imitation} "
+                             "(set imitation: l1, or shortfall_weight: 0)")  # fmt: skip
+        return self
 
     def ignored_keys(self) -> dict[str, str]:
         return {**super().ignored_keys(), "episodes": "offline runs take no env episodes; set updates"}
@@ -140,23 +159,45 @@ def concentrations(
     return actor(C.with_time(b[f"{prefix}x"], b.get(f"{prefix}ctx"), time), edge_index)
 
 
-def imitation_loss(actor: torch.nn.Module, b: Batch, graph: Graph, local: bool, time: bool = False) -> torch.Tensor:
-    """Per-transition loss (B,) of imitating the logged action: the cross-entropy
-    -sum_i y_i log mean_i of the logged distribution y under the Dirichlet mean alpha / sum(alpha).
+def imitation_loss(
+    actor: torch.nn.Module, b: Batch, graph: Graph, local: bool, time: bool = False, kind: Imitation = "ce",
+    shortfall: float = 0.0,
+) -> torch.Tensor:
+    """Per-transition loss (B,) of imitating the logged action y (normalised) with the policy's
+    Dirichlet mean m = alpha / sum(alpha), which is what the deterministic policy plays.
 
-    Why not the likelihood log Dir(y; alpha): maximum likelihood fits the Dirichlet's geometric
-    mean (E log y), and the logged targets of INF, DTV and MPC are mostly zeros (78% of INF's),
-    whose clamped logs dominate it, so the arithmetic mean the deterministic policy plays lands
-    far from the behaviour (on INF 27 vehicles a step off against 15 with this loss). The
-    cross-entropy is minimised by the conditional mean of y: a proper score for what is played.
-    It leaves the total concentration (how widely sampled actions spread) free; fitting that by
-    the likelihood as well moves every alpha_i by the same amount (d sum / d alpha_i = 1), which
-    drags the mean towards uniform (INF: 45k instead of 55k on the validation seeds).
+    ``ce``: the cross-entropy -sum_i y_i log m_i. Why not the likelihood log Dir(y; alpha): maximum
+    likelihood fits the Dirichlet's geometric mean (E log y), and the logged targets of INF, DTV and
+    MPC are mostly zeros (78% of INF's), whose clamped logs dominate it, so the arithmetic mean the
+    deterministic policy plays lands far from the behaviour (on INF 27 vehicles a step off against 15
+    with this loss). The cross-entropy is minimised by the conditional mean of y: a proper score for
+    what is played. It leaves the total concentration (how widely sampled actions spread) free;
+    fitting that by the likelihood as well moves every alpha_i by the same amount (d sum / d alpha_i
+    = 1), which drags the mean towards uniform (INF: 45k instead of 55k on the validation seeds).
+
+    ``l1``: sum_i |m_i - y_i|, twice the vehicles a step off over the fleet M. Near its optimum the
+    cross-entropy is sum_i (m_i - y_i)^2 / (2 y_i): a vehicle off at a region holding a third of the
+    fleet costs some 30 times less than at one holding 1%, so a clone that cannot fit every region
+    may spend its error at the busiest ones, where MPC sends its vehicles. The absolute error prices
+    every vehicle alike (and is minimised by the median, not the mean, where the logged targets are
+    tied). What each did on MPC-Forecast: docs/offline "BC fidelity" 11.
+    ``shortfall`` prices a vehicle short at a receiving region (logged target above its idle count, read
+    from the node features as :func:`sink_margin_targets` does) 1 + ``shortfall`` times one over: the
+    quantile loss of the receivers' targets, where a vehicle short leaves requests unserved.
     """
     alpha = concentrations(actor, b, graph, local, time=time)  # (B, N)
     mean = alpha / alpha.sum(-1, keepdim=True)
     y = b["action"] / b["action"].sum(-1, keepdim=True).clamp_min(1e-12)
-    return -(y * torch.log(mean.clamp_min(1e-8))).sum(-1)
+    if kind == "ce":
+        return -(y * torch.log(mean.clamp_min(1e-8))).sum(-1)
+    if kind == "l1":
+        short, over = (y - mean).clamp_min(0), (mean - y).clamp_min(0)
+        if shortfall:
+            idle = torch.round(b["x"][..., 0] / FEATURE_SCALE)  # (B, N) vehicles
+            receives = y * idle.sum(-1, keepdim=True) > idle + 0.5
+            short = short * (1 + shortfall * receives)
+        return (short + over).sum(-1)
+    raise ConfigError(f"unknown imitation loss {kind!r}; known: ce, l1")
 
 
 def sink_margin_targets(x: torch.Tensor, action: torch.Tensor, margin: float, scale: float = FEATURE_SCALE) -> torch.Tensor:
