@@ -26,6 +26,13 @@
 * ``event``: the share of the idle fleet each policy asks for in the Brooklyn event's surge
   regions and halved hotspots, inside the event window and outside, and the requests left
   unserved at the surge: does the memory notice the shock?
+* ``tasks``: each episode's profit of the policy (K = 3, as deployed) and of MPC-Forecast (not
+  told an event task's event) on training-city tasks (hotspot variants ``<city>~hot<r>x<m>``,
+  event tasks ``<city>~ev...``: ``meta.task_city``), validation episodes (seed 1000), written to
+  ``--out`` (with ``--mpc-from`` an earlier file's MPC-F profits of the same tasks and episodes are reused);
+  ``compare A.json B.json``: per file the mean gap to MPC-F over the hotspot variants and the
+  mean profit over the event tasks, and B - A paired by episode with its standard error: what a
+  selection rule reads (docs/meta/README.md, "The event tasks").
 
     python benchmarks/meta_diagnostics.py gap [--policy policies/meta_rl_hot_cities.pt]
     python benchmarks/meta_diagnostics.py k --ks 0,1,3,10 [--validation]
@@ -34,6 +41,8 @@
     python benchmarks/meta_diagnostics.py where [--cities nyc_brooklyn]
     python benchmarks/meta_diagnostics.py hotspot --cities porto,washington_dc --multiplier 3 --episodes 6
     python benchmarks/meta_diagnostics.py hotspot --cities san_francisco --episodes 0 --own
+    python benchmarks/meta_diagnostics.py tasks --cities porto~hot1x2.5,porto~ev7+12x6@6-14dr1+2x0.5 --episodes 20 --out A.json
+    python benchmarks/meta_diagnostics.py compare A.json B.json
 """
 
 from __future__ import annotations
@@ -235,6 +244,53 @@ def hotspot(policy: str, cities: list[str], multiplier: float | None, episodes: 
             print(line, flush=True)
 
 
+def tasks(policy: str, names: list[str], episodes: int, out: str, seed: int = 1000, mpc_from: str | None = None) -> None:
+    """Per-episode profits of ``policy`` (K = 3) and MPC-Forecast on each task, into ``out``;
+    with ``mpc_from`` (an earlier ``out`` of the same episodes) MPC-F's are read from there, not rerun."""
+    record: dict[str, Any] = {"policy": policy, "seed": seed, "episodes": episodes, "tasks": {}}
+    old = json.load(open(mpc_from)) if mpc_from else {"tasks": {}}
+    if mpc_from and (old["seed"], old["episodes"]) != (seed, episodes):
+        raise SystemExit(f"--mpc-from {mpc_from}: other episodes (seed {old['seed']}, {old['episodes']} episodes)")
+    for name in names:
+        task = meta.task_city(name)
+        mine = [m["profit"] for m in evaluate(meta.load_policy(policy, task, seed=seed), task, episodes, seed)["per_episode"]]
+        theirs = old["tasks"].get(name, {}).get("mpc-forecast") or [m["profit"] for m in evaluate(MPCForecast(), task, episodes, seed)["per_episode"]]
+        record["tasks"][name] = {"policy": mine, "mpc-forecast": theirs}
+        gap = 100 * (1 - np.mean(record["tasks"][name]["policy"]) / np.mean(record["tasks"][name]["mpc-forecast"]))
+        print(f"{name:44s} policy {np.mean(record['tasks'][name]['policy']):10,.0f}  MPC-F {np.mean(record['tasks'][name]['mpc-forecast']):10,.0f}  gap {gap:5.2f}%", flush=True)
+    with open(out, "w") as f:
+        json.dump(record, f, indent=1)
+
+
+def compare(files: list[str]) -> None:
+    """The rule's numbers of each ``tasks`` file, and the second against the first paired by episode."""
+    recs = [json.load(open(f)) for f in files]
+    names = list(recs[0]["tasks"])
+    if any(list(r["tasks"]) != names or r["episodes"] != recs[0]["episodes"] or r["seed"] != recs[0]["seed"] for r in recs):
+        raise SystemExit("compare: the files hold other tasks, episodes or seeds")
+    hot, events = [n for n in names if meta.HOTSPOT in n], [n for n in names if meta.EVENT in n]
+
+    def per_episode(r: dict[str, Any], group: list[str], what: str) -> np.ndarray:
+        """(tasks, episodes): the gap to MPC-F in % (``gap``) or the profit (``profit``)."""
+        p = np.array([r["tasks"][n]["policy"] for n in group], dtype=np.float64)
+        m = np.array([r["tasks"][n]["mpc-forecast"] for n in group], dtype=np.float64)
+        return 100 * (1 - p / m) if what == "gap" else p
+
+    for group, what, unit in ((hot, "gap", "% gap to MPC-F"), (events, "profit", " profit")):
+        if not group:
+            continue
+        vals = [per_episode(r, group, what) for r in recs]
+        for f, v in zip(files, vals, strict=True):
+            print(f"{f}: mean{unit} over {len(group)} tasks x {v.shape[1]} episodes: {v.mean():.3f}  (per task: "
+                  + ", ".join(f"{n} {x:.2f}" if what == "gap" else f"{n} {x:,.0f}" for n, x in zip(group, v.mean(1), strict=True)) + ")")  # fmt: skip
+        if len(vals) == 2:
+            d = (vals[1] - vals[0]).ravel()  # paired: the same task and episode
+            print(f"  {files[1]} - {files[0]}: {d.mean():+.3f}{unit}, paired SE {d.std(ddof=1) / np.sqrt(d.size):.3f} ({d.size} pairs)")
+        if what == "profit":
+            m = per_episode({"tasks": {n: {"policy": recs[0]["tasks"][n]["mpc-forecast"], "mpc-forecast": recs[0]["tasks"][n]["mpc-forecast"]} for n in group}}, group, "profit")
+            print(f"  MPC-Forecast (not told the events): mean profit {m.mean():.1f}")
+
+
 def where(policy: str, cities: list[str], episodes: int = 10, seed: int = 1000, k: int = 3) -> None:
     for name in cities:
         city = load_city(name)
@@ -276,7 +332,8 @@ def where(policy: str, cities: list[str], episodes: int = 10, seed: int = 1000, 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hotspot"])
+    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hotspot", "tasks", "compare"])
+    parser.add_argument("files", nargs="*", help="compare: two tasks --out files (the second against the first)")
     parser.add_argument("--policy", default="policies/meta_rl_hot_cities.pt")
     parser.add_argument("--demos", default="runs/meta_demos")
     parser.add_argument("--ks", default="0,1,2,3,4,5,6,8,10")
@@ -284,6 +341,8 @@ def main() -> None:
     parser.add_argument("--multiplier", type=float, default=None, help="hotspot: also each city with its busiest region x this")
     parser.add_argument("--cities", default=",".join([*VAL_CITIES, *meta.HELD_OUT]), help="heldout, where: the cities")
     parser.add_argument("--validation", action="store_true", help="k: the training cities' validation return instead")
+    parser.add_argument("--out", default=None, help="tasks: the JSON of per-episode profits")
+    parser.add_argument("--mpc-from", default=None, help="tasks: reuse MPC-F's profits from this earlier --out")
     parser.add_argument("--own", action="store_true", help="hotspot: also on the states the policy reaches itself (8 episodes, labelled by MPC-F)")
     args = parser.parse_args()
     torch.manual_seed(0)  # the policy's sampled adaptation episodes (gap, heldout, hotspot --own): a rerun repeats them
@@ -296,6 +355,12 @@ def main() -> None:
         hotspot(args.policy, args.cities.split(","), args.multiplier, args.episodes, own=args.own)
     elif args.what == "where":
         where(args.policy, [c for c in args.cities.split(",") if c in meta.HELD_OUT])
+    elif args.what == "tasks":
+        if not args.out:
+            parser.error("tasks needs --out")
+        tasks(args.policy, args.cities.split(","), args.episodes, args.out, mpc_from=args.mpc_from)
+    elif args.what == "compare":
+        compare(args.files)
     elif args.what == "k":
         (k_validation if args.validation else k_sweep)(args.policy, ks)
     else:

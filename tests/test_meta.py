@@ -241,6 +241,40 @@ def test_a_hotspot_variant_is_another_city_its_name_rebuilds():
     assert all(2.0 <= meta.task_city(n).meta["hotspot"]["multiplier"] <= 4.0 for n in names)
 
 
+def test_an_event_task_carries_its_event_in_the_draw_not_the_forecast_and_its_name_rebuilds_it():
+    """An event task multiplies the requests out of its surge regions (and its dropped ones) inside
+    its window only, in the draw; the forecast the features read stays the city's; the name alone
+    rebuilds it; a malformed name or an event outside the city is a ConfigError; event_tasks draws
+    surges outside the two busiest regions, windows inside the horizon, as a function of the seed."""
+    city = load_city("synthetic")
+    ev = meta.event_task(city, [3, 7], 6.0, 4, 10, [0, 1], 0.5)
+    assert ev.name == "synthetic~ev3+7x6@4-10dr0+1x0.5" and meta.base_city(ev.name) == "synthetic"
+    np.testing.assert_array_equal(ev.forecast_rate, city.forecast_rate)
+    old, new = np.asarray(city.demand_rate), np.asarray(ev.demand_rate)
+    np.testing.assert_allclose(new[4:10, [3, 7]], 6.0 * old[4:10, [3, 7]])
+    np.testing.assert_allclose(new[4:10, [0, 1]], 0.5 * old[4:10, [0, 1]])
+    np.testing.assert_allclose(new[4:10, 2], old[4:10, 2])
+    np.testing.assert_allclose(new[:4], old[:4]), np.testing.assert_allclose(new[10:], old[10:])
+    rebuilt = meta.task_city(ev.name)
+    np.testing.assert_array_equal(rebuilt.demand_rate, ev.demand_rate)
+    assert rebuilt.meta["events"] == ev.meta["events"] and meta.task_city("synthetic~ev3x2@0-5").meta["events"][0]["regions"] == [3]
+    for bad in ("synthetic~ev3+x2@0-5", "synthetic~ev3x2@5-5", "synthetic~ev99x2@0-5", "synthetic~ev3x2@0-5dr1x"):
+        with pytest.raises(ConfigError, match="event"):
+            meta.task_city(bad)
+    names = meta.event_tasks(["synthetic", "porto"], 3, (3.0, 8.0), seed=0)
+    assert names == meta.event_tasks(["synthetic", "porto"], 3, (3.0, 8.0), seed=0) != meta.event_tasks(["synthetic", "porto"], 3, (3.0, 8.0), seed=1)
+    assert [meta.base_city(n) for n in names] == ["synthetic"] * 3 + ["porto"] * 3 and len(set(names)) == 6
+    for name in names:
+        task, base = meta.task_city(name), load_city(meta.base_city(name))
+        busiest = set(np.argsort(-meta.place_table(base)[:, 2], kind="stable")[:2].tolist())
+        surge, *drop = task.meta["events"]
+        assert len(surge["regions"]) == 2 and not busiest & set(surge["regions"]) and 3.0 <= surge["multiplier"] <= 8.0
+        assert 6 <= surge["end"] - surge["start"] <= 10 and surge["end"] <= base.horizon
+        assert all(set(d["regions"]) == busiest and 0.3 <= d["multiplier"] <= 0.8 for d in drop)
+    with pytest.raises(ConfigError, match="event_multipliers"):
+        meta.event_tasks(["synthetic"], 1, (0.5, 2.0), seed=0)
+
+
 def test_the_deployed_policy_replays_the_trained_agent_exactly():
     """MetaPolicy (through evaluate, one episode on a FleetSystem) rebuilds the previous rewards from
     the booked money: its episode must be the batched trial's deterministic one from the same memory."""

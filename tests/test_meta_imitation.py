@@ -251,6 +251,58 @@ def test_hotspot_variants_are_tasks_with_demonstrations_and_dagger_rounds_of_the
         mi.collect_demos(tmp_path / "demos", ["nyc_brooklyn~hot5x2"], episodes=1, seed=0, lookahead=6)
 
 
+def test_event_tasks_are_drawn_in_their_share_and_refused_without_one():
+    """``event_share`` of the draws go to the event tasks (uniform among them), the rest as
+    :func:`draw_task` draws them; without event tasks the draws are draw_task's own (the runs
+    before the option); event tasks without a share, or a share without them, are refused."""
+    names, draws = ["a", "b", "a~hot0x2", "b~hot0x2", "a~ev1+2x4@0-6", "b~ev2+3x5@1-7"], 8000
+    args = args_for("meta-bc", {"hotspot_variants": 1, "hotspot_share": 0.4, "event_tasks": 1, "event_share": 0.25})
+    rng = np.random.default_rng(0)
+    got = [mi.draw_run_task(args, names, 2, names[4:], rng) for _ in range(draws)]
+    counts = {n: got.count(n) / draws for n in names}
+    assert all(abs(counts[n] - 0.125) < 0.015 for n in names[4:])
+    assert all(abs(counts[n] - 0.75 * 0.3) < 0.025 for n in names[:2]) and all(abs(counts[n] - 0.75 * 0.2) < 0.02 for n in names[2:4])
+    plain = args.model_copy(update={"event_tasks": 0, "event_share": None})
+    a, b = np.random.default_rng(1), np.random.default_rng(1)
+    assert [mi.draw_run_task(plain, names[:4], 2, [], a) for _ in range(50)] == [mi.draw_task(names[:4], 2, 0.4, b) for _ in range(50)]
+    for values in ({"event_tasks": 1}, {"event_share": 0.2}):
+        with pytest.raises(ConfigError, match="event_share"):
+            args_for("meta-bc", values)
+
+
+def test_event_tasks_are_demonstrated_and_labelled_by_mpc_told_the_event(tasks, tmp_path, monkeypatch):
+    """One event task per city: its own demonstrations (``event_episodes``) and DAgger episodes,
+    every one labelled by MPC told the event (and the cities' by MPC-Forecast), named on the card,
+    counted by the transfer table; a resume with another share is refused."""
+    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
+                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=2, eval_every=2,
+                   eval_episodes=2, final_eval_episodes=1, dagger_rounds=1, dagger_first=1, dagger_episodes=2,
+                   event_tasks=1, event_episodes=4, event_share=0.5, run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
+    events = mi.event_names(args)
+    assert [meta.base_city(e) for e in events] == tasks and all(meta.EVENT in e for e in events)
+    experts, expert_for = [], mi.expert_for
+    monkeypatch.setattr(mi, "expert_for", lambda city: experts.append((city.name, type(e := expert_for(city)))) or e)
+    card = ALGOS["meta-bc"].train(args.model_copy(update={"updates": 1}))["card"]
+    told = {name for name, kind in experts if kind is mi.MPCToldTheShock}
+    assert told == {meta.task_city(e).name for e in events} and all(kind is MPCForecast for name, kind in experts if name not in told)
+    assert card["demonstrations"]["event_tasks"] == events and card["demonstrations"]["event_share_of_draws"] == 0.5
+    for name in events:
+        city = meta.task_city(name)
+        assert mi.load_demos(tmp_path / "demos", city, 6).episodes == 4 and city.meta["events"]
+    with pytest.raises(DataError, match="event_share"):
+        ALGOS["meta-bc"].train(args.model_copy(update={"event_share": 0.25}), resume=str(tmp_path / "bc" / "state.pt"))
+    experts.clear()
+    card = ALGOS["meta-bc"].train(args, resume=str(tmp_path / "bc" / "state.pt"))["card"]
+    assert card["dagger"]["rounds"] == 1 and {name for name, kind in experts if kind is mi.MPCToldTheShock} == told
+    from marl_amod.transfer import run_strategy
+
+    rec = run_strategy("meta-rl", "synthetic", episodes=1, meta_policy=str(tmp_path / "bc.pt"), adapt_episodes=0)
+    assert rec["transfer"]["demonstrations"] == 2 * 2 + 2 * 4 and rec["transfer"]["dagger_episodes"] == 1 * 2 * 4
+    assert rec["transfer"]["source_city"].endswith(" + 2 event tasks")
+    with pytest.raises(DataError, match="held-out"):
+        mi.collect_demos(tmp_path / "demos", ["nyc_brooklyn~ev8+10x6@6-14"], episodes=1, seed=0, lookahead=6)
+
+
 def test_shocked_dagger_trials_are_labelled_by_mpc_told_the_shock(tasks):
     """A shocked trial draws the shocked demand, its features keep the usual forecast, and its
     labels are MPC's plan on the shocked expected demand, which MPC-Forecast's plan is not."""

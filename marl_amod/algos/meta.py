@@ -35,6 +35,13 @@ of the requests raised, forecast included: a task of its own (``<city>~hot<r>x<m
 demand is more concentrated than any training city's, as the held-out cities' is; the imitation
 (:mod:`.meta_imitation`, ``hotspot_variants``) can add them to the cities.
 
+Event tasks (:func:`event_task`, ``<city>~ev...``). A training city with one fixed special event
+of the Brooklyn kind (requests out of a few regions surge over a window, the busiest regions'
+drop), in the draw and *not* in the forecast: every episode of the task carries the same event,
+so a trial of it shows the memory a shock that repeats (a :func:`random_shock` trial's episodes
+are mixed with the city's other episodes once they are teacher-forced). Labelled by MPC told the
+event (:class:`~marl_amod.algos.meta_imitation.MPCToldTheShock`).
+
 Trials in lockstep. A trial is ``trial_episodes`` consecutive episodes on one city with the
 recurrent memory (:class:`~marl_amod.models.recurrent.RecurrentGNN`) carried from one episode to
 the next; the previous action and rewards restart at zero with each episode. Each update draws
@@ -56,6 +63,7 @@ the memory those left: a handful of episodes and no gradient step.
 from __future__ import annotations
 
 import copy
+import re
 import weakref
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -234,6 +242,7 @@ def random_shock(city: City, rng: np.random.Generator) -> City:
 
 
 HOTSPOT = "~hot"  # a task name "<city>~hot<region>x<multiplier>": the city with that hotspot
+EVENT = "~ev"  # a task name "<city>~ev<r>+<r>x<m>@<start>-<end>[dr<r>+<r>x<m>]": the city with that event (event_task)
 
 
 def hotspot(city: City, region: int, multiplier: float) -> City:
@@ -263,16 +272,91 @@ def hotspot(city: City, region: int, multiplier: float) -> City:
 def hotspot_name(city: str, region: int, multiplier: float) -> str:
     """``<city>~hot<region>x<multiplier>``, the multiplier exactly (the name is what rebuilds the task)
     and short (3, not 3.0)."""
-    return f"{city}{HOTSPOT}{region}x{np.format_float_positional(float(multiplier), trim='-')}"
+    return f"{city}{HOTSPOT}{region}x{_number(multiplier)}"
 
 
 def base_city(name: str) -> str:
     """The city a task name is a variant of (itself for a plain city)."""
-    return name.split(HOTSPOT)[0]
+    return name.split(HOTSPOT)[0].split(EVENT)[0]
+
+
+def _number(x: float) -> str:
+    """A multiplier in a task name: exact and short (3, not 3.0)."""
+    return np.format_float_positional(float(x), trim="-")
+
+
+def event_name(city: str, surge: list[int], multiplier: float, start: int, end: int, drop: list[int] = (), drop_multiplier: float = 1.0) -> str:
+    """``<city>~ev<r>+<r>x<m>@<start>-<end>`` and, with ``drop``, ``dr<r>+<r>x<m>``: the name
+    :func:`task_city` rebuilds :func:`event_task` from."""
+    name = f"{city}{EVENT}{'+'.join(map(str, surge))}x{_number(multiplier)}@{start}-{end}"
+    return name + (f"dr{'+'.join(map(str, drop))}x{_number(drop_multiplier)}" if drop else "")
+
+
+_EVENT_RE = re.compile(r"(?P<up>\d+(?:\+\d+)*)x(?P<m>[\d.]+)@(?P<s>\d+)-(?P<e>\d+)(?:dr(?P<down>\d+(?:\+\d+)*)x(?P<dm>[\d.]+))?")
+
+
+def event_task(city: City, surge: list[int], multiplier: float, start: int, end: int, drop: list[int] = (), drop_multiplier: float = 1.0) -> City:
+    """``city`` with one special event (:func:`~marl_amod.scenario.events.apply_events`): requests
+    out of ``surge`` x ``multiplier`` over steps [start, end), and out of ``drop`` x
+    ``drop_multiplier`` over the same window; the draw carries it, the forecast (what the features
+    read) does not. Why: the Brooklyn event moves demand from its busiest regions to two small
+    ones (their share x7 in the window), and the policies send the surge *fewer* vehicles inside
+    the window than outside; a task whose every episode repeats one event lets the imitation show
+    the memory a shock it can carry from one episode to the next. Named so :func:`task_city` rebuilds it."""
+    events = [DemandEvent(name="surge", regions=list(surge), start=start, end=end, multiplier=multiplier)]
+    if drop:
+        events.append(DemandEvent(name="drop", regions=list(drop), start=start, end=end, multiplier=drop_multiplier))
+    shocked = apply_events(city, events, f"event task of {city.name}")
+    return replace(shocked, name=event_name(city.name, list(surge), multiplier, start, end, list(drop), drop_multiplier))
+
+
+def event_tasks(cities: list[str], per_city: int, multipliers: tuple[float, float], seed: int) -> list[str]:
+    """``per_city`` event tasks of each city, drawn like the Brooklyn event: two regions outside the
+    city's two busiest surge x a multiplier log-uniform in ``multipliers`` (one decimal) for 6-10
+    steps (fewer in a city of fewer control steps) starting anywhere the window fits; in three draws of four the two busiest drop x
+    0.3-0.8 (one decimal) meanwhile. A function of the seed, so a resumed run names the same tasks."""
+    lo, hi = map(float, multipliers)
+    if per_city and not (np.isfinite(hi) and 1.0 < lo <= hi):
+        raise ConfigError(f"event_multipliers {list(multipliers)}: a range [low, high] with 1 < low <= high (a surge; one decimal is kept)")
+    names: list[str] = []
+    for i, name in enumerate(cities if per_city else []):
+        city, rng = load_city(name), np.random.default_rng([seed, i, 6037])
+        if city.n_regions < 4 or city.horizon < 2:
+            raise ConfigError(f"event tasks of {name}: need at least 4 regions (the two busiest and two that surge) and 2 control steps")
+        busiest = np.argsort(-place_table(city)[:, 2], kind="stable")[:2]
+        others = np.setdiff1d(np.arange(city.n_regions), busiest)
+        mine: list[str] = []
+        for _ in range(1000 * per_city):
+            surge = sorted(int(r) for r in rng.choice(others, size=2, replace=False))
+            multiplier = round(float(np.exp(rng.uniform(np.log(lo), np.log(hi)))), 1)
+            longest = min(10, city.horizon - 1)
+            length = int(rng.integers(min(6, longest), longest + 1))
+            start = int(rng.integers(0, city.horizon - length + 1))
+            dropped = rng.random() < 0.75
+            drop_m = round(float(rng.uniform(0.3, 0.8)), 1)
+            task = event_name(name, surge, multiplier, start, start + length, sorted(map(int, busiest)) if dropped else [], drop_m)
+            if task not in mine:
+                mine.append(task)
+            if len(mine) == per_city:
+                break
+        names += mine
+    return names
 
 
 def task_city(name: str) -> City:
-    """A task by name: a city (``load_city``) or its :func:`hotspot` variant ``<city>~hot<r>x<m>``."""
+    """A task by name: a city (``load_city``), its :func:`hotspot` variant ``<city>~hot<r>x<m>``
+    or its :func:`event_task` ``<city>~ev...``."""
+    if EVENT in name:
+        base, _, variant = name.partition(EVENT)
+        match = _EVENT_RE.fullmatch(variant)
+        if match is None:
+            raise ConfigError(f"task {name!r}: an event task is named <city>{EVENT}<r>+<r>x<m>@<start>-<end>[dr<r>+<r>x<m>]")
+        g = match.groupdict()
+        try:
+            return event_task(load_city(base), [int(r) for r in g["up"].split("+")], float(g["m"]), int(g["s"]), int(g["e"]),
+                              [int(r) for r in g["down"].split("+")] if g["down"] else [], float(g["dm"]) if g["dm"] else 1.0)  # fmt: skip
+        except ValueError as err:  # the event's own checks (window, multipliers) as pydantic raises them
+            raise ConfigError(f"task {name!r}: {err}") from None
     base, _, variant = name.partition(HOTSPOT)
     city = load_city(base)
     if not variant:

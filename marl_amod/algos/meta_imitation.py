@@ -30,6 +30,13 @@ mistakes lead it elsewhere. Every ``dagger_every`` updates the current policy dr
 previous action the memory reads is then the policy's own). A share of those trials may carry a
 random demand shock, labelled by :class:`MPCToldTheShock`. Rounds are files under the run, so a
 resumed run reads them back.
+
+Event tasks (``event_tasks``). A shocked DAgger trial's episodes join the city's pool and are
+teacher-forced among its other episodes, so the memory never sees its shock twice in a row, and
+the demonstrations have none. An event task (:func:`~marl_amod.algos.meta.event_task`) is a city
+whose every episode carries one fixed event: demonstrated and labelled by :class:`MPCToldTheShock`
+(:func:`expert_for`), drawn as a task of its own (``event_share`` of the draws), so every
+teacher-forced trial of it repeats its shock.
 """
 
 from __future__ import annotations
@@ -97,11 +104,18 @@ class MPCToldTheShock(MPCForecast):
         return step_rows(system.city.demand_rate, steps)
 
 
+def expert_for(city: City) -> MPCForecast:
+    """Who labels ``city``'s states: MPC told the event on a city that carries one (an
+    :func:`~marl_amod.algos.meta.event_task`, a shocked trial), else MPC-Forecast."""
+    return MPCToldTheShock() if city.meta.get("events") else MPCForecast()
+
+
 def collect_city(
     city: City, episodes: int, seed: int, lookahead: int, learner: RecurrentGNN | None = None, trial_episodes: int = 1,
     seed_of: Callable[[int, int], np.random.SeedSequence] = demo_seed, shock_prob: float = 0.0,
 ) -> dict[str, np.ndarray]:
-    """``episodes`` episodes of ``city`` labelled by MPC-Forecast: the arrays of :class:`CityDemos`.
+    """``episodes`` episodes of ``city`` labelled by MPC-Forecast (by MPC told the event on a city
+    that carries one: :func:`expert_for`): the arrays of :class:`CityDemos`.
 
     Without ``learner`` MPC-F also drives (demonstrations). With it (DAgger) the recurrent policy
     drives, as it is deployed: trials of ``trial_episodes`` episodes with its memory carried, the
@@ -111,14 +125,14 @@ def collect_city(
     the features do not show and :class:`MPCToldTheShock` labels."""
     scale, n = CityScale.of(city), city.n_regions
     cols: dict[str, list[np.ndarray]] = {"x": [], "share": [], "region_reward": [], "reward": [], "action": []}
-    system, policy = FleetSystem(city), MPCForecast()
+    system, policy = FleetSystem(city), expert_for(city)
     shocks = np.random.default_rng(seed_of(seed, 10**6))  # which trials are shocked, and how
     agent = None
     for e in range(episodes):
         if learner is not None and e % trial_episodes == 0:  # a new trial: fresh memory, maybe a shock
             shocked = shock_prob > 0 and shocks.random() < shock_prob
             trial_city = meta.random_shock(city, shocks) if shocked else city
-            system, policy = (FleetSystem(trial_city), MPCToldTheShock()) if shocked else (FleetSystem(city), MPCForecast())
+            system, policy = FleetSystem(trial_city), expert_for(trial_city)
             agent = meta.MetaAgent(learner, trial_city, lookahead)
         system.reset(seed_of(seed, e))
         policy.reset(system, np.random.default_rng(seed_of(seed, e)))
@@ -343,6 +357,18 @@ class Args(meta.Args):
     """the share of an update's draws that go to the variants (the rest to the cities; uniform
     within each). None: every task as often, so with one variant a city is drawn half as often as
     without, and with two a third (a cost the held-out city without a dominant hotspot showed)"""
+    event_tasks: int = Field(0, ge=0)
+    """per training city, this many :func:`~marl_amod.algos.meta.event_task` tasks (one fixed
+    special event of the Brooklyn kind each, not in the forecast: :func:`~marl_amod.algos.meta.event_tasks`),
+    demonstrated and labelled by MPC told the event (``event_episodes`` each), driven in the DAgger
+    rounds, drawn in ``event_share`` of an update's draws"""
+    event_multipliers: tuple[float, float] = (3.0, 8.0)
+    """the range (log-uniform) of the event tasks' surge multipliers"""
+    event_episodes: int = Field(32, ge=1)
+    """demonstration episodes per event task"""
+    event_share: float | None = Field(None, gt=0, lt=1)
+    """the share of an update's draws that go to the event tasks (uniform among them); the rest as
+    without them (cities and hotspot variants, ``hotspot_share``)"""
     pad_cities: bool = True
     """an update's cities padded into one batch (the same losses to float rounding): 1.12-1.16x
     faster at hidden 64 x 16 trials per city, 1.4-1.8x at 4 trials (``benchmarks/meta_update.py``);
@@ -353,6 +379,9 @@ class Args(meta.Args):
         if twice := sorted({c for c in self.cities if self.cities.count(c) > 1}):  # an update draws from the distinct tasks
             raise ValueError(f"cities names {twice} twice: a city is one task however often it is listed (its "
                              "variants would be drawn as cities under hotspot_share)")  # fmt: skip
+        if (self.event_share is None) != (not self.event_tasks):
+            raise ValueError(f"event_tasks {self.event_tasks} with event_share {self.event_share}: event tasks need the share of "
+                             "the draws that goes to them, and a share needs event tasks")  # fmt: skip
         if self.hotspot_share is not None and not self.hotspot_variants:
             raise ValueError(f"hotspot_share {self.hotspot_share} without hotspot_variants: there are no variants to draw")
         if self.dagger_rounds and self.dagger_first >= self.updates:
@@ -409,6 +438,11 @@ def tasks(args: Args) -> tuple[list[str], list[str]]:
                                                  args.hotspot_distinct_regions)  # fmt: skip
 
 
+def event_names(args: Args) -> list[str]:
+    """The training cities' event tasks (none unless ``event_tasks``)."""
+    return meta.event_tasks(args.cities, args.event_tasks, args.event_multipliers, args.seed)
+
+
 def draw_task(names: list[str], plain: int, share: float | None, rng: np.random.Generator) -> str:
     """One update's task: of ``names`` (the first ``plain`` the cities, the rest their variants)
     uniformly, or with ``share`` a variant that often and a city otherwise (uniform within each)."""
@@ -416,6 +450,15 @@ def draw_task(names: list[str], plain: int, share: float | None, rng: np.random.
         return names[int(rng.integers(len(names)))]
     group = names[plain:] if rng.random() < share else names[:plain]
     return group[int(rng.integers(len(group)))]
+
+
+def draw_run_task(args: Args, names: list[str], plain: int, events: list[str], rng: np.random.Generator) -> str:
+    """One update's task of the run's ``names`` (cities, hotspot variants, then ``events``): an
+    event task in ``event_share`` of the draws (uniform among them), else :func:`draw_task` over the
+    rest; without event tasks exactly :func:`draw_task`'s draws (the same generator calls)."""
+    if events and rng.random() < args.event_share:
+        return events[int(rng.integers(len(events)))]
+    return draw_task(names[: len(names) - len(events)], plain, args.hotspot_share, rng)
 
 
 def lr_at(args: Args, step: int) -> float:
@@ -445,8 +488,10 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     plain, variants = tasks(args)
     walls = collect_demos(args.demos, plain, args.demo_episodes, args.seed, args.lookahead)
     walls |= collect_demos(args.demos, variants, args.hotspot_episodes, args.seed, args.lookahead)
-    cities = {name: meta.task_city(name) for name in dict.fromkeys([*plain, *variants, *args.val_cities])}
-    data = load_all(args, cities, [*plain, *variants])
+    events = event_names(args)
+    walls |= collect_demos(args.demos, events, args.event_episodes, args.seed, args.lookahead)
+    cities = {name: meta.task_city(name) for name in dict.fromkeys([*plain, *variants, *events, *args.val_cities])}
+    data = load_all(args, cities, [*plain, *variants, *events])
     names = list(data)
     model = meta.make_model(args)
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
@@ -461,6 +506,9 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         if st.get("hotspot_share") != args.hotspot_share:  # its draws were of that share (older states: every task as often)
             raise DataError(f"{resume} drew its variants with hotspot_share {st.get('hotspot_share')}; this config sets "
                             f"{args.hotspot_share}: resume with the run's share (the card names one)")  # fmt: skip
+        if st.get("event_share") != args.event_share:
+            raise DataError(f"{resume} drew its event tasks with event_share {st.get('event_share')}; this config sets "
+                            f"{args.event_share}: resume with the run's share (the card names one)")  # fmt: skip
         model.load_state_dict(st["model"]), opt.load_state_dict(st["opt"])
         step, prior_wall, best = st["episode"], st["wall_s"], C.BestActor(st["best_val"], st["best_actor"])
         rng.bit_generator.state = st["city_rng"]
@@ -471,7 +519,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     def save() -> tuple[Path, int]:
         C.save_state(C.state_path(args), algorithm="meta-bc", model=model.state_dict(), opt=opt.state_dict(), episode=step,
                      best_val=book.best.value, best_actor=book.best.state, wall_s=timer(), city_rng=rng.bit_generator.state, tasks=names,
-                     hotspot_share=args.hotspot_share)  # fmt: skip
+                     hotspot_share=args.hotspot_share, event_share=args.event_share)  # fmt: skip
         return C.state_path(args), step
 
     dagger_wall = sum(dagger_round(args, model, k, data, cities) for k in range(1, started_rounds(args, step) + 1))  # resumed: read back
@@ -481,7 +529,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                 dagger_wall += dagger_round(args, model, k, data, cities)
             draws = []
             for _ in range(args.cities_per_update):
-                demos, graph = data[draw_task(names, len(plain), args.hotspot_share, rng)]
+                demos, graph = data[draw_run_task(args, names, len(plain), events, rng)]
                 draws.append((demos, draw_trials(demos, args, rng), graph))
             ce, vl = cities_losses(model, draws, args.gamma, args.pad_cities)
             for group in opt.param_groups:
@@ -501,6 +549,9 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     if variants:
         extra["demonstrations"] |= {"hotspot_variants": variants, "episodes_per_variant": args.hotspot_episodes,
                                     **({"variants_share_of_draws": args.hotspot_share} if args.hotspot_share is not None else {})}  # fmt: skip
+    if events:
+        extra["demonstrations"] |= {"event_tasks": events, "episodes_per_event_task": args.event_episodes, "event_share_of_draws": args.event_share,
+                                    "event_expert": MPCToldTheShock.name}  # fmt: skip
     if args.dagger_rounds:
         extra["dagger"] = {"rounds": started_rounds(args, step), "episodes_per_city": args.dagger_episodes, "shock_prob": args.dagger_shock_prob,
                            "collection_wall_s": round(dagger_wall, 1)}  # fmt: skip
