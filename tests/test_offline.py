@@ -197,28 +197,90 @@ def test_shortfall_weight_moves_a_receiving_regions_share_up_to_its_higher_logge
     assert fitted[3.0] == pytest.approx(0.5, abs=0.02)
 
 
+def test_surplus_price_moves_a_receiving_regions_share_back_down():
+    """The set-up above, with the surplus at the receiving region priced too: short costs 4, over 1 + 2.
+    The quantile the loss fits at region 0 is then 4 / 7, below the 60% of steps that log 3 vehicles, so
+    it fits 3 again; only the over side of receivers is priced (the sender keeps weight 1)."""
+    y = torch.tensor([[0.3, 0.7]] * 6 + [[0.5, 0.5]] * 4)
+    x = torch.tensor([[0.0], [0.1]]).expand(10, 2, 1)
+    b = O.Batch({"x": x, "action": y})
+    fitted = {}
+    for surplus in (0.0, 1.0, 2.0):
+        actor = _FreeAlpha(2)
+        opt = torch.optim.Adam(actor.parameters(), lr=0.02)
+        for _ in range(1500):
+            loss = O.imitation_loss(actor, b, None, local=False, kind="l1", shortfall=3.0, surplus=surplus).mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        alpha = actor(b["x"], None)[0].detach()
+        fitted[surplus] = float(alpha[0] / alpha.sum())
+    assert fitted[0.0] == pytest.approx(0.5, abs=0.02)
+    assert fitted[1.0] == pytest.approx(0.5, abs=0.02)  # 4 / 6 is still above 60%
+    assert fitted[2.0] == pytest.approx(0.3, abs=0.02)
+    mean = torch.tensor([[0.4, 0.6]])  # 1 vehicle in 10 over at the receiver, 1 short at the sender
+    one = O.Batch({"x": x[:1], "action": torch.tensor([[0.3, 0.7]])})
+    per_row = O.imitation_loss(lambda *_: mean, one, None, local=False, kind="l1", shortfall=3.0, surplus=2.0)
+    assert float(per_row) == pytest.approx(0.1 * 3 + 0.1 * 1)
+
+
+def test_receiver_prices_read_the_trip_margin_and_the_cost_of_the_logged_moves(tiny):
+    """trip: the mean fare minus operating cost over an episode's expected requests; move: the
+    coordinator's cheapest rebalancing of the logged targets, its cost per vehicle moved. Two logged
+    steps on the 3x3 grid: 4 vehicles from region 1 into 0 (one move each) and 2 from region 8 into 0
+    (the far corner); a step that moves nothing only adds nothing."""
+    city = load_city(tiny[0])
+    idle = torch.zeros(3, 9)
+    idle[:, 1], idle[:, 8] = 10, 10
+    targets = torch.zeros(3, 9)
+    targets[0, 0], targets[0, 1], targets[0, 8] = 4, 6, 10
+    targets[1, 0], targets[1, 1], targets[1, 8] = 2, 10, 8
+    targets[2] = idle[2]
+    x = (idle * 0.01)[..., None].expand(3, 9, 13)
+    prices = O.receiver_prices(city, x, targets / 20)
+    h = city.horizon
+    rate, margin = city.demand_rate[:h].ravel(), (city.price - city.beta * city.tstep * city.trip_time)[:h].ravel()
+    assert prices["trip"] == pytest.approx(np.average(margin, weights=rate))
+    assert prices["move"] == pytest.approx((4 * city.reb_cost[1, 0] + 2 * city.reb_cost[8, 0]) / 6)
+    assert city.reb_cost[8, 0] > city.reb_cost[1, 0] > 0
+    with pytest.raises(DataError, match="the logged actions move no vehicle"):
+        O.receiver_prices(city, x[2:], targets[2:] / 20)
+
+
 def test_the_imitation_option_reaches_bc_iql_and_cql_and_the_card(tmp_path, tiny, monkeypatch):
     """imitation: l1 and its shortfall weight are what BC, IQL and CQL clone with (their one imitation term),
     recorded on the card."""
-    kinds: list[tuple[str, float]] = []
+    kinds: list[tuple[str, float, float]] = []
     real = O.imitation_loss
 
     def spy(*a, **k):
-        kinds.append((k.get("kind", "ce"), k.get("shortfall", 0.0)))
+        kinds.append((k.get("kind", "ce"), k.get("shortfall", 0.0), k.get("surplus", 0.0)))
         return real(*a, **k)
 
     monkeypatch.setattr(O, "imitation_loss", spy)
+    city = load_city(tiny[0])
     for algo in ("bc", "iql", "cql"):
-        kinds.clear()
-        extra = {"critic_hidden": 8} if algo != "bc" else {}
-        run = _args(tmp_path, tiny, imitation="l1", shortfall_weight=2.0, updates=3, **extra)
-        summary = ALGOS[algo].train(args_for(algo, run))
-        assert kinds and set(kinds) == {("l1", 2.0)}, algo
-        assert summary["card"]["args"]["imitation"] == "l1" and summary["card"]["args"]["shortfall_weight"] == 2.0
+        for priced in (False, True):
+            kinds.clear()
+            extra = {"critic_hidden": 8} if algo != "bc" else {}
+            run = _args(tmp_path, tiny, imitation="l1", shortfall_weight=2.0, surplus_price=priced, updates=3, **extra)
+            summary = ALGOS[algo].train(args_for(algo, run))
+            card = summary["card"]
+            assert card["args"]["imitation"] == "l1" and card["args"]["shortfall_weight"] == 2.0
+            if not priced:
+                assert kinds and set(kinds) == {("l1", 2.0, 0.0)} and "receiver_prices" not in card, algo
+                continue
+            data = O.Data(args_for(algo, run), city)
+            prices = O.receiver_prices(city, data.tensors["x"], data.tensors["action"])
+            weight = 2.0 * prices["move"] / prices["trip"]
+            assert 0 < weight and kinds and all(k == ("l1", 2.0, pytest.approx(weight)) for k in kinds), algo
+            assert card["receiver_prices"] == pytest.approx({**prices, "surplus_weight": weight})
     with pytest.raises(ConfigError, match="imitation: Input should be 'ce' or 'l1'"):
         args_for("bc", _args(tmp_path, tiny, imitation="l2"))
     with pytest.raises(ConfigError, match="shortfall_weight weighs the vehicles of imitation: l1; imitation is ce"):
         args_for("iql", _args(tmp_path, tiny, shortfall_weight=1.0))
+    with pytest.raises(ConfigError, match="surplus_price prices a receiving region's surplus against its shortfall: set shortfall_weight"):
+        args_for("bc", _args(tmp_path, tiny, imitation="l1", surplus_price=True))
 
 
 @pytest.mark.parametrize("algo", ["bc", "iql"])

@@ -44,7 +44,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     opt = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
 
     def update(b: O.Batch, step: int) -> dict[str, float]:
-        loss = O.imitation_loss(actor, b, graph, local, args.actor_time, kind=args.imitation, shortfall=args.shortfall_weight)
+        loss = O.imitation_loss(actor, b, graph, local, args.actor_time, kind=args.imitation,
+                                shortfall=args.shortfall_weight, surplus=data.surplus)  # fmt: skip
         loss = loss.mean()
         opt.zero_grad()
         loss.backward()

@@ -97,7 +97,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         opt_c.step()
         # ---- actor: BC warm start, then min Q - alpha log pi (critics frozen) ----
         if step < args.bc_steps:
-            loss_pi = O.imitation_loss(actor, b, graph, local, kind=args.imitation, shortfall=args.shortfall_weight).mean()
+            loss_pi = O.imitation_loss(actor, b, graph, local, kind=args.imitation,
+                                       shortfall=args.shortfall_weight, surplus=data.surplus).mean()  # fmt: skip
         else:
             critic.requires_grad_(False)
             y, logp = policy_sample(actor, b, "", graph, local)

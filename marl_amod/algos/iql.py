@@ -93,7 +93,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         # ---- actor: advantage-weighted log-likelihood of the logged action ----
         weight = torch.exp(args.beta * (q_min - v_s.detach())).clamp(max=args.max_weight)  # (B,)
         imitation = O.imitation_loss(actor, b, graph, local, args.actor_time, kind=args.imitation,
-                                     shortfall=args.shortfall_weight)  # fmt: skip
+                                     shortfall=args.shortfall_weight, surplus=data.surplus)  # fmt: skip
         loss_pi = (weight * imitation).mean()
         step_on(opt_a, loss_pi, actor)
         with torch.no_grad():

@@ -67,6 +67,12 @@ class OfflineArgs(C.RunArgs):
     """``imitation: l1`` only: a vehicle short of the logged target at a region that receives vehicles
     (logged target above its idle count) costs 1 + this, a vehicle over costs 1: short there, requests
     go unserved; over, a vehicle was moved that need not have been"""
+    surplus_price: bool = False
+    """with ``shortfall_weight`` only: a vehicle over at a receiving region costs 1 + shortfall_weight x
+    move / trip instead of 1, where trip is what a served request earns and move what a rebalancing
+    move costs, both read from the city and the dataset (:func:`receiver_prices`; on the card): the
+    shortfall prices the request a missing vehicle leaves unserved, this the paid move an extra
+    vehicle made (docs/offline "BC fidelity" 12)"""
     keep: Literal["last", "best"] = "last"
     """the actor shipped: the last one (no env interaction at all: offline RL proper) or the best
     on the validation seeds (uses ``eval_episodes`` env episodes per validation, as online runs do:
@@ -78,6 +84,9 @@ class OfflineArgs(C.RunArgs):
         if self.shortfall_weight and self.imitation != "l1":
             raise ValueError(f"shortfall_weight weighs the vehicles of imitation: l1; imitation is {self.imitation} "
                              "(set imitation: l1, or shortfall_weight: 0)")  # fmt: skip
+        if self.surplus_price and not self.shortfall_weight:
+            raise ValueError("surplus_price prices a receiving region's surplus against its shortfall: set shortfall_weight > 0 "
+                             "(with imitation: l1), or surplus_price: false")  # fmt: skip
         return self
 
     def ignored_keys(self) -> dict[str, str]:
@@ -143,10 +152,36 @@ class Data:
                 self.tensors.update({f"{prefix}own": own, f"{prefix}nbrs": nbrs, f"{prefix}mask": mask})
         self.size = len(data)
         self.meta = meta
+        self.prices = receiver_prices(city, self.tensors["x"], self.tensors["action"]) if args.surplus_price else None
+        # the weight of a receiving region's surplus vehicle beyond 1 (imitation_loss's surplus)
+        self.surplus = args.shortfall_weight * self.prices["move"] / self.prices["trip"] if self.prices else 0.0
 
     def sample(self, batch: int, gen: torch.Generator) -> Batch:
         idx = torch.randint(0, self.size, (batch,), generator=gen)
         return Batch({k: v[idx] for k, v in self.tensors.items()})
+
+
+def receiver_prices(city: City, x: torch.Tensor, action: torch.Tensor, scale: float = FEATURE_SCALE) -> dict[str, float]:
+    """The two prices of ``surplus_price``, in money: ``trip``, what a served request earns (the city's
+    fare minus operating cost, :attr:`City.margin`, averaged over an episode's expected requests), and
+    ``move``, what the behaviour policy paid per vehicle it moved: the coordinator's min-cost
+    rebalancing of the logged targets from the logged idle vehicles (both read from the node features
+    ``x`` (T, N, F) and the logged shares ``action`` (T, N), as :func:`imitation_loss` reads them), its
+    cost over the vehicles it moves, over every logged step."""
+    from marl_amod.coordinator.rebalance import Rebalancer
+
+    rate = city.demand_rate[: city.horizon]
+    if rate.sum() <= 0:
+        raise DataError(f"city {city.name!r} expects no request in an episode: no trip price to weigh a surplus against")
+    trip = float((rate * city.margin[: city.horizon]).sum() / rate.sum())
+    idle = np.rint(x[..., 0].double().numpy() / scale).astype(np.int64)  # (T, N) vehicles
+    y = action.double().numpy()
+    y = y / np.maximum(y.sum(-1, keepdims=True), 1e-12)
+    target = np.floor(y * idle.sum(-1, keepdims=True) + 1e-4).astype(np.int64)  # the env's floor; float32 shares of whole targets
+    flows = Rebalancer(city.reb_time).many(idle, target)  # the coordinator's solver and costs (travel steps)
+    if flows.sum() == 0:
+        raise DataError("the logged actions move no vehicle: no rebalancing price to weigh a surplus with (surplus_price)")
+    return {"trip": trip, "move": float((flows * city.reb_cost).sum() / flows.sum())}
 
 
 def concentrations(
@@ -161,7 +196,7 @@ def concentrations(
 
 def imitation_loss(
     actor: torch.nn.Module, b: Batch, graph: Graph, local: bool, time: bool = False, kind: Imitation = "ce",
-    shortfall: float = 0.0,
+    shortfall: float = 0.0, surplus: float = 0.0,
 ) -> torch.Tensor:
     """Per-transition loss (B,) of imitating the logged action y (normalised) with the policy's
     Dirichlet mean m = alpha / sum(alpha), which is what the deterministic policy plays.
@@ -183,7 +218,8 @@ def imitation_loss(
     tied). What each did on MPC-Forecast: docs/offline "BC fidelity" 11.
     ``shortfall`` prices a vehicle short at a receiving region (logged target above its idle count, read
     from the node features as :func:`sink_margin_targets` does) 1 + ``shortfall`` times one over: the
-    quantile loss of the receivers' targets, where a vehicle short leaves requests unserved.
+    quantile loss of the receivers' targets, where a vehicle short leaves requests unserved; ``surplus``
+    prices a vehicle over there 1 + ``surplus`` times (``surplus_price``: a move that was paid for).
     """
     alpha = concentrations(actor, b, graph, local, time=time)  # (B, N)
     mean = alpha / alpha.sum(-1, keepdim=True)
@@ -192,10 +228,10 @@ def imitation_loss(
         return -(y * torch.log(mean.clamp_min(1e-8))).sum(-1)
     if kind == "l1":
         short, over = (y - mean).clamp_min(0), (mean - y).clamp_min(0)
-        if shortfall:
+        if shortfall or surplus:
             idle = torch.round(b["x"][..., 0] / FEATURE_SCALE)  # (B, N) vehicles
             receives = y * idle.sum(-1, keepdim=True) > idle + 0.5
-            short = short * (1 + shortfall * receives)
+            short, over = short * (1 + shortfall * receives), over * (1 + surplus * receives)
         return (short + over).sum(-1)
     raise ConfigError(f"unknown imitation loss {kind!r}; known: ce, l1")
 
@@ -280,6 +316,8 @@ def fit(
     if args.keep == "best":
         actor.load_state_dict(best.state)
     extra = {**_dataset_fields(data, step), "kept": args.keep, "best_validation": best.value}
+    if data.prices:
+        extra["receiver_prices"] = {**data.prices, "surplus_weight": data.surplus}
     spec = None
     if critic is not None:
         net, hidden, conv = critic
