@@ -339,6 +339,16 @@ def test_held_out_cities_cannot_be_training_tasks():
         meta.train(meta.Args(cities=["chicago", "nyc_brooklyn~hot5x2"]))
 
 
+@pytest.mark.parametrize("task", ["nyc_brooklyn_event", "nyc_brooklyn_event~hot5x2", "nyc_brooklyn_event~ev1+2x3@0-6", "nyc_brooklyn~ev1+2x3@0-6"])
+def test_a_scenario_built_on_a_held_out_citys_data_is_held_out_too(task):
+    """The event study's city (``extends: nyc_brooklyn`` with the Brooklyn event) is the held-out
+    city's data with the very event the study tests: as a training task, a variant or an event task
+    of one it would be demonstrated by MPC told that event (meta_imitation.expert_for)."""
+    assert meta.held_out_among([task, "porto", "porto~ev1+2x3@0-6"]) == [meta.base_city(task)]
+    with pytest.raises(ConfigError, match="held-out"):
+        meta.check_tasks(meta.Args(cities=["chicago", task]))
+
+
 def test_transfer_strategies_and_the_normalised_score(tmp_path):
     assert normalised(150.0, 100.0, 200.0) == 50.0 and normalised(100.0, 100.0, 200.0) == 0.0
     with pytest.raises(ConfigError, match="unknown strategy"):

@@ -78,6 +78,7 @@ from pydantic import Field
 from marl_amod.algos import common as C
 from marl_amod.algos.rollout import train_seed
 from marl_amod.baselines.base import WeightPolicy
+from marl_amod.data import resolve
 from marl_amod.batch_system import BatchFleetSystem
 from marl_amod.env.features import state_features
 from marl_amod.errors import ConfigError, DataError
@@ -87,6 +88,7 @@ from marl_amod.models.gnn import Readout
 from marl_amod.models.recurrent import RecurrentGNN
 from marl_amod.scenario import City, load_city
 from marl_amod.scenario.events import DemandEvent, apply_events
+from marl_amod.scenario.registry import load_spec
 from marl_amod.scenario.types import step_rows
 from marl_amod.system import FleetSystem
 
@@ -565,8 +567,25 @@ def make_model(args: Args) -> RecurrentGNN:
 
 
 def held_out_among(tasks: list[str]) -> list[str]:
-    """The held-out cities that ``tasks`` are, or are hotspot variants of (sorted)."""
-    return sorted({base_city(name) for name in tasks} & set(HELD_OUT))
+    """The held-out cities that ``tasks`` are, or are variants of (hotspot, event task), or that a
+    scenario of theirs is built on (sorted): ``nyc_brooklyn_event`` (``extends: nyc_brooklyn``) is
+    Brooklyn's data with the event the study tests, not another city."""
+    held = {_data_of(name) for name in HELD_OUT} - {None}
+    return sorted({base for base in map(base_city, tasks) if base in HELD_OUT or _data_of(base) in held})
+
+
+def _data_of(scenario: str) -> str | None:
+    """The data file a scenario's city is built from (None: a synthetic or unknown one), read from its YAML."""
+    try:
+        data = getattr(load_spec(scenario), "data_file", None)
+    except ConfigError:  # not a scenario: loading the task says so where it is used
+        return None
+    if data is None:
+        return None
+    try:
+        return str(resolve(data).resolve())
+    except DataError:  # no data here: the name as written still tells the file
+        return str(data)
 
 
 def check_tasks(args: Args) -> None:
