@@ -275,6 +275,19 @@ def test_an_event_task_carries_its_event_in_the_draw_not_the_forecast_and_its_na
         meta.event_tasks(["synthetic"], 1, (0.5, 2.0), seed=0)
 
 
+def test_event_tasks_are_as_many_as_asked_or_refused(tmp_path):
+    """A 4-region city of 2 control steps has 14 distinct event tasks at one multiplier: asking for
+    more is an error, never fewer tasks than the card says; a multiplier range that rounds to x1
+    (one decimal) is no surge and is refused."""
+    tiny = tmp_path / "tiny.yaml"
+    tiny.write_text("name: tiny\nsource: synthetic\nrows: 2\ncols: 2\nhorizon: 2\n")
+    assert len(set(meta.event_tasks([str(tiny)], 14, (3.0, 3.0), seed=0))) == 14
+    with pytest.raises(ConfigError, match="distinct event tasks"):
+        meta.event_tasks([str(tiny)], 15, (3.0, 3.0), seed=0)
+    with pytest.raises(ConfigError, match="event_multipliers"):
+        meta.event_tasks(["synthetic"], 1, (1.01, 1.04), seed=0)
+
+
 def test_the_deployed_policy_replays_the_trained_agent_exactly():
     """MetaPolicy (through evaluate, one episode on a FleetSystem) rebuilds the previous rewards from
     the booked money: its episode must be the batched trial's deterministic one from the same memory."""

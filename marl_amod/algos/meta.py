@@ -318,8 +318,9 @@ def event_tasks(cities: list[str], per_city: int, multipliers: tuple[float, floa
     steps (fewer in a city of fewer control steps) starting anywhere the window fits; in three draws of four the two busiest drop x
     0.3-0.8 (one decimal) meanwhile. A function of the seed, so a resumed run names the same tasks."""
     lo, hi = map(float, multipliers)
-    if per_city and not (np.isfinite(hi) and 1.0 < lo <= hi):
-        raise ConfigError(f"event_multipliers {list(multipliers)}: a range [low, high] with 1 < low <= high (a surge; one decimal is kept)")
+    if per_city and not (np.isfinite(hi) and 1.05 < lo <= hi):
+        raise ConfigError(f"event_multipliers {list(multipliers)}: a range [low, high] with 1.05 < low <= high (a surge; one "
+                          "decimal is kept, so a lower one would name surges of x1)")  # fmt: skip
     names: list[str] = []
     for i, name in enumerate(cities if per_city else []):
         city, rng = load_city(name), np.random.default_rng([seed, i, 6037])
@@ -337,10 +338,13 @@ def event_tasks(cities: list[str], per_city: int, multipliers: tuple[float, floa
             dropped = rng.random() < 0.75
             drop_m = round(float(rng.uniform(0.3, 0.8)), 1)
             task = event_name(name, surge, multiplier, start, start + length, sorted(map(int, busiest)) if dropped else [], drop_m)
-            if task not in mine:
+            if task not in mine:  # a duplicate would be one task counted twice: draw again
                 mine.append(task)
             if len(mine) == per_city:
                 break
+        else:
+            raise ConfigError(f"{per_city} distinct event tasks of {name} not found (its {city.n_regions} regions, {city.horizon} "
+                              f"control steps, event_multipliers {list(multipliers)} to one decimal): ask for fewer")  # fmt: skip
         names += mine
     return names
 
