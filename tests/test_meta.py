@@ -288,6 +288,22 @@ def test_event_tasks_are_as_many_as_asked_or_refused(tmp_path):
         meta.event_tasks(["synthetic"], 1, (1.01, 1.04), seed=0)
 
 
+def test_an_event_task_refuses_a_bad_event_in_one_line_and_its_name_always_rebuilds_it():
+    """A window or multiplier the event cannot have is a one-line ConfigError naming the task, from
+    event_task itself too (not pydantic's report); any event it accepts, -0.0 included, gets a
+    name task_city rebuilds."""
+    city = load_city("synthetic")
+    with pytest.raises(ConfigError, match=r"^event task of synthetic, its surge: .*end \(5\) must be after start \(5\)$"):
+        meta.event_task(city, [3], 2.0, 5, 5)
+    for bad in ("synthetic~ev3x2000@0-5", "synthetic~ev3+3x2@0-5", "synthetic~ev3x2@5-5", "synthetic~ev3x1.2.3@0-5"):
+        with pytest.raises(ConfigError, match="synthetic") as err:
+            meta.task_city(bad)
+        assert "\n" not in str(err.value) and "pydantic" not in str(err.value)
+    for m, dm in ((2.1234567, 0.0), (1000.0, -0.0), (0.0, 0.25)):
+        ev = meta.event_task(city, [3, 7], m, 0, 6, [1], dm)
+        np.testing.assert_array_equal(meta.task_city(ev.name).demand_rate, ev.demand_rate)
+
+
 def test_the_deployed_policy_replays_the_trained_agent_exactly():
     """MetaPolicy (through evaluate, one episode on a FleetSystem) rebuilds the previous rewards from
     the booked money: its episode must be the batched trial's deterministic one from the same memory."""

@@ -73,7 +73,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 import torch.nn.functional as F
-from pydantic import Field
+from pydantic import Field, ValidationError
 
 from marl_amod.algos import common as C
 from marl_amod.algos.rollout import train_seed
@@ -284,7 +284,7 @@ def base_city(name: str) -> str:
 
 def _number(x: float) -> str:
     """A multiplier in a task name: exact and short (3, not 3.0)."""
-    return np.format_float_positional(float(x), trim="-")
+    return np.format_float_positional(float(x) + 0.0, trim="-")  # + 0.0: -0.0 would be named -0, which no name parses
 
 
 def event_name(city: str, surge: list[int], multiplier: float, start: int, end: int, drop: list[int] = (), drop_multiplier: float = 1.0) -> str:
@@ -305,9 +305,13 @@ def event_task(city: City, surge: list[int], multiplier: float, start: int, end:
     ones (their share x7 in the window), and the policies send the surge *fewer* vehicles inside
     the window than outside; a task whose every episode repeats one event lets the imitation show
     the memory a shock it can carry from one episode to the next. Named so :func:`task_city` rebuilds it."""
-    events = [DemandEvent(name="surge", regions=list(surge), start=start, end=end, multiplier=multiplier)]
-    if drop:
-        events.append(DemandEvent(name="drop", regions=list(drop), start=start, end=end, multiplier=drop_multiplier))
+    events = []
+    for what, regions, m in [("surge", surge, multiplier)] + ([("drop", drop, drop_multiplier)] if len(drop) else []):
+        try:
+            events.append(DemandEvent(name=what, regions=list(regions), start=start, end=end, multiplier=m))
+        except ValidationError as err:  # one line naming the task, not pydantic's report
+            problems = "; ".join(".".join(map(str, e["loc"])) + (": " if e["loc"] else "") + e["msg"].removeprefix("Value error, ") for e in err.errors())
+            raise ConfigError(f"event task of {city.name}, its {what}: {problems}") from None
     shocked = apply_events(city, events, f"event task of {city.name}")
     return replace(shocked, name=event_name(city.name, list(surge), multiplier, start, end, list(drop), drop_multiplier))
 
@@ -361,7 +365,7 @@ def task_city(name: str) -> City:
         try:
             return event_task(load_city(base), [int(r) for r in g["up"].split("+")], float(g["m"]), int(g["s"]), int(g["e"]),
                               [int(r) for r in g["down"].split("+")] if g["down"] else [], float(g["dm"]) if g["dm"] else 1.0)  # fmt: skip
-        except ValueError as err:  # the event's own checks (window, multipliers) as pydantic raises them
+        except ValueError as err:  # a multiplier such as 1.2.3
             raise ConfigError(f"task {name!r}: {err}") from None
     base, _, variant = name.partition(HOTSPOT)
     city = load_city(base)
