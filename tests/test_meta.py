@@ -464,3 +464,31 @@ def test_hotspot_tasks_with_distinct_regions_move_the_hotspot():
     assert sorted(region(v) for v in moved) == list(range(n)) and moved[0] == plain[0]
     with pytest.raises(ConfigError, match="each region once"):
         meta.hotspot_tasks(["synthetic"], n + 1, (2.0, 4.0), seed=0, distinct_regions=True)
+
+
+def test_compare_reads_the_standard_error_of_its_mean_over_the_episodes(tmp_path, capsys):
+    """benchmarks/meta_diagnostics.py compare: the tasks are fixed and episode k of every task is
+    drawn from the same seed, so the standard error of the mean difference is over the episodes (each
+    the tasks' mean), not the tasks x episodes pairs taken as independent: a task that gains a fixed
+    amount on every episode leaves no doubt, an episode that moves every task is one draw, not T."""
+    import json
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    import meta_diagnostics
+
+    fixed = np.array([[1.0, 1.0, 1.0], [3.0, 3.0, 3.0]])  # (tasks, episodes): each task's gain the same every episode
+    assert meta_diagnostics.paired_se(fixed) == (pytest.approx(np.std([1, 1, 1, 3, 3, 3], ddof=1) / np.sqrt(6)), 0.0)
+    shared = np.array([[0.0, 2.0, 4.0]] * 4)  # every task moved alike by the episode
+    pooled, by_episode = meta_diagnostics.paired_se(shared)
+    assert by_episode == pytest.approx(2.0 / np.sqrt(3)) and by_episode > pooled
+    files = []
+    for i, gain in enumerate((0.0, 100.0)):
+        tasks = {f"porto~ev1+2x{m}@0-6": {"policy": [1000.0 + gain * m + e for e in range(3)], "mpc-forecast": [1100.0] * 3} for m in (2, 3)}
+        files.append(tmp_path / f"{i}.json")
+        files[-1].write_text(json.dumps({"policy": str(i), "seed": 1000, "episodes": 3, "tasks": tasks}))
+    meta_diagnostics.compare([str(f) for f in files])
+    out = capsys.readouterr().out
+    assert "+250.000 profit" in out and "by episode 0.000" in out
+
