@@ -75,8 +75,10 @@ def fresh(tag: int) -> Callable[[int, int], np.random.SeedSequence]:
 
 def labelled(model: meta.RecurrentGNN, task: City, episodes: int, lookahead: int, seed_of: Callable[[int, int], np.random.SeedSequence],
              learner: meta.RecurrentGNN | None = None) -> mi.CityDemos:  # fmt: skip
-    """``episodes`` episodes of ``task`` labelled by MPC-F, with the inputs ``model`` reads: driven by
-    MPC-F, or with ``learner`` by the policy as deployed (trials of 4, memory carried)."""
+    """``episodes`` episodes of ``task`` labelled by MPC-F (by MPC told the event on a task that
+    carries one, an event task or an ``events:`` scenario: ``mi.expert_for``), with the inputs
+    ``model`` reads: driven by that expert, or with ``learner`` by the policy as deployed (trials of
+    4, memory carried)."""
     structure, place = meta.features_read(model, lookahead)
     got = mi.collect_city(task, episodes, 99, lookahead, learner=learner, trial_episodes=4, seed_of=seed_of)
     if structure:
