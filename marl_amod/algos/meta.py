@@ -78,8 +78,8 @@ from pydantic import Field, ValidationError
 from marl_amod.algos import common as C
 from marl_amod.algos.rollout import train_seed
 from marl_amod.baselines.base import WeightPolicy
-from marl_amod.data import resolve
 from marl_amod.batch_system import BatchFleetSystem
+from marl_amod.data import resolve
 from marl_amod.env.features import state_features
 from marl_amod.errors import ConfigError, DataError
 from marl_amod.models.dense import DenseGraph
