@@ -207,6 +207,7 @@ def test_random_shocks_change_the_draw_not_the_forecast():
     rng = np.random.default_rng(0)
     for _ in range(20):
         shocked = meta.random_shock(city, rng)
+        np.testing.assert_array_equal(meta.task_city(shocked.name).demand_rate, shocked.demand_rate)  # an event task: its name replays it
         np.testing.assert_array_equal(shocked.forecast_rate, city.forecast_rate)
         changed = np.flatnonzero((np.asarray(shocked.demand_rate) != np.asarray(city.demand_rate)).any(axis=(1, 2)))
         assert changed.size and changed.min() < city.horizon and 3 <= changed.size <= 10  # a window of 3-10 steps

@@ -229,18 +229,17 @@ def with_structure(x: np.ndarray, city: City, lookahead: int, place: bool = Fals
 # Task variants: random demand shocks the forecast does not know
 # --------------------------------------------------------------------------------------------
 def random_shock(city: City, rng: np.random.Generator) -> City:
-    """``city`` with a random special event (:mod:`marl_amod.scenario.events`): requests out of 1-3
-    regions x1.5-8 and, half the time, out of 1-2 others x0.2-0.8, over 3-10 steps; the forecast
-    (what the features read) keeps the usual demand."""
+    """``city`` with a random special event (:func:`event_task`, named so :func:`task_city` replays
+    it): requests out of 1-3 regions x1.5-8 and, half the time, out of 1-2 others x0.2-0.8, over
+    3-10 steps; the forecast (what the features read) keeps the usual demand."""
     n, h = city.n_regions, city.horizon
     up, down = int(rng.integers(1, 4)), int(rng.integers(1, 3)) * int(rng.random() < 0.5)
     regions = rng.choice(n, size=min(n, up + down), replace=False).tolist()
     start = int(rng.integers(0, h - 3))
     end = min(h, start + int(rng.integers(3, 11)))
-    events = [DemandEvent(name="surge", regions=regions[:up], start=start, end=end, multiplier=float(np.exp(rng.uniform(np.log(1.5), np.log(8.0)))))]
-    if regions[up:]:
-        events.append(DemandEvent(name="drop", regions=regions[up:], start=start, end=end, multiplier=float(rng.uniform(0.2, 0.8))))
-    return apply_events(city, events)
+    multiplier = float(np.exp(rng.uniform(np.log(1.5), np.log(8.0))))
+    drop_multiplier = float(rng.uniform(0.2, 0.8)) if regions[up:] else 1.0
+    return event_task(city, regions[:up], multiplier, start, end, regions[up:], drop_multiplier)
 
 
 HOTSPOT = "~hot"  # a task name "<city>~hot<region>x<multiplier>": the city with that hotspot
