@@ -229,8 +229,8 @@ def with_structure(x: np.ndarray, city: City, lookahead: int, place: bool = Fals
 # Task variants: random demand shocks the forecast does not know
 # --------------------------------------------------------------------------------------------
 def random_shock(city: City, rng: np.random.Generator) -> City:
-    """``city`` with a random special event (:func:`event_task`, named so :func:`task_city` replays
-    it): requests out of 1-3 regions x1.5-8 and, half the time, out of 1-2 others x0.2-0.8, over
+    """``city`` with a random special event (:func:`event_task`: on a plain city named so
+    :func:`task_city` replays it): requests out of 1-3 regions x1.5-8 and, half the time, out of 1-2 others x0.2-0.8, over
     3-10 steps; the forecast (what the features read) keeps the usual demand."""
     n, h = city.n_regions, city.horizon
     up, down = int(rng.integers(1, 4)), int(rng.integers(1, 3)) * int(rng.random() < 0.5)
