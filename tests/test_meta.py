@@ -377,6 +377,8 @@ def test_a_scenario_built_on_a_held_out_citys_data_is_held_out_too(task):
     assert meta.held_out_among([task, "porto", "porto~ev1+2x3@0-6"]) == [meta.base_city(task)]
     with pytest.raises(ConfigError, match="held-out"):
         meta.check_tasks(meta.Args(cities=["chicago", task]))
+    with pytest.raises(ConfigError, match="validation"):  # nor the city the best model is chosen on
+        meta.check_tasks(meta.Args(cities=["chicago"], val_cities=["porto", task]))
 
 
 def test_transfer_strategies_and_the_normalised_score(tmp_path):

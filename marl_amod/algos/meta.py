@@ -600,6 +600,8 @@ def check_tasks(args: Args) -> None:
     leaked = held_out_among(args.cities) + ([args.scenario] if args.scenario in bases else [])
     if leaked:
         raise ConfigError(f"meta-RL training cities include held-out {sorted(set(leaked))}; the study tests on them")
+    if chosen_on := held_out_among(args.val_cities):  # the best model would be chosen on the test cities
+        raise ConfigError(f"meta-RL validation cities (val_cities) include held-out {chosen_on}; the study tests on them")
 
 
 def validate(model: RecurrentGNN, args: Args, cities: dict[str, City]) -> float:
