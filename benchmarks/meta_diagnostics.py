@@ -31,8 +31,9 @@
   event tasks ``<city>~ev...``: ``meta.task_city``), validation episodes (seed 1000), written to
   ``--out`` (with ``--mpc-from`` an earlier file's MPC-F profits of the same tasks and episodes are reused);
   ``compare A.json B.json``: per file the mean gap to MPC-F over the hotspot variants and the
-  mean profit over the event tasks, and B - A paired by episode with its standard error: what a
-  selection rule reads (docs/meta/README.md, "The event tasks").
+  mean profit over the event tasks, and B - A paired by episode with its standard error (over
+  the episodes, each the tasks' mean: ``paired_se``): what a selection rule reads
+  (docs/meta/README.md, "The event tasks").
 
     python benchmarks/meta_diagnostics.py gap [--policy policies/meta_rl_hot_cities.pt]
     python benchmarks/meta_diagnostics.py k --ks 0,1,3,10 [--validation]
@@ -74,8 +75,10 @@ def fresh(tag: int) -> Callable[[int, int], np.random.SeedSequence]:
 
 def labelled(model: meta.RecurrentGNN, task: City, episodes: int, lookahead: int, seed_of: Callable[[int, int], np.random.SeedSequence],
              learner: meta.RecurrentGNN | None = None) -> mi.CityDemos:  # fmt: skip
-    """``episodes`` episodes of ``task`` labelled by MPC-F, with the inputs ``model`` reads: driven by
-    MPC-F, or with ``learner`` by the policy as deployed (trials of 4, memory carried)."""
+    """``episodes`` episodes of ``task`` labelled by MPC-F (by MPC told the event on a task that
+    carries one, an event task or an ``events:`` scenario: ``mi.expert_for``), with the inputs
+    ``model`` reads: driven by that expert, or with ``learner`` by the policy as deployed (trials of
+    4, memory carried)."""
     structure, place = meta.features_read(model, lookahead)
     got = mi.collect_city(task, episodes, 99, lookahead, learner=learner, trial_episodes=4, seed_of=seed_of)
     if structure:
@@ -262,6 +265,14 @@ def tasks(policy: str, names: list[str], episodes: int, out: str, seed: int = 10
         json.dump(record, f, indent=1)
 
 
+def paired_se(d: np.ndarray) -> tuple[float, float]:
+    """The standard error of ``d.mean()``, ``d`` (tasks, episodes) paired differences: (the pairs
+    taken as independent, as the docs' first rules read it; over the episodes, each the tasks' mean).
+    The second is the one for a fixed set of tasks whose episode k all come from one seed: a task's
+    steady gain is not noise, and an episode that moves every task is one draw."""
+    return float(d.std(ddof=1) / np.sqrt(d.size)), float(d.mean(0).std(ddof=1) / np.sqrt(d.shape[1]))
+
+
 def compare(files: list[str]) -> None:
     """The rule's numbers of each ``tasks`` file, and the second against the first paired by episode."""
     recs = [json.load(open(f)) for f in files]
@@ -284,8 +295,10 @@ def compare(files: list[str]) -> None:
             print(f"{f}: mean{unit} over {len(group)} tasks x {v.shape[1]} episodes: {v.mean():.3f}  (per task: "
                   + ", ".join(f"{n} {x:.2f}" if what == "gap" else f"{n} {x:,.0f}" for n, x in zip(group, v.mean(1), strict=True)) + ")")  # fmt: skip
         if len(vals) == 2:
-            d = (vals[1] - vals[0]).ravel()  # paired: the same task and episode
-            print(f"  {files[1]} - {files[0]}: {d.mean():+.3f}{unit}, paired SE {d.std(ddof=1) / np.sqrt(d.size):.3f} ({d.size} pairs)")
+            d = vals[1] - vals[0]  # paired: the same task and episode
+            pooled, by_episode = paired_se(d)
+            print(f"  {files[1]} - {files[0]}: {d.mean():+.3f}{unit}, paired SE by episode {by_episode:.3f} ({d.shape[1]} episodes x "
+                  f"{d.shape[0]} tasks; the {d.size} pairs as independent: {pooled:.3f})")  # fmt: skip
         if what == "profit":
             m = per_episode({"tasks": {n: {"policy": recs[0]["tasks"][n]["mpc-forecast"], "mpc-forecast": recs[0]["tasks"][n]["mpc-forecast"]} for n in group}}, group, "profit")
             print(f"  MPC-Forecast (not told the events): mean profit {m.mean():.1f}")
@@ -360,6 +373,8 @@ def main() -> None:
             parser.error("tasks needs --out")
         tasks(args.policy, args.cities.split(","), args.episodes, args.out, mpc_from=args.mpc_from)
     elif args.what == "compare":
+        if not args.files:
+            parser.error("compare needs tasks --out files: A.json B.json")
         compare(args.files)
     elif args.what == "k":
         (k_validation if args.validation else k_sweep)(args.policy, ks)

@@ -207,6 +207,7 @@ def test_random_shocks_change_the_draw_not_the_forecast():
     rng = np.random.default_rng(0)
     for _ in range(20):
         shocked = meta.random_shock(city, rng)
+        np.testing.assert_array_equal(meta.task_city(shocked.name).demand_rate, shocked.demand_rate)  # an event task: its name replays it
         np.testing.assert_array_equal(shocked.forecast_rate, city.forecast_rate)
         changed = np.flatnonzero((np.asarray(shocked.demand_rate) != np.asarray(city.demand_rate)).any(axis=(1, 2)))
         assert changed.size and changed.min() < city.horizon and 3 <= changed.size <= 10  # a window of 3-10 steps
@@ -275,6 +276,35 @@ def test_an_event_task_carries_its_event_in_the_draw_not_the_forecast_and_its_na
         meta.event_tasks(["synthetic"], 1, (0.5, 2.0), seed=0)
 
 
+def test_event_tasks_are_as_many_as_asked_or_refused(tmp_path):
+    """A 4-region city of 2 control steps has 14 distinct event tasks at one multiplier: asking for
+    more is an error, never fewer tasks than the card says; a multiplier range that rounds to x1
+    (one decimal) is no surge and is refused."""
+    tiny = tmp_path / "tiny.yaml"
+    tiny.write_text("name: tiny\nsource: synthetic\nrows: 2\ncols: 2\nhorizon: 2\n")
+    assert len(set(meta.event_tasks([str(tiny)], 14, (3.0, 3.0), seed=0))) == 14
+    with pytest.raises(ConfigError, match="distinct event tasks"):
+        meta.event_tasks([str(tiny)], 15, (3.0, 3.0), seed=0)
+    with pytest.raises(ConfigError, match="event_multipliers"):
+        meta.event_tasks(["synthetic"], 1, (1.01, 1.04), seed=0)
+
+
+def test_an_event_task_refuses_a_bad_event_in_one_line_and_its_name_always_rebuilds_it():
+    """A window or multiplier the event cannot have is a one-line ConfigError naming the task, from
+    event_task itself too (not pydantic's report); any event it accepts, -0.0 included, gets a
+    name task_city rebuilds."""
+    city = load_city("synthetic")
+    with pytest.raises(ConfigError, match=r"^event task of synthetic, its surge: .*end \(5\) must be after start \(5\)$"):
+        meta.event_task(city, [3], 2.0, 5, 5)
+    for bad in ("synthetic~ev3x2000@0-5", "synthetic~ev3+3x2@0-5", "synthetic~ev3x2@5-5", "synthetic~ev3x1.2.3@0-5"):
+        with pytest.raises(ConfigError, match="synthetic") as err:
+            meta.task_city(bad)
+        assert "\n" not in str(err.value) and "pydantic" not in str(err.value)
+    for m, dm in ((2.1234567, 0.0), (1000.0, -0.0), (0.0, 0.25)):
+        ev = meta.event_task(city, [3, 7], m, 0, 6, [1], dm)
+        np.testing.assert_array_equal(meta.task_city(ev.name).demand_rate, ev.demand_rate)
+
+
 def test_the_deployed_policy_replays_the_trained_agent_exactly():
     """MetaPolicy (through evaluate, one episode on a FleetSystem) rebuilds the previous rewards from
     the booked money: its episode must be the batched trial's deterministic one from the same memory."""
@@ -337,6 +367,18 @@ def test_held_out_cities_cannot_be_training_tasks():
         meta.train(meta.Args(scenario="porto", cities=["porto", "rome"]))
     with pytest.raises(ConfigError, match="held-out"):  # nor a variant of one
         meta.train(meta.Args(cities=["chicago", "nyc_brooklyn~hot5x2"]))
+
+
+@pytest.mark.parametrize("task", ["nyc_brooklyn_event", "nyc_brooklyn_event~hot5x2", "nyc_brooklyn_event~ev1+2x3@0-6", "nyc_brooklyn~ev1+2x3@0-6"])
+def test_a_scenario_built_on_a_held_out_citys_data_is_held_out_too(task):
+    """The event study's city (``extends: nyc_brooklyn`` with the Brooklyn event) is the held-out
+    city's data with the very event the study tests: as a training task, a variant or an event task
+    of one it would be demonstrated by MPC told that event (meta_imitation.expert_for)."""
+    assert meta.held_out_among([task, "porto", "porto~ev1+2x3@0-6"]) == [meta.base_city(task)]
+    with pytest.raises(ConfigError, match="held-out"):
+        meta.check_tasks(meta.Args(cities=["chicago", task]))
+    with pytest.raises(ConfigError, match="validation"):  # nor the city the best model is chosen on
+        meta.check_tasks(meta.Args(cities=["chicago"], val_cities=["porto", task]))
 
 
 def test_transfer_strategies_and_the_normalised_score(tmp_path):
@@ -425,3 +467,31 @@ def test_hotspot_tasks_with_distinct_regions_move_the_hotspot():
     assert sorted(region(v) for v in moved) == list(range(n)) and moved[0] == plain[0]
     with pytest.raises(ConfigError, match="each region once"):
         meta.hotspot_tasks(["synthetic"], n + 1, (2.0, 4.0), seed=0, distinct_regions=True)
+
+
+def test_compare_reads_the_standard_error_of_its_mean_over_the_episodes(tmp_path, capsys):
+    """benchmarks/meta_diagnostics.py compare: the tasks are fixed and episode k of every task is
+    drawn from the same seed, so the standard error of the mean difference is over the episodes (each
+    the tasks' mean), not the tasks x episodes pairs taken as independent: a task that gains a fixed
+    amount on every episode leaves no doubt, an episode that moves every task is one draw, not T."""
+    import json
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    import meta_diagnostics
+
+    fixed = np.array([[1.0, 1.0, 1.0], [3.0, 3.0, 3.0]])  # (tasks, episodes): each task's gain the same every episode
+    assert meta_diagnostics.paired_se(fixed) == (pytest.approx(np.std([1, 1, 1, 3, 3, 3], ddof=1) / np.sqrt(6)), 0.0)
+    shared = np.array([[0.0, 2.0, 4.0]] * 4)  # every task moved alike by the episode
+    pooled, by_episode = meta_diagnostics.paired_se(shared)
+    assert by_episode == pytest.approx(2.0 / np.sqrt(3)) and by_episode > pooled
+    files = []
+    for i, gain in enumerate((0.0, 100.0)):
+        tasks = {f"porto~ev1+2x{m}@0-6": {"policy": [1000.0 + gain * m + e for e in range(3)], "mpc-forecast": [1100.0] * 3} for m in (2, 3)}
+        files.append(tmp_path / f"{i}.json")
+        files[-1].write_text(json.dumps({"policy": str(i), "seed": 1000, "episodes": 3, "tasks": tasks}))
+    meta_diagnostics.compare([str(f) for f in files])
+    out = capsys.readouterr().out
+    assert "+250.000 profit" in out and "by episode 0.000" in out
+

@@ -303,6 +303,31 @@ def test_event_tasks_are_demonstrated_and_labelled_by_mpc_told_the_event(tasks, 
         mi.collect_demos(tmp_path / "demos", ["nyc_brooklyn~ev8+10x6@6-14"], episodes=1, seed=0, lookahead=6)
 
 
+def test_without_event_tasks_a_runs_draws_are_draw_tasks_own(tasks, tmp_path, monkeypatch):
+    """The shipped configs (no event tasks) rerun with the draws they had: inside train every draw
+    is draw_task's over the cities and variants, from the same generator state, leaving it where
+    draw_task leaves it, and every demonstration is labelled by MPC-Forecast."""
+    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
+                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=3, eval_every=3,
+                   eval_episodes=2, final_eval_episodes=1, hotspot_variants=1, hotspot_episodes=2, hotspot_share=0.4,
+                   run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
+    draws, real, experts, expert_for = [], mi.draw_run_task, [], mi.expert_for
+
+    def spy(a: mi.Args, names: list[str], plain: int, events: list[str], rng: np.random.Generator) -> str:
+        twin = np.random.default_rng()
+        twin.bit_generator.state = rng.bit_generator.state
+        got = real(a, names, plain, events, rng)
+        draws.append((events, names, got == mi.draw_task(names, plain, 0.4, twin), rng.bit_generator.state == twin.bit_generator.state))
+        return got
+
+    monkeypatch.setattr(mi, "draw_run_task", spy)
+    monkeypatch.setattr(mi, "expert_for", lambda city: experts.append(type(e := expert_for(city))) or e)
+    ALGOS["meta-bc"].train(args)
+    plain, variants = mi.tasks(args)
+    assert len(draws) == 3 * 2 and all(ev == [] and names == [*plain, *variants] and same and state for ev, names, same, state in draws)
+    assert experts and set(experts) == {MPCForecast}
+
+
 def test_shocked_dagger_trials_are_labelled_by_mpc_told_the_shock(tasks):
     """A shocked trial draws the shocked demand, its features keep the usual forecast, and its
     labels are MPC's plan on the shocked expected demand, which MPC-Forecast's plan is not."""

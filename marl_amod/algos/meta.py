@@ -73,12 +73,13 @@ from typing import Any, Literal
 import numpy as np
 import torch
 import torch.nn.functional as F
-from pydantic import Field
+from pydantic import Field, ValidationError
 
 from marl_amod.algos import common as C
 from marl_amod.algos.rollout import train_seed
 from marl_amod.baselines.base import WeightPolicy
 from marl_amod.batch_system import BatchFleetSystem
+from marl_amod.data import resolve
 from marl_amod.env.features import state_features
 from marl_amod.errors import ConfigError, DataError
 from marl_amod.models.dense import DenseGraph
@@ -87,6 +88,7 @@ from marl_amod.models.gnn import Readout
 from marl_amod.models.recurrent import RecurrentGNN
 from marl_amod.scenario import City, load_city
 from marl_amod.scenario.events import DemandEvent, apply_events
+from marl_amod.scenario.registry import load_spec
 from marl_amod.scenario.types import step_rows
 from marl_amod.system import FleetSystem
 
@@ -227,18 +229,17 @@ def with_structure(x: np.ndarray, city: City, lookahead: int, place: bool = Fals
 # Task variants: random demand shocks the forecast does not know
 # --------------------------------------------------------------------------------------------
 def random_shock(city: City, rng: np.random.Generator) -> City:
-    """``city`` with a random special event (:mod:`marl_amod.scenario.events`): requests out of 1-3
-    regions x1.5-8 and, half the time, out of 1-2 others x0.2-0.8, over 3-10 steps; the forecast
-    (what the features read) keeps the usual demand."""
+    """``city`` with a random special event (:func:`event_task`: on a plain city named so
+    :func:`task_city` replays it): requests out of 1-3 regions x1.5-8 and, half the time, out of 1-2 others x0.2-0.8, over
+    3-10 steps; the forecast (what the features read) keeps the usual demand."""
     n, h = city.n_regions, city.horizon
     up, down = int(rng.integers(1, 4)), int(rng.integers(1, 3)) * int(rng.random() < 0.5)
     regions = rng.choice(n, size=min(n, up + down), replace=False).tolist()
     start = int(rng.integers(0, h - 3))
     end = min(h, start + int(rng.integers(3, 11)))
-    events = [DemandEvent(name="surge", regions=regions[:up], start=start, end=end, multiplier=float(np.exp(rng.uniform(np.log(1.5), np.log(8.0)))))]
-    if regions[up:]:
-        events.append(DemandEvent(name="drop", regions=regions[up:], start=start, end=end, multiplier=float(rng.uniform(0.2, 0.8))))
-    return apply_events(city, events)
+    multiplier = float(np.exp(rng.uniform(np.log(1.5), np.log(8.0))))
+    drop_multiplier = float(rng.uniform(0.2, 0.8)) if regions[up:] else 1.0
+    return event_task(city, regions[:up], multiplier, start, end, regions[up:], drop_multiplier)
 
 
 HOTSPOT = "~hot"  # a task name "<city>~hot<region>x<multiplier>": the city with that hotspot
@@ -282,7 +283,7 @@ def base_city(name: str) -> str:
 
 def _number(x: float) -> str:
     """A multiplier in a task name: exact and short (3, not 3.0)."""
-    return np.format_float_positional(float(x), trim="-")
+    return np.format_float_positional(float(x) + 0.0, trim="-")  # + 0.0: -0.0 would be named -0, which no name parses
 
 
 def event_name(city: str, surge: list[int], multiplier: float, start: int, end: int, drop: list[int] = (), drop_multiplier: float = 1.0) -> str:
@@ -303,9 +304,13 @@ def event_task(city: City, surge: list[int], multiplier: float, start: int, end:
     ones (their share x7 in the window), and the policies send the surge *fewer* vehicles inside
     the window than outside; a task whose every episode repeats one event lets the imitation show
     the memory a shock it can carry from one episode to the next. Named so :func:`task_city` rebuilds it."""
-    events = [DemandEvent(name="surge", regions=list(surge), start=start, end=end, multiplier=multiplier)]
-    if drop:
-        events.append(DemandEvent(name="drop", regions=list(drop), start=start, end=end, multiplier=drop_multiplier))
+    events = []
+    for what, regions, m in [("surge", surge, multiplier)] + ([("drop", drop, drop_multiplier)] if len(drop) else []):
+        try:
+            events.append(DemandEvent(name=what, regions=list(regions), start=start, end=end, multiplier=m))
+        except ValidationError as err:  # one line naming the task, not pydantic's report
+            problems = "; ".join(".".join(map(str, e["loc"])) + (": " if e["loc"] else "") + e["msg"].removeprefix("Value error, ") for e in err.errors())
+            raise ConfigError(f"event task of {city.name}, its {what}: {problems}") from None
     shocked = apply_events(city, events, f"event task of {city.name}")
     return replace(shocked, name=event_name(city.name, list(surge), multiplier, start, end, list(drop), drop_multiplier))
 
@@ -316,8 +321,9 @@ def event_tasks(cities: list[str], per_city: int, multipliers: tuple[float, floa
     steps (fewer in a city of fewer control steps) starting anywhere the window fits; in three draws of four the two busiest drop x
     0.3-0.8 (one decimal) meanwhile. A function of the seed, so a resumed run names the same tasks."""
     lo, hi = map(float, multipliers)
-    if per_city and not (np.isfinite(hi) and 1.0 < lo <= hi):
-        raise ConfigError(f"event_multipliers {list(multipliers)}: a range [low, high] with 1 < low <= high (a surge; one decimal is kept)")
+    if per_city and not (np.isfinite(hi) and 1.05 < lo <= hi):
+        raise ConfigError(f"event_multipliers {list(multipliers)}: a range [low, high] with 1.05 < low <= high (a surge; one "
+                          "decimal is kept, so a lower one would name surges of x1)")  # fmt: skip
     names: list[str] = []
     for i, name in enumerate(cities if per_city else []):
         city, rng = load_city(name), np.random.default_rng([seed, i, 6037])
@@ -335,10 +341,13 @@ def event_tasks(cities: list[str], per_city: int, multipliers: tuple[float, floa
             dropped = rng.random() < 0.75
             drop_m = round(float(rng.uniform(0.3, 0.8)), 1)
             task = event_name(name, surge, multiplier, start, start + length, sorted(map(int, busiest)) if dropped else [], drop_m)
-            if task not in mine:
+            if task not in mine:  # a duplicate would be one task counted twice: draw again
                 mine.append(task)
             if len(mine) == per_city:
                 break
+        else:
+            raise ConfigError(f"{per_city} distinct event tasks of {name} not found (its {city.n_regions} regions, {city.horizon} "
+                              f"control steps, event_multipliers {list(multipliers)} to one decimal): ask for fewer")  # fmt: skip
         names += mine
     return names
 
@@ -355,7 +364,7 @@ def task_city(name: str) -> City:
         try:
             return event_task(load_city(base), [int(r) for r in g["up"].split("+")], float(g["m"]), int(g["s"]), int(g["e"]),
                               [int(r) for r in g["down"].split("+")] if g["down"] else [], float(g["dm"]) if g["dm"] else 1.0)  # fmt: skip
-        except ValueError as err:  # the event's own checks (window, multipliers) as pydantic raises them
+        except ValueError as err:  # a multiplier such as 1.2.3
             raise ConfigError(f"task {name!r}: {err}") from None
     base, _, variant = name.partition(HOTSPOT)
     city = load_city(base)
@@ -565,8 +574,25 @@ def make_model(args: Args) -> RecurrentGNN:
 
 
 def held_out_among(tasks: list[str]) -> list[str]:
-    """The held-out cities that ``tasks`` are, or are hotspot variants of (sorted)."""
-    return sorted({base_city(name) for name in tasks} & set(HELD_OUT))
+    """The held-out cities that ``tasks`` are, or are variants of (hotspot, event task), or that a
+    scenario of theirs is built on (sorted): ``nyc_brooklyn_event`` (``extends: nyc_brooklyn``) is
+    Brooklyn's data with the event the study tests, not another city."""
+    held = {_data_of(name) for name in HELD_OUT} - {None}
+    return sorted({base for base in map(base_city, tasks) if base in HELD_OUT or _data_of(base) in held})
+
+
+def _data_of(scenario: str) -> str | None:
+    """The data file a scenario's city is built from (None: a synthetic or unknown one), read from its YAML."""
+    try:
+        data = getattr(load_spec(scenario), "data_file", None)
+    except ConfigError:  # not a scenario: loading the task says so where it is used
+        return None
+    if data is None:
+        return None
+    try:
+        return str(resolve(data).resolve())
+    except DataError:  # no data here: the name as written still tells the file
+        return str(data)
 
 
 def check_tasks(args: Args) -> None:
@@ -574,6 +600,8 @@ def check_tasks(args: Args) -> None:
     leaked = held_out_among(args.cities) + ([args.scenario] if args.scenario in bases else [])
     if leaked:
         raise ConfigError(f"meta-RL training cities include held-out {sorted(set(leaked))}; the study tests on them")
+    if chosen_on := held_out_among(args.val_cities):  # the best model would be chosen on the test cities
+        raise ConfigError(f"meta-RL validation cities (val_cities) include held-out {chosen_on}; the study tests on them")
 
 
 def validate(model: RecurrentGNN, args: Args, cities: dict[str, City]) -> float:

@@ -106,7 +106,11 @@ class MPCToldTheShock(MPCForecast):
 
 def expert_for(city: City) -> MPCForecast:
     """Who labels ``city``'s states: MPC told the event on a city that carries one (an
-    :func:`~marl_amod.algos.meta.event_task`, a shocked trial), else MPC-Forecast."""
+    :func:`~marl_amod.algos.meta.event_task`, a shocked trial, and also a scenario whose YAML lists
+    ``events:``, whose every episode carries them as an event task's do; MPC-Forecast labelled those
+    before the event tasks, and a demonstration file collected then keeps its labels), else
+    MPC-Forecast. The bundled event scenario, ``nyc_brooklyn_event``, is a held-out city's and never
+    a training task (:func:`~marl_amod.algos.meta.held_out_among`)."""
     return MPCToldTheShock() if city.meta.get("events") else MPCForecast()
 
 
