@@ -17,6 +17,7 @@ from marl_amod.algos import offline as O
 from marl_amod.algos.registry import ALGOS, args_for
 from marl_amod.cli import app
 from marl_amod.errors import ConfigError, DataError
+from marl_amod.datasets import OfflineDataset
 from marl_amod.evaluation import evaluate
 from marl_amod.models import build_actor
 from marl_amod.scenario import load_city
@@ -228,7 +229,8 @@ def test_receiver_prices_read_the_trip_margin_and_the_cost_of_the_logged_moves(t
     """trip: the mean fare minus operating cost over an episode's expected requests; move: the
     coordinator's cheapest rebalancing of the logged targets, its cost per vehicle moved. Two logged
     steps on the 3x3 grid: 4 vehicles from region 1 into 0 (one move each) and 2 from region 8 into 0
-    (the far corner); a step that moves nothing only adds nothing."""
+    (the far corner); a step that moves nothing only adds nothing. The weights are logged as the env
+    takes a planner's targets: u / 2^k with 2^k >= M (exact in float32, datasets.env_action)."""
     city = load_city(tiny[0])
     idle = torch.zeros(3, 9)
     idle[:, 1], idle[:, 8] = 10, 10
@@ -237,14 +239,43 @@ def test_receiver_prices_read_the_trip_margin_and_the_cost_of_the_logged_moves(t
     targets[1, 0], targets[1, 1], targets[1, 8] = 2, 10, 8
     targets[2] = idle[2]
     x = (idle * 0.01)[..., None].expand(3, 9, 13)
-    prices = O.receiver_prices(city, x, targets / 20)
+    prices = O.receiver_prices(city, x, targets / 32)
     h = city.horizon
     rate, margin = city.demand_rate[:h].ravel(), (city.price - city.beta * city.tstep * city.trip_time)[:h].ravel()
     assert prices["trip"] == pytest.approx(np.average(margin, weights=rate))
     assert prices["move"] == pytest.approx((4 * city.reb_cost[1, 0] + 2 * city.reb_cost[8, 0]) / 6)
     assert city.reb_cost[8, 0] > city.reb_cost[1, 0] > 0
     with pytest.raises(DataError, match="the logged actions move no vehicle"):
-        O.receiver_prices(city, x[2:], targets[2:] / 20)
+        O.receiver_prices(city, x[2:], targets[2:] / 32)
+
+
+def test_receiver_prices_move_price_is_what_the_env_paid_on_a_metric_city(monkeypatch):
+    """On a city whose travel times obey the triangle inequality (a grid) the coordinator solves the
+    reduced network, where only surplus regions send; the full network ties with moves through a
+    region that keeps its count (a -> b -> c costs what a -> c does) and moves more vehicles. The move
+    price must be the env's own: its flows on the logged steps, cost over vehicles moved."""
+    from marl_amod.coordinator.coordinator import Coordinator
+    from marl_amod.coordinator.rebalance import satisfies_triangle_inequality
+    from marl_amod.datasets import collect
+    from marl_amod.policies import make_policy
+    from marl_amod.scenario import grid_city
+
+    city = grid_city(5, 5, seed=0, horizon=10, vehicles_per_region=8)
+    assert satisfies_triangle_inequality(city.reb_time)
+    flows: list[np.ndarray] = []
+    real = Coordinator.rebalance
+
+    def spy(self, idle, target, *, check=True):
+        flows.append(real(self, idle, target, check=check))
+        return flows[-1]
+
+    monkeypatch.setattr(Coordinator, "rebalance", spy)
+    data = collect(city, make_policy("prop", city), episodes=2, seed=0, noise=0.05)
+    monkeypatch.setattr(Coordinator, "rebalance", real)
+    paid = np.stack(flows)
+    x = torch.tensor(data.global_view()["x"])
+    prices = O.receiver_prices(city, x, torch.tensor(data.actions))
+    assert prices["move"] == pytest.approx(float((paid * city.reb_cost).sum() / paid.sum()))
 
 
 def test_the_imitation_option_reaches_bc_iql_and_cql_and_the_card(tmp_path, tiny, monkeypatch):
@@ -271,7 +302,7 @@ def test_the_imitation_option_reaches_bc_iql_and_cql_and_the_card(tmp_path, tiny
                 assert kinds and set(kinds) == {("l1", 2.0, 0.0)} and "receiver_prices" not in card, algo
                 continue
             data = O.Data(args_for(algo, run), city)
-            prices = O.receiver_prices(city, data.tensors["x"], data.tensors["action"])
+            prices = O.receiver_prices(city, data.tensors["x"], torch.tensor(OfflineDataset.load(tiny[1]).actions))
             weight = 2.0 * prices["move"] / prices["trip"]
             assert 0 < weight and kinds and all(k == ("l1", 2.0, pytest.approx(weight)) for k in kinds), algo
             assert card["receiver_prices"] == pytest.approx({**prices, "surplus_weight": weight})

@@ -152,7 +152,7 @@ class Data:
                 self.tensors.update({f"{prefix}own": own, f"{prefix}nbrs": nbrs, f"{prefix}mask": mask})
         self.size = len(data)
         self.meta = meta
-        self.prices = receiver_prices(city, self.tensors["x"], self.tensors["action"]) if args.surplus_price else None
+        self.prices = receiver_prices(city, self.tensors["x"], t(data.actions)) if args.surplus_price else None
         # the weight of a receiving region's surplus vehicle beyond 1 (imitation_loss's surplus)
         self.surplus = args.shortfall_weight * self.prices["move"] / self.prices["trip"] if self.prices else 0.0
 
@@ -164,21 +164,20 @@ class Data:
 def receiver_prices(city: City, x: torch.Tensor, action: torch.Tensor, scale: float = FEATURE_SCALE) -> dict[str, float]:
     """The two prices of ``surplus_price``, in money: ``trip``, what a served request earns (the city's
     fare minus operating cost, :attr:`City.margin`, averaged over an episode's expected requests), and
-    ``move``, what the behaviour policy paid per vehicle it moved: the coordinator's min-cost
-    rebalancing of the logged targets from the logged idle vehicles (both read from the node features
-    ``x`` (T, N, F) and the logged shares ``action`` (T, N), as :func:`imitation_loss` reads them), its
-    cost over the vehicles it moves, over every logged step."""
-    from marl_amod.coordinator.rebalance import Rebalancer
+    ``move``, what the behaviour policy paid per vehicle it moved: the env's own rebalancing of the
+    logged steps (its floor of the logged weights ``action`` (T, N) over the idle vehicles read from
+    the node features ``x`` (T, N, F), then the coordinator's min-cost flows, on the reduced network
+    where the city's travel times are metric as in the env), its cost over the vehicles it moves."""
+    from marl_amod.coordinator.coordinator import Coordinator
+    from marl_amod.coordinator.rebalance import floor_targets
 
     rate = city.demand_rate[: city.horizon]
     if rate.sum() <= 0:
         raise DataError(f"city {city.name!r} expects no request in an episode: no trip price to weigh a surplus against")
     trip = float((rate * city.margin[: city.horizon]).sum() / rate.sum())
     idle = np.rint(x[..., 0].double().numpy() / scale).astype(np.int64)  # (T, N) vehicles
-    y = action.double().numpy()
-    y = y / np.maximum(y.sum(-1, keepdims=True), 1e-12)
-    target = np.floor(y * idle.sum(-1, keepdims=True) + 1e-4).astype(np.int64)  # the env's floor; float32 shares of whole targets
-    flows = Rebalancer(city.reb_time).many(idle, target)  # the coordinator's solver and costs (travel steps)
+    target = floor_targets(action.double().numpy(), idle.sum(-1))  # the env's targets (-1: stay)
+    flows = Coordinator(city).rebalance(idle, target)  # the env's solver, network and tie-breaking
     if flows.sum() == 0:
         raise DataError("the logged actions move no vehicle: no rebalancing price to weigh a surplus with (surplus_price)")
     return {"trip": trip, "move": float((flows * city.reb_cost).sum() / flows.sum())}
