@@ -312,6 +312,8 @@ def test_the_imitation_option_reaches_bc_iql_and_cql_and_the_card(tmp_path, tiny
         args_for("iql", _args(tmp_path, tiny, shortfall_weight=1.0))
     with pytest.raises(ConfigError, match="surplus_price prices a receiving region's surplus against its shortfall: set shortfall_weight"):
         args_for("bc", _args(tmp_path, tiny, imitation="l1", surplus_price=True))
+    with pytest.raises(ConfigError, match="shortfall_weight: Input should be a finite number"):  # inf x 0 would make every loss NaN
+        args_for("bc", _args(tmp_path, tiny, imitation="l1", shortfall_weight=float("inf")))
 
 
 @pytest.mark.parametrize("algo", ["bc", "iql"])

@@ -63,7 +63,7 @@ class OfflineArgs(C.RunArgs):
     mean; l1, the absolute error of the mean's shares, i.e. the vehicles a step off as a share of
     the fleet, every vehicle alike in every region (the cross-entropy weighs a share error at region i
     by about 1 / y_i, least at the busiest regions)"""
-    shortfall_weight: float = Field(0.0, ge=0)
+    shortfall_weight: float = Field(0.0, ge=0, allow_inf_nan=False)
     """``imitation: l1`` only: a vehicle short of the logged target at a region that receives vehicles
     (logged target above its idle count) costs 1 + this, a vehicle over costs 1: short there, requests
     go unserved; over, a vehicle was moved that need not have been"""
