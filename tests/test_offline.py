@@ -16,8 +16,8 @@ from marl_amod.algos import common as C
 from marl_amod.algos import offline as O
 from marl_amod.algos.registry import ALGOS, args_for
 from marl_amod.cli import app
-from marl_amod.errors import ConfigError, DataError
 from marl_amod.datasets import OfflineDataset
+from marl_amod.errors import ConfigError, DataError
 from marl_amod.evaluation import evaluate
 from marl_amod.models import build_actor
 from marl_amod.scenario import load_city
@@ -138,20 +138,25 @@ class _FreeAlpha(torch.nn.Module):
         return torch.nn.functional.softplus(self.raw).expand(x.shape[0], -1) + 1e-3
 
 
+def _fitted_share(b: O.Batch, lr: float, steps: int, **loss) -> torch.Tensor:
+    """The Dirichlet mean (N,) a free-concentration actor settles at under ``imitation_loss(**loss)`` on ``b``."""
+    actor = _FreeAlpha(b["action"].shape[-1])
+    opt = torch.optim.Adam(actor.parameters(), lr=lr)
+    for _ in range(steps):
+        value = O.imitation_loss(actor, b, None, local=False, **loss).mean()
+        opt.zero_grad()
+        value.backward()
+        opt.step()
+    alpha = actor(b["x"], None)[0].detach()
+    return alpha / alpha.sum()
+
+
 def test_imitation_loss_fits_the_mean_action_of_sparse_targets():
     """Logged targets are mostly zeros (INF, DTV, MPC): the fitted Dirichlet mean, which the
     deterministic policy plays, must be their average, as the cross-entropy makes it."""
     y = torch.tensor([[1.0, 0, 0]] * 6 + [[0, 0.5, 0.5]] * 2)  # average (0.75, 0.125, 0.125)
     b = O.Batch({"x": torch.zeros(8, 3, 1), "action": y})
-    actor = _FreeAlpha(3)
-    opt = torch.optim.Adam(actor.parameters(), lr=0.05)
-    for _ in range(600):
-        loss = O.imitation_loss(actor, b, None, local=False).mean()
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    alpha = actor(b["x"], None)[0].detach()
-    assert (alpha / alpha.sum()).tolist() == pytest.approx([0.75, 0.125, 0.125], abs=0.02)
+    assert _fitted_share(b, 0.05, 600).tolist() == pytest.approx([0.75, 0.125, 0.125], abs=0.02)
 
 
 def test_l1_imitation_fits_the_median_action_and_ce_the_mean():
@@ -159,41 +164,21 @@ def test_l1_imitation_fits_the_median_action_and_ce_the_mean():
     fits the more frequent one (the per-region median), while the cross-entropy fits their average."""
     y = torch.tensor([[0.8, 0.1, 0.1]] * 6 + [[0.2, 0.4, 0.4]] * 4)  # mean (0.56, 0.22, 0.22)
     b = O.Batch({"x": torch.zeros(10, 3, 1), "action": y})
-    fitted = {}
-    for kind in ("ce", "l1"):
-        actor = _FreeAlpha(3)
-        opt = torch.optim.Adam(actor.parameters(), lr=0.05)
-        for _ in range(800):
-            loss = O.imitation_loss(actor, b, None, local=False, kind=kind).mean()
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-        alpha = actor(b["x"], None)[0].detach()
-        fitted[kind] = (alpha / alpha.sum()).tolist()
+    fitted = {kind: _fitted_share(b, 0.05, 800, kind=kind).tolist() for kind in ("ce", "l1")}
     assert fitted["ce"] == pytest.approx([0.56, 0.22, 0.22], abs=0.02)
     assert fitted["l1"] == pytest.approx([0.8, 0.1, 0.1], abs=0.02)
     with pytest.raises(ConfigError, match="imitation loss 'l2'"):
-        O.imitation_loss(actor, b, None, local=False, kind="l2")  # type: ignore[arg-type]
+        O.imitation_loss(_FreeAlpha(3), b, None, local=False, kind="l2")  # type: ignore[arg-type]
 
 
 def test_shortfall_weight_moves_a_receiving_regions_share_up_to_its_higher_logged_target():
     """Region 0 holds no idle vehicle and receives 3 or 5 of the 10 (60% / 40%): the plain absolute error
     fits 3, a shortfall priced 4 times the overshoot (where requests go unserved) fits 5; region 1, which
-    sends, is weighted as before. Refused with the cross-entropy, whose vehicles it does not weigh."""
+    sends, is weighted as before (the cross-entropy, whose vehicles it does not weigh, is refused at config load)."""
     y = torch.tensor([[0.3, 0.7]] * 6 + [[0.5, 0.5]] * 4)
     x = torch.tensor([[0.0], [0.1]]).expand(10, 2, 1)  # idle vehicles times FEATURE_SCALE: 0 and 10
     b = O.Batch({"x": x, "action": y})
-    fitted = {}
-    for shortfall in (0.0, 3.0):
-        actor = _FreeAlpha(2)
-        opt = torch.optim.Adam(actor.parameters(), lr=0.02)
-        for _ in range(1500):
-            loss = O.imitation_loss(actor, b, None, local=False, kind="l1", shortfall=shortfall).mean()
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-        alpha = actor(b["x"], None)[0].detach()
-        fitted[shortfall] = float(alpha[0] / alpha.sum())
+    fitted = {shortfall: float(_fitted_share(b, 0.02, 1500, kind="l1", shortfall=shortfall)[0]) for shortfall in (0.0, 3.0)}
     assert fitted[0.0] == pytest.approx(0.3, abs=0.02)
     assert fitted[3.0] == pytest.approx(0.5, abs=0.02)
 
@@ -205,17 +190,7 @@ def test_surplus_price_moves_a_receiving_regions_share_back_down():
     y = torch.tensor([[0.3, 0.7]] * 6 + [[0.5, 0.5]] * 4)
     x = torch.tensor([[0.0], [0.1]]).expand(10, 2, 1)
     b = O.Batch({"x": x, "action": y})
-    fitted = {}
-    for surplus in (0.0, 1.0, 2.0):
-        actor = _FreeAlpha(2)
-        opt = torch.optim.Adam(actor.parameters(), lr=0.02)
-        for _ in range(1500):
-            loss = O.imitation_loss(actor, b, None, local=False, kind="l1", shortfall=3.0, surplus=surplus).mean()
-            opt.zero_grad()
-            loss.backward()
-            opt.step()
-        alpha = actor(b["x"], None)[0].detach()
-        fitted[surplus] = float(alpha[0] / alpha.sum())
+    fitted = {surplus: float(_fitted_share(b, 0.02, 1500, kind="l1", shortfall=3.0, surplus=surplus)[0]) for surplus in (0.0, 1.0, 2.0)}
     assert fitted[0.0] == pytest.approx(0.5, abs=0.02)
     assert fitted[1.0] == pytest.approx(0.5, abs=0.02)  # 4 / 6 is still above 60%
     assert fitted[2.0] == pytest.approx(0.3, abs=0.02)
