@@ -160,6 +160,7 @@ def test_policy_option_numbers_are_read_as_python_writes_them():
     [
         (["--policy", "teleport"], "unknown policy"),
         (["--scenario", "atlantis"], "unknown scenario"),
+        (["--scenario", "synthetic~hot2"], "is no variant"),
         (["--objective", "fun"], "objective"),
         (["--policy", "mpc-forecast", "--policy-option", "demand_scale=0"], "demand_scale"),
         (["--policy", "mpc-forecast", "--policy-option", "demand_scale"], "KEY=VALUE"),

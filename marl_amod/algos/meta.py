@@ -30,7 +30,8 @@ them, requests out of a few regions surge (and sometimes drop out of others) ove
 forecast does not know. The memory thus learns to notice a departure from the usual demand and
 answer it in later steps and episodes: what the special-event study asks.
 
-Hotspot variants (:func:`hotspot`, :func:`task_city`). A training city with one region's share
+Hotspot variants (:func:`~marl_amod.scenario.variants.hotspot`; ``task_city`` is ``load_city``, which
+takes the names of both variants). A training city with one region's share
 of the requests raised, forecast included: a task of its own (``<city>~hot<r>x<m>``) whose
 demand is more concentrated than any training city's, as the held-out cities' is; the imitation
 (:mod:`.meta_imitation`, ``hotspot_variants``) can add them to the cities.
@@ -63,17 +64,16 @@ the memory those left: a handful of episodes and no gradient step.
 from __future__ import annotations
 
 import copy
-import re
 import weakref
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from pydantic import Field, ValidationError
+from pydantic import Field
 
 from marl_amod.algos import common as C
 from marl_amod.algos.rollout import train_seed
@@ -87,9 +87,9 @@ from marl_amod.models.distributions import dirichlet
 from marl_amod.models.gnn import Readout
 from marl_amod.models.recurrent import RecurrentGNN
 from marl_amod.scenario import City, load_city
-from marl_amod.scenario.events import DemandEvent, apply_events
 from marl_amod.scenario.registry import load_spec
 from marl_amod.scenario.types import step_rows
+from marl_amod.scenario.variants import EVENT, HOTSPOT, base_city, event_name, event_task, hotspot, hotspot_name  # noqa: F401 (meta.<name>)
 from marl_amod.system import FleetSystem
 
 TRAIN_CITIES = (
@@ -97,6 +97,7 @@ TRAIN_CITIES = (
     "shenzhen_baoan", "shenzhen_downtown_east", "shenzhen_north", "washington_dc",
 )  # fmt: skip
 HELD_OUT = ("san_francisco", "nyc_brooklyn", "shenzhen_downtown_west")
+task_city = load_city  # a task by name: a city or a variant of one (<city>~hot..., <city>~ev...: scenario/variants.py)
 
 
 # --------------------------------------------------------------------------------------------
@@ -242,79 +243,6 @@ def random_shock(city: City, rng: np.random.Generator) -> City:
     return event_task(city, regions[:up], multiplier, start, end, regions[up:], drop_multiplier)
 
 
-HOTSPOT = "~hot"  # a task name "<city>~hot<region>x<multiplier>": the city with that hotspot
-EVENT = "~ev"  # a task name "<city>~ev<r>+<r>x<m>@<start>-<end>[dr<r>+<r>x<m>]": the city with that event (event_task)
-
-
-def hotspot(city: City, region: int, multiplier: float) -> City:
-    """``city`` with the requests out of ``region`` x ``multiplier`` against the rest, every step's
-    total kept (the same fleet against the same demand, only more of it in one place), in the draw
-    *and* the forecast: another city (the features show it), not a shock. Why: the held-out cities'
-    busiest region draws 4.6 (San Francisco) and 5.1 (Brooklyn) times a region's average share of
-    the requests, every training city's at most 4.2, and MPC-Forecast sends it 0.29-0.31 of the
-    idle fleet against at most 0.14 in a training city; the policy, never shown that, sends
-    0.15-0.25 (docs/meta/README.md, "Where the held-out gap comes from"). Named so :func:`task_city` rebuilds it."""
-    if not 0 <= region < city.n_regions or not np.isfinite(multiplier) or multiplier <= 0:
-        raise ConfigError(f"hotspot of {city.name}: region {region} (0..{city.n_regions - 1}) and multiplier {multiplier} (> 0)")
-    factor = np.ones(city.n_regions)
-    factor[region] = multiplier
-
-    def raised(rate: np.ndarray) -> np.ndarray:
-        new = np.asarray(rate) * factor[:, None]  # (S, N, N): origins on axis 1
-        total, now = np.asarray(rate).sum(axis=(1, 2)), new.sum(axis=(1, 2))
-        return new * np.where(now > 0, total / np.maximum(now, 1e-12), 1.0)[:, None, None]
-
-    return replace(
-        city, name=hotspot_name(city.name, region, multiplier), demand_rate=raised(city.demand_rate),
-        forecast_rate=raised(city.forecast_rate), meta={**city.meta, "hotspot": {"region": region, "multiplier": multiplier}},
-    )  # fmt: skip
-
-
-def hotspot_name(city: str, region: int, multiplier: float) -> str:
-    """``<city>~hot<region>x<multiplier>``, the multiplier exactly (the name is what rebuilds the task)
-    and short (3, not 3.0)."""
-    return f"{city}{HOTSPOT}{region}x{_number(multiplier)}"
-
-
-def base_city(name: str) -> str:
-    """The city a task name is a variant of (itself for a plain city)."""
-    return name.split(HOTSPOT)[0].split(EVENT)[0]
-
-
-def _number(x: float) -> str:
-    """A multiplier in a task name: exact and short (3, not 3.0)."""
-    return np.format_float_positional(float(x) + 0.0, trim="-")  # + 0.0: -0.0 would be named -0, which no name parses
-
-
-def event_name(city: str, surge: list[int], multiplier: float, start: int, end: int, drop: list[int] = (), drop_multiplier: float = 1.0) -> str:
-    """``<city>~ev<r>+<r>x<m>@<start>-<end>`` and, with ``drop``, ``dr<r>+<r>x<m>``: the name
-    :func:`task_city` rebuilds :func:`event_task` from."""
-    name = f"{city}{EVENT}{'+'.join(map(str, surge))}x{_number(multiplier)}@{start}-{end}"
-    return name + (f"dr{'+'.join(map(str, drop))}x{_number(drop_multiplier)}" if drop else "")
-
-
-_EVENT_RE = re.compile(r"(?P<up>\d+(?:\+\d+)*)x(?P<m>[\d.]+)@(?P<s>\d+)-(?P<e>\d+)(?:dr(?P<down>\d+(?:\+\d+)*)x(?P<dm>[\d.]+))?")
-
-
-def event_task(city: City, surge: list[int], multiplier: float, start: int, end: int, drop: list[int] = (), drop_multiplier: float = 1.0) -> City:
-    """``city`` with one special event (:func:`~marl_amod.scenario.events.apply_events`): requests
-    out of ``surge`` x ``multiplier`` over steps [start, end), and out of ``drop`` x
-    ``drop_multiplier`` over the same window; the draw carries it, the forecast (what the features
-    read) does not. Why: the Brooklyn event moves demand from its busiest regions to two small
-    ones (their share x7 in the window), and the policies send the surge *fewer* vehicles inside
-    the window than outside; a task whose every episode repeats one event lets the imitation show
-    the memory a shock it can carry from one episode to the next. Named so :func:`task_city` rebuilds it."""
-    events = []
-    for what, regions, m in [("surge", surge, multiplier)] + ([("drop", drop, drop_multiplier)] if len(drop) else []):
-        try:
-            events.append(DemandEvent(name=what, regions=list(regions), start=start, end=end, multiplier=m))
-        except ValidationError as err:  # one line naming the task, not pydantic's report
-            problems = "; ".join(".".join(map(str, e["loc"])) + (": " if e["loc"] else "") + e["msg"].removeprefix("Value error, ") for e in err.errors())
-            raise ConfigError(f"event task of {city.name}, its {what}: {problems}") from None
-    shocked = apply_events(city, events, f"event task of {city.name}")
-    return replace(shocked, name=event_name(city.name, list(surge), multiplier, start, end, list(drop), drop_multiplier))
-
-
 def event_tasks(cities: list[str], per_city: int, multipliers: tuple[float, float], seed: int) -> list[str]:
     """``per_city`` event tasks of each city, drawn like the Brooklyn event: two regions outside the
     city's two busiest surge x a multiplier log-uniform in ``multipliers`` (one decimal) for 6-10
@@ -350,31 +278,6 @@ def event_tasks(cities: list[str], per_city: int, multipliers: tuple[float, floa
                               f"control steps, event_multipliers {list(multipliers)} to one decimal): ask for fewer")  # fmt: skip
         names += mine
     return names
-
-
-def task_city(name: str) -> City:
-    """A task by name: a city (``load_city``), its :func:`hotspot` variant ``<city>~hot<r>x<m>``
-    or its :func:`event_task` ``<city>~ev...``."""
-    if EVENT in name:
-        base, _, variant = name.partition(EVENT)
-        match = _EVENT_RE.fullmatch(variant)
-        if match is None:
-            raise ConfigError(f"task {name!r}: an event task is named <city>{EVENT}<r>+<r>x<m>@<start>-<end>[dr<r>+<r>x<m>]")
-        g = match.groupdict()
-        try:
-            return event_task(load_city(base), [int(r) for r in g["up"].split("+")], float(g["m"]), int(g["s"]), int(g["e"]),
-                              [int(r) for r in g["down"].split("+")] if g["down"] else [], float(g["dm"]) if g["dm"] else 1.0)  # fmt: skip
-        except ValueError as err:  # a multiplier such as 1.2.3
-            raise ConfigError(f"task {name!r}: {err}") from None
-    base, _, variant = name.partition(HOTSPOT)
-    city = load_city(base)
-    if not variant:
-        return city
-    region, _, multiplier = variant.partition("x")
-    try:
-        return hotspot(city, int(region), float(multiplier))
-    except ValueError:
-        raise ConfigError(f"task {name!r}: a hotspot variant is named <city>{HOTSPOT}<region>x<multiplier>") from None
 
 
 def hotspot_tasks(cities: list[str], variants: int, multipliers: tuple[float, float], seed: int, distinct_regions: bool = False) -> list[str]:

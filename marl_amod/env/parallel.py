@@ -49,7 +49,8 @@ Global view: ``state()`` / ``state_space``, ``graph()`` -> ``{"x": (N, F) float3
 "edge_index": (2, E) int64, "edge_attr": (E, 2) float32 [rebalancing steps, cost]}`` and
 ``system`` (the underlying :class:`~marl_amod.system.FleetSystem`).
 
-Arguments: ``scenario`` (a name from ``marl-amod scenarios``, a YAML path or a ``City``; a SUMO
+Arguments: ``scenario`` (a name from ``marl-amod scenarios``, a YAML path or a ``City``, or a
+variant of a name or path such as ``porto~hot1x2.5``: :mod:`marl_amod.scenario.variants`; a SUMO
 scenario such as ``sumo_grid`` or ``lux`` runs the same env in SUMO's mesoscopic model),
 ``reward_mode``, ``action_mode``, ``lookahead`` (T), ``max_wait`` (steps a request waits),
 ``objective`` (dispatch objective, ``"profit"`` or ``"revenue"``), ``reward_scale``,

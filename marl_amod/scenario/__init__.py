@@ -1,4 +1,4 @@
-"""What a city is: typed data, readers for real cities, a synthetic generator, a name registry."""
+"""What a city is: typed data, readers for real cities, a synthetic generator, a name registry (variants by name included)."""
 
 from marl_amod.scenario.registry import DEFAULT_SCENARIO, ScenarioInfo, available, catalogue, describe, load_city, load_spec
 from marl_amod.scenario.simspec import SimSpec

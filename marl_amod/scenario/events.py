@@ -99,5 +99,5 @@ def apply_events(city: City, events: list[DemandEvent] | tuple[DemandEvent, ...]
         city,
         demand_rate=np.asarray(city.demand_rate) * factor,
         forecast_rate=np.asarray(city.forecast_rate).copy(),
-        meta={**city.meta, "events": [ev.model_dump() for ev in events]},
+        meta={**city.meta, "events": [*city.meta.get("events", []), *(ev.model_dump() for ev in events)]},  # a variant's on the YAML's
     )

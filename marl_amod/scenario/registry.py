@@ -20,6 +20,7 @@ from marl_amod.scenario.events import DemandEvent, apply_events
 from marl_amod.scenario.json_city import load_json_city
 from marl_amod.scenario.synthetic import grid_city
 from marl_amod.scenario.types import City
+from marl_amod.scenario.variants import parse as parse_variant
 
 DEFAULT_SCENARIO = "synthetic"
 
@@ -253,12 +254,18 @@ def _identity(relative: str | None) -> tuple:
 
 
 def load_city(name_or_path: str = DEFAULT_SCENARIO, **overrides: Any) -> City:
-    """The city for a scenario name (see :func:`available`) or YAML path.
+    """The city for a scenario name (see :func:`available`) or YAML path, or a variant of one
+    (``<scenario>~hot...``, ``<scenario>~ev...``: :mod:`.variants`), built on the scenario with the
+    overrides applied.
 
     Cached on the validated scenario keys and the identity (resolved path, mtime, size) of its data
     file, so pointing ``MARL_AMOD_DATA`` elsewhere or replacing the file gives the new city. The
-    cached city's arrays are read-only, so sharing one object between callers is safe.
+    cached city's arrays are read-only, so sharing one object between callers is safe. A variant is
+    rebuilt from its cached base on each call (a few array operations).
     """
+    base, variant = parse_variant(str(name_or_path))
+    if variant is not None:
+        return variant(load_city(base, **overrides))
     spec = load_spec(str(name_or_path), **overrides)
     data_file = spec.data_file if isinstance(spec, JsonScenario) else getattr(spec, "osm_file", None)
     key = (type(spec).__name__, spec.model_dump_json(), _identity(data_file))

@@ -1,0 +1,143 @@
+"""Scenario variants by name: a scenario with one change to its demand, rebuilt from the name alone.
+
+Two forms, appended to any scenario (a bundled name or a YAML path)::
+
+    <scenario>~hot<region>x<multiplier>                        a hotspot (:func:`hotspot`)
+    <scenario>~ev<r>+<r>x<m>@<start>-<end>[dr<r>+<r>x<m>]      a special event (:func:`event_task`)
+
+``porto~hot1x2.5`` is Porto with the requests out of region 1 x2.5 against the rest, in the draw
+and the forecast (another city, which the features show); ``porto~ev3+7x4@5-12dr0+1x0.5`` is Porto
+whose requests out of regions 3 and 7 are x4 over control steps [5, 12) while those out of 0 and 1
+are x0.5, in the draw only (a shock the forecast does not know, as a scenario's ``events``).
+
+Why names: the meta study's tasks, their demonstrations, DAgger rounds and policy cards keep only a
+name, and :func:`~marl_amod.scenario.registry.load_city` (hence the envs and every CLI command)
+resolves it: the base scenario with its keyword overrides first, then the variant. Variants stack,
+left to right (``porto~hot1x3~ev2x4@0-6`` is the event on the hotspot variant). The numbers in a
+name are exact (:func:`hotspot_name`, :func:`event_name`), so the name rebuilds the city bit for bit.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+from dataclasses import replace
+from functools import partial
+
+import numpy as np
+from pydantic import ValidationError
+
+from marl_amod.errors import ConfigError
+from marl_amod.scenario.events import DemandEvent, apply_events
+from marl_amod.scenario.types import City
+
+HOTSPOT = "~hot"  # "<scenario>~hot<region>x<multiplier>": the scenario with that hotspot
+EVENT = "~ev"  # "<scenario>~ev<r>+<r>x<m>@<start>-<end>[dr<r>+<r>x<m>]": the scenario with that event
+FORMS = (
+    f"<scenario>{HOTSPOT}<region>x<multiplier> (a hotspot, e.g. porto{HOTSPOT}1x2.5) or "
+    f"<scenario>{EVENT}<r>+<r>x<m>@<start>-<end>[dr<r>+<r>x<m>] (an event, e.g. porto{EVENT}3+7x4@5-12dr0+1x0.5)"
+)
+
+_NUMBER = r"\d+(?:\.\d+)?"  # what _number writes: no sign, no exponent
+_REGIONS = r"\d+(?:\+\d+)*"
+_HOTSPOT_RE = re.compile(rf"(?P<region>\d+)x(?P<m>{_NUMBER})")
+_EVENT_RE = re.compile(rf"(?P<up>{_REGIONS})x(?P<m>{_NUMBER})@(?P<s>\d+)-(?P<e>\d+)(?:dr(?P<down>{_REGIONS})x(?P<dm>{_NUMBER}))?")
+
+
+# --------------------------------------------------------------------------------------------
+# The two variants
+# --------------------------------------------------------------------------------------------
+def hotspot(city: City, region: int, multiplier: float) -> City:
+    """``city`` with the requests out of ``region`` x ``multiplier`` against the rest, every step's
+    total kept (the same fleet against the same demand, only more of it in one place), in the draw
+    *and* the forecast: another city (the features show it), not a shock. Why: the held-out cities'
+    busiest region draws 4.6 (San Francisco) and 5.1 (Brooklyn) times a region's average share of
+    the requests, every training city's at most 4.2, and MPC-Forecast sends it 0.29-0.31 of the
+    idle fleet against at most 0.14 in a training city; the meta policy, never shown that, sends
+    0.15-0.25 (docs/meta/README.md, "Where the held-out gap comes from")."""
+    if not 0 <= region < city.n_regions or not np.isfinite(multiplier) or multiplier <= 0:
+        raise ConfigError(f"hotspot of {city.name}: region {region} (0..{city.n_regions - 1}) and multiplier {multiplier} (> 0)")
+    factor = np.ones(city.n_regions)
+    factor[region] = multiplier
+
+    def raised(rate: np.ndarray) -> np.ndarray:
+        new = np.asarray(rate) * factor[:, None]  # (S, N, N): origins on axis 1
+        total, now = np.asarray(rate).sum(axis=(1, 2)), new.sum(axis=(1, 2))
+        return new * np.where(now > 0, total / np.maximum(now, 1e-12), 1.0)[:, None, None]
+
+    return replace(
+        city, name=hotspot_name(city.name, region, multiplier), demand_rate=raised(city.demand_rate),
+        forecast_rate=raised(city.forecast_rate), meta={**city.meta, "hotspot": {"region": region, "multiplier": multiplier}},
+    )  # fmt: skip
+
+
+def event_task(city: City, surge: list[int], multiplier: float, start: int, end: int, drop: list[int] = (), drop_multiplier: float = 1.0) -> City:
+    """``city`` with one special event (:func:`~marl_amod.scenario.events.apply_events`): requests
+    out of ``surge`` x ``multiplier`` over steps [start, end), and out of ``drop`` x
+    ``drop_multiplier`` over the same window; the draw carries it, the forecast (what the features
+    read) does not. Why: the Brooklyn event moves demand from its busiest regions to two small
+    ones (their share x7 in the window), and the policies send the surge *fewer* vehicles inside
+    the window than outside; a task whose every episode repeats one event lets the meta study's
+    imitation show the memory a shock it can carry from one episode to the next."""
+    events = []
+    for what, regions, m in [("surge", surge, multiplier)] + ([("drop", drop, drop_multiplier)] if len(drop) else []):
+        try:
+            events.append(DemandEvent(name=what, regions=list(regions), start=start, end=end, multiplier=m))
+        except ValidationError as err:  # one line naming the task, not pydantic's report
+            problems = "; ".join(".".join(map(str, e["loc"])) + (": " if e["loc"] else "") + e["msg"].removeprefix("Value error, ") for e in err.errors())
+            raise ConfigError(f"event task of {city.name}, its {what}: {problems}") from None
+    shocked = apply_events(city, events, f"event task of {city.name}")
+    return replace(shocked, name=event_name(city.name, list(surge), multiplier, start, end, list(drop), drop_multiplier))
+
+
+# --------------------------------------------------------------------------------------------
+# Names: written exactly, parsed back
+# --------------------------------------------------------------------------------------------
+def hotspot_name(city: str, region: int, multiplier: float) -> str:
+    """``<city>~hot<region>x<multiplier>``, the multiplier exactly (the name is what rebuilds the
+    city) and short (3, not 3.0)."""
+    return f"{city}{HOTSPOT}{region}x{_number(multiplier)}"
+
+
+def event_name(city: str, surge: list[int], multiplier: float, start: int, end: int, drop: list[int] = (), drop_multiplier: float = 1.0) -> str:
+    """``<city>~ev<r>+<r>x<m>@<start>-<end>`` and, with ``drop``, ``dr<r>+<r>x<m>``: the name
+    :func:`parse` rebuilds :func:`event_task` from."""
+    name = f"{city}{EVENT}{'+'.join(map(str, surge))}x{_number(multiplier)}@{start}-{end}"
+    return name + (f"dr{'+'.join(map(str, drop))}x{_number(drop_multiplier)}" if drop else "")
+
+
+def _number(x: float) -> str:
+    """A multiplier in a name: exact and short (3, not 3.0)."""
+    return np.format_float_positional(float(x) + 0.0, trim="-")  # + 0.0: -0.0 would be named -0, which no name parses
+
+
+def split(name: str) -> tuple[str, str | None]:
+    """``(base, variant)`` of ``<base>~<variant>`` (the last ``~``: variants stack), or ``(name, None)``
+    for a plain scenario; a ``.yaml`` path is always plain (a variant comes after its suffix)."""
+    base, sep, variant = name.rpartition("~")
+    if not sep or not base or name.endswith((".yaml", ".yml")):
+        return name, None
+    return base, sep + variant
+
+
+def base_city(name: str) -> str:
+    """The scenario a name is a variant of (itself for a plain scenario)."""
+    while (parts := split(name))[1] is not None:
+        name = parts[0]
+    return name
+
+
+def parse(name: str) -> tuple[str, Callable[[City], City] | None]:
+    """``(base, change)``: the scenario a name's last variant applies to and the variant as a
+    function of that city (None for a plain scenario). Checked before any city is built, so a
+    malformed name is a one-line ConfigError naming the two forms, data or not."""
+    base, variant = split(name)
+    if variant is None:
+        return name, None
+    if variant.startswith(HOTSPOT) and (m := _HOTSPOT_RE.fullmatch(variant.removeprefix(HOTSPOT))):
+        return base, partial(hotspot, region=int(m["region"]), multiplier=float(m["m"]))
+    if variant.startswith(EVENT) and (m := _EVENT_RE.fullmatch(variant.removeprefix(EVENT))):
+        regions = lambda text: [int(r) for r in text.split("+")]  # noqa: E731
+        drop = {"drop": regions(m["down"]), "drop_multiplier": float(m["dm"])} if m["down"] else {}
+        return base, partial(event_task, surge=regions(m["up"]), multiplier=float(m["m"]), start=int(m["s"]), end=int(m["e"]), **drop)
+    raise ConfigError(f"scenario {name!r}: {variant!r} is no variant; a variant is named {FORMS}")

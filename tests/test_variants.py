@@ -1,0 +1,160 @@
+"""Scenario variants by name (scenario/variants.py): every entry point that takes a scenario name
+(load_city, parallel_env, vector_env, the CLI) takes ``<scenario>~hot<r>x<m>`` and
+``<scenario>~ev...``, built on the scenario with its overrides first; a malformed one is one line."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+import marl_amod
+from marl_amod.algos import meta
+from marl_amod.cli import app
+from marl_amod.errors import ConfigError
+from marl_amod.scenario import load_city
+from marl_amod.scenario.variants import base_city, event_task, hotspot, split
+
+HOT = "synthetic~hot2x3"  # requests out of region 2 x3 against the rest, draw and forecast
+EVENT = "synthetic~ev3+7x20@2-8"  # requests out of regions 3 and 7 x20 over steps [2, 8), draw only
+VALUE = slice(7, 13)  # an agent's own expected request values over the look-ahead (lookahead 6)
+
+
+def _same_city(a, b) -> None:
+    assert a.name == b.name and a.horizon == b.horizon and a.meta == b.meta
+    for table in ("demand_rate", "forecast_rate", "price", "trip_time", "reb_time", "initial_vehicles"):
+        np.testing.assert_array_equal(getattr(a, table), getattr(b, table), err_msg=table)
+
+
+def _parallel_demand(name: str, seeds: range) -> np.ndarray:
+    """(T, N) requests that appeared per step and region, summed over episodes of ``seeds`` with no rebalancing."""
+    env = marl_amod.parallel_env(name)
+    total = np.zeros((env.max_cycles + 1, len(env.possible_agents)))
+    for seed in seeds:
+        _, infos = env.reset(seed=seed)
+        rows = [[infos[a]["demand"] for a in env.possible_agents]]
+        while env.agents:
+            _, _, _, _, infos = env.step({a: np.zeros(1, np.float32) for a in env.agents})
+            rows.append([infos[a]["demand"] for a in env.possible_agents])
+        total += np.array(rows)
+    return total
+
+
+def _vector_demand(name: str, num_envs: int) -> np.ndarray:
+    """(T, N) requests per step and region, summed over the batch's ``num_envs`` episodes (seed 0)."""
+    env = marl_amod.vector_env(name, num_envs=num_envs)
+    _, infos = env.reset(seed=0)
+    rows = [infos["demand"].sum(axis=0)]
+    for _ in range(env.max_cycles):
+        _, _, _, _, infos = env.step(np.zeros((num_envs, env.city.n_regions)))
+        rows.append(infos["demand"].sum(axis=0))
+    return np.array(rows)
+
+
+def test_load_city_builds_a_variant_on_its_scenario_with_the_overrides_first(tmp_path):
+    """The name is the base scenario (bundled or a YAML path, overrides applied) then the variant,
+    bit for bit what hotspot / event_task give; variants stack left to right; meta.task_city is
+    this very call; a YAML path with a ``~`` in its folder is still a plain path."""
+    base = load_city("synthetic", horizon=9)
+    _same_city(load_city(HOT, horizon=9), hotspot(base, 2, 3.0))
+    _same_city(load_city(EVENT, horizon=9), event_task(base, [3, 7], 20.0, 2, 8))
+    assert load_city(HOT, horizon=9).horizon == 9 and load_city(HOT).horizon == 20
+    stacked = load_city(f"{HOT}~ev5x2@0-4dr2x0.5")
+    _same_city(stacked, event_task(hotspot(load_city("synthetic"), 2, 3.0), [5], 2.0, 0, 4, [2], 0.5))
+    assert stacked.name == "synthetic~hot2x3~ev5x2@0-4dr2x0.5" and base_city(stacked.name) == "synthetic"
+    assert meta.task_city is load_city and meta.hotspot is hotspot and meta.event_task is event_task
+
+    folder = tmp_path / "a~b"
+    folder.mkdir()
+    (folder / "mine.yaml").write_text("name: mine\nsource: synthetic\nrows: 2\ncols: 3\nhorizon: 6\n")
+    path = str(folder / "mine.yaml")
+    assert split(path) == (path, None) and load_city(path).name == "mine"
+    _same_city(load_city(f"{path}~hot1x2"), hotspot(load_city(path), 1, 2.0))
+    assert [e["regions"] for e in load_city(path + "~ev0+4x3@1-3").meta["events"]] == [[0, 4]]
+
+
+def test_a_variant_on_a_scenario_with_events_keeps_them_and_adds_its_own(tmp_path):
+    (tmp_path / "shocked.yaml").write_text(
+        "name: shocked\nsource: synthetic\nrows: 2\ncols: 2\nhorizon: 6\n"
+        "events: [{name: concert, regions: [1], start: 1, end: 3, multiplier: 4.0}]\n"
+    )
+    plain = load_city(str(tmp_path / "shocked.yaml"))
+    both = load_city(str(tmp_path / "shocked.yaml") + "~ev2x5@2-4")
+    assert [e["name"] for e in both.meta["events"]] == ["concert", "surge"]
+    np.testing.assert_array_equal(both.forecast_rate, plain.forecast_rate)  # neither is in the forecast
+    ratio = np.asarray(both.demand_rate)[:6, 2].sum(axis=1) / np.asarray(plain.demand_rate)[:6, 2].sum(axis=1)
+    np.testing.assert_allclose(ratio, [1, 1, 5, 5, 1, 1])  # requests out of region 2 in steps 0..5
+
+
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        ("synthetic~hot2", "is no variant; a variant is named <scenario>~hot<region>x<multiplier>"),
+        ("synthetic~hotAx2", "is no variant"),
+        ("synthetic~hot2x-1", "is no variant"),
+        ("synthetic~ev3x2", "is no variant"),
+        ("synthetic~ev3x1.2.3@0-5", "is no variant"),
+        ("synthetic~cold2x3", "<scenario>~ev<r>"),
+        ("synthetic~hot99x2", "hotspot of synthetic: region 99"),
+        ("synthetic~ev3x2@5-5", "event task of synthetic, its surge"),
+        ("atlantis~hot1x2", "unknown scenario 'atlantis'"),
+    ],
+)
+def test_a_bad_variant_is_one_line_naming_the_forms(bad, message):
+    for make in (load_city, marl_amod.parallel_env, marl_amod.vector_env):
+        with pytest.raises(ConfigError, match=re.escape(message)) as err:
+            make(bad)
+        assert "\n" not in str(err.value)
+
+
+def test_parallel_env_on_a_hotspot_draws_and_forecasts_more_out_of_its_region():
+    """Region 2's share of the drawn requests grows about x3 (every step's total kept), and its
+    observation's expected request values grow too: the forecast knows a hotspot."""
+    base, hot = _parallel_demand("synthetic", range(4)), _parallel_demand(HOT, range(4))
+    share = lambda d: d[:, 2].sum() / d.sum()  # noqa: E731
+    assert 2.0 < share(hot) / share(base) < 4.0 and 0.8 < hot.sum() / base.sum() < 1.2
+    env, plain = marl_amod.parallel_env(HOT), marl_amod.parallel_env("synthetic")
+    assert env.city.name == HOT
+    obs, base_obs = env.reset(seed=0)[0], plain.reset(seed=0)[0]
+    assert (obs["region_2"][VALUE] > 1.5 * base_obs["region_2"][VALUE]).all()
+
+
+def test_parallel_env_on_an_event_draws_the_surge_in_its_window_but_does_not_forecast_it():
+    base, event = _parallel_demand("synthetic", range(3)), _parallel_demand(EVENT, range(3))
+    surge = event[:, [3, 7]].sum(axis=1) / base[:, [3, 7]].sum(axis=1)  # per step
+    assert (surge[2:8] > 8).all() and (surge[:2] < 3).all() and (surge[8:] < 3).all()
+    np.testing.assert_array_equal(event[:2], base[:2])  # the same draws before the event
+    env, plain = marl_amod.parallel_env(EVENT), marl_amod.parallel_env("synthetic")
+    obs, base_obs = env.reset(seed=0)[0], plain.reset(seed=0)[0]
+    stay = {a: np.zeros(1, np.float32) for a in env.possible_agents}
+    for _ in range(3):  # up to step 3, inside the window: the expected values observed are the usual ones
+        for agent in ("region_3", "region_7"):
+            np.testing.assert_array_equal(obs[agent][VALUE], base_obs[agent][VALUE])
+        obs, base_obs = env.step(stay)[0], plain.step(stay)[0]
+
+
+@pytest.mark.parametrize("name", [HOT, EVENT])
+def test_vector_env_runs_a_variant_as_the_parallel_env_does(name):
+    """The batched env gets the same city and draws its demand: the batch of seeds 0..B-1 is the
+    parallel env's episodes of those seeds."""
+    env = marl_amod.vector_env(name, num_envs=3)
+    _same_city(env.city, load_city(name))
+    np.testing.assert_array_equal(_vector_demand(name, 3), _parallel_demand(name, range(3)))
+    assert not np.array_equal(_vector_demand(name, 3), _vector_demand("synthetic", 3))
+
+
+def test_cli_evaluate_takes_a_variant(tmp_path):
+    """``marl-amod evaluate --scenario <variant>`` scores the variant and files it under its name."""
+
+    def evaluate(scenario: str) -> dict:
+        out = tmp_path / "r.json"
+        result = CliRunner().invoke(app, ["evaluate", "--scenario", scenario, "--episodes", "1", "--output", str(out)])
+        assert result.exit_code == 0, result.output
+        assert scenario in result.output
+        return json.loads(out.read_text())
+
+    event, base = evaluate(EVENT), evaluate("synthetic")
+    assert event["scenario"] == EVENT and event["metrics"]["demand"]["mean"] > 1.3 * base["metrics"]["demand"]["mean"]
