@@ -279,7 +279,7 @@ def compare(files: list[str]) -> None:
     names = list(recs[0]["tasks"])
     if any(list(r["tasks"]) != names or r["episodes"] != recs[0]["episodes"] or r["seed"] != recs[0]["seed"] for r in recs):
         raise SystemExit("compare: the files hold other tasks, episodes or seeds")
-    hot, events = [n for n in names if meta.HOTSPOT in n], [n for n in names if meta.EVENT in n]
+    hot, skewed, events = ([n for n in names if kind in n] for kind in (meta.HOTSPOT, meta.SKEW, meta.EVENT))
 
     def per_episode(r: dict[str, Any], group: list[str], what: str) -> np.ndarray:
         """(tasks, episodes): the gap to MPC-F in % (``gap``) or the profit (``profit``)."""
@@ -287,7 +287,7 @@ def compare(files: list[str]) -> None:
         m = np.array([r["tasks"][n]["mpc-forecast"] for n in group], dtype=np.float64)
         return 100 * (1 - p / m) if what == "gap" else p
 
-    for group, what, unit in ((hot, "gap", "% gap to MPC-F"), (events, "profit", " profit")):
+    for group, what, unit in ((hot, "gap", "% gap to MPC-F"), (skewed, "gap", "% gap to MPC-F"), (events, "profit", " profit")):
         if not group:
             continue
         vals = [per_episode(r, group, what) for r in recs]
@@ -298,7 +298,8 @@ def compare(files: list[str]) -> None:
             d = vals[1] - vals[0]  # paired: the same task and episode
             pooled, by_episode = paired_se(d)
             print(f"  {files[1]} - {files[0]}: {d.mean():+.3f}{unit}, paired SE by episode {by_episode:.3f} ({d.shape[1]} episodes x "
-                  f"{d.shape[0]} tasks; the {d.size} pairs as independent: {pooled:.3f})")  # fmt: skip
+                  f"{d.shape[0]} tasks; the {d.size} pairs as independent: {pooled:.3f})"
+                  + (f"; {100 * d.mean() / vals[0].mean():+.2f}% of the first's mean" if what == "profit" else ""))  # fmt: skip
         if what == "profit":
             m = per_episode({"tasks": {n: {"policy": recs[0]["tasks"][n]["mpc-forecast"], "mpc-forecast": recs[0]["tasks"][n]["mpc-forecast"]} for n in group}}, group, "profit")
             print(f"  MPC-Forecast (not told the events): mean profit {m.mean():.1f}")

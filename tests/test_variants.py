@@ -1,6 +1,6 @@
 """Scenario variants by name (scenario/variants.py): every entry point that takes a scenario name
-(load_city, parallel_env, vector_env, the CLI) takes ``<scenario>~hot<r>x<m>`` and
-``<scenario>~ev...``, built on the scenario with its overrides first; a malformed one is one line."""
+(load_city, parallel_env, vector_env, the CLI) takes ``<scenario>~hot<r>x<m>``,
+``<scenario>~skew<gamma>`` and ``<scenario>~ev...``, built on the scenario with its overrides first; a malformed one is one line."""
 
 from __future__ import annotations
 
@@ -16,7 +16,7 @@ from marl_amod.algos import meta
 from marl_amod.cli import app
 from marl_amod.errors import ConfigError
 from marl_amod.scenario import load_city
-from marl_amod.scenario.variants import base_city, event_task, hotspot, split
+from marl_amod.scenario.variants import base_city, event_task, hotspot, skew, split
 
 HOT = "synthetic~hot2x3"  # requests out of region 2 x3 against the rest, draw and forecast
 EVENT = "synthetic~ev3+7x20@2-8"  # requests out of regions 3 and 7 x20 over steps [2, 8), draw only
@@ -101,6 +101,10 @@ def test_a_variant_on_a_scenario_with_events_keeps_them_and_adds_its_own(tmp_pat
         ("synthetic~hot99x2", "hotspot of synthetic: region 99"),
         ("synthetic~ev3x2@5-5", "event task of synthetic, its surge"),
         ("atlantis~hot1x2", "unknown scenario 'atlantis'"),
+        ("synthetic~skew", "is no variant; a variant is named <scenario>~hot<region>x<multiplier>"),
+        ("synthetic~skew-1", "<scenario>~skew<gamma>"),
+        ("synthetic~skew1.5x2", "is no variant"),
+        ("synthetic~skew0", "skew of synthetic: gamma 0.0"),
     ],
 )
 def test_a_bad_variant_is_one_line_naming_the_forms(bad, message):
@@ -120,6 +124,39 @@ def test_parallel_env_on_a_hotspot_draws_and_forecasts_more_out_of_its_region():
     assert env.city.name == HOT
     obs, base_obs = env.reset(seed=0)[0], plain.reset(seed=0)[0]
     assert (obs["region_2"][VALUE] > 1.5 * base_obs["region_2"][VALUE]).all()
+
+
+def _out_share(city) -> np.ndarray:
+    """Each region's share of the day's expected requests out, x the number of regions (as meta.place_table)."""
+    out = city.forecast_rate[: city.horizon].sum(axis=(0, 2))
+    return out * city.n_regions / out.sum()
+
+
+def test_a_skew_variant_is_rebuilt_by_its_name_keeps_each_steps_total_and_skews_the_shares():
+    """``<city>~skew<gamma>``: the name rebuilds the city bit for bit (gamma exactly, short), every
+    step's total is kept in the draw and the forecast, gamma 1 is the city's demand itself, and
+    gamma > 1 makes the busiest / median share ratio grow (< 1 shrink), monotonically."""
+    city = load_city("porto")
+    for g, text in ((1.6, "1.6"), (2.0, "2"), (2.1234567, "2.1234567"), (0.5, "0.5")):
+        skewed = skew(city, g)
+        assert skewed.name == f"porto~skew{text}" and skewed.meta["skew"] == {"gamma": g}
+        _same_city(load_city(skewed.name), skewed)
+        for table in ("demand_rate", "forecast_rate"):
+            np.testing.assert_allclose(getattr(skewed, table).sum(axis=(1, 2)), getattr(city, table).sum(axis=(1, 2)), rtol=1e-9)
+    same = skew(city, 1.0)
+    assert same.name == "porto~skew1" and base_city(same.name) == "porto"
+    np.testing.assert_array_equal(same.demand_rate, city.demand_rate)
+    np.testing.assert_array_equal(same.forecast_rate, city.forecast_rate)
+    ratio = lambda c: _out_share(c).max() / np.median(_out_share(c))  # noqa: E731
+    ratios = [ratio(skew(city, g)) for g in (0.5, 1.0, 1.6, 2.5)]
+    assert ratios == sorted(ratios) and ratios[2] > 1.2 * ratios[1]
+    busiest = int(np.argmax(_out_share(city)))
+    assert _out_share(skew(city, 2.0))[busiest] > _out_share(city)[busiest]  # the busiest region grows
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ConfigError, match="gamma") as err:
+            skew(city, bad)
+        assert "\n" not in str(err.value)
+    assert meta.skew_name("porto", 1.6) == "porto~skew1.6" and meta.SKEW == "~skew"
 
 
 def test_parallel_env_on_an_event_draws_the_surge_in_its_window_but_does_not_forecast_it():

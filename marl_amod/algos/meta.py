@@ -36,6 +36,12 @@ of the requests raised, forecast included: a task of its own (``<city>~hot<r>x<m
 demand is more concentrated than any training city's, as the held-out cities' is; the imitation
 (:mod:`.meta_imitation`, ``hotspot_variants``) can add them to the cities.
 
+Skew variants (:func:`~marl_amod.scenario.variants.skew`, ``<city>~skew<gamma>``). A training city
+with the shape of its whole demand changed: every region's requests out x (its share / the
+average share) ^ (gamma - 1), forecast included, so big regions grow and small ones shrink (the
+held-out cities' demand is more skewed than the training cities', not only at one region);
+``skew_variants`` of :mod:`.meta_imitation` adds them (:func:`skew_tasks`).
+
 Event tasks (:func:`event_task`, ``<city>~ev...``). A training city with one fixed special event
 of the Brooklyn kind (requests out of a few regions surge over a window, the busiest regions'
 drop), in the draw and *not* in the forecast: every episode of the task carries the same event,
@@ -89,7 +95,7 @@ from marl_amod.models.recurrent import RecurrentGNN
 from marl_amod.scenario import City, load_city
 from marl_amod.scenario.registry import load_spec
 from marl_amod.scenario.types import step_rows
-from marl_amod.scenario.variants import EVENT, HOTSPOT, base_city, event_name, event_task, hotspot, hotspot_name  # noqa: F401 (meta.<name>)
+from marl_amod.scenario.variants import EVENT, HOTSPOT, SKEW, base_city, event_name, event_task, hotspot, hotspot_name, skew_name  # noqa: F401 (meta.<name>)
 from marl_amod.system import FleetSystem
 
 TRAIN_CITIES = (
@@ -97,7 +103,7 @@ TRAIN_CITIES = (
     "shenzhen_baoan", "shenzhen_downtown_east", "shenzhen_north", "washington_dc",
 )  # fmt: skip
 HELD_OUT = ("san_francisco", "nyc_brooklyn", "shenzhen_downtown_west")
-task_city = load_city  # a task by name: a city or a variant of one (<city>~hot..., <city>~ev...: scenario/variants.py)
+task_city = load_city  # a task by name: a city or a variant of one (<city>~hot..., <city>~skew..., <city>~ev...: scenario/variants.py)
 
 
 # --------------------------------------------------------------------------------------------
@@ -314,6 +320,29 @@ def hotspot_tasks(cities: list[str], variants: int, multipliers: tuple[float, fl
     return names
 
 
+def skew_tasks(cities: list[str], variants: int, gammas: tuple[float, float], seed: int) -> list[str]:
+    """``variants`` skew variants of each city (:func:`~marl_amod.scenario.variants.skew`), gamma
+    log-uniform in ``gammas`` (one decimal; gamma 1, the city itself, and a repeat are drawn again);
+    a function of the seed, so a resumed run names the same tasks."""
+    lo, hi = map(float, gammas)
+    if variants and not (np.isfinite(hi) and 0.1 <= lo <= hi):
+        raise ConfigError(f"skew_gammas {list(gammas)}: a range [low, high] with 0.1 <= low <= high (one decimal is kept)")
+    names: list[str] = []
+    for i, name in enumerate(cities if variants else []):
+        rng, mine = np.random.default_rng([seed, i, 7057]), []
+        for _ in range(1000 * variants):
+            gamma = round(float(np.exp(rng.uniform(np.log(lo), np.log(hi)))), 1)
+            if gamma != 1 and (task := skew_name(name, gamma)) not in mine:
+                mine.append(task)
+            if len(mine) == variants:
+                break
+        else:
+            raise ConfigError(f"{variants} distinct skew variants of {name} not found in skew_gammas {list(gammas)} "
+                              "(one decimal, gamma 1 excluded): ask for fewer, or widen the range")  # fmt: skip
+        names += mine
+    return names
+
+
 # --------------------------------------------------------------------------------------------
 # The agent: a policy with memory on one city, B trials in lockstep
 # --------------------------------------------------------------------------------------------
@@ -477,7 +506,7 @@ def make_model(args: Args) -> RecurrentGNN:
 
 
 def held_out_among(tasks: list[str]) -> list[str]:
-    """The held-out cities that ``tasks`` are, or are variants of (hotspot, event task), or that a
+    """The held-out cities that ``tasks`` are, or are variants of (hotspot, skew, event task), or that a
     scenario of theirs is built on (sorted): ``nyc_brooklyn_event`` (``extends: nyc_brooklyn``) is
     Brooklyn's data with the event the study tests, not another city."""
     held = {_data_of(name) for name in HELD_OUT} - {None}

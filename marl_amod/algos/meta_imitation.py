@@ -358,9 +358,19 @@ class Args(meta.Args):
     """a city's variants on different regions (:func:`~marl_amod.algos.meta.hotspot_tasks`): with
     two or more, the hotspot moves instead of the same region at another multiplier"""
     hotspot_share: float | None = Field(None, gt=0, lt=1)
-    """the share of an update's draws that go to the variants (the rest to the cities; uniform
-    within each). None: every task as often, so with one variant a city is drawn half as often as
-    without, and with two a third (a cost the held-out city without a dominant hotspot showed)"""
+    """the share of an update's draws that go to the variants, hotspot and skew together (the rest
+    to the cities; uniform within each). None: every task as often, so with one variant a city is
+    drawn half as often as without, and with two a third (a cost the held-out city without a dominant hotspot showed)"""
+    skew_variants: int = Field(0, ge=0)
+    """per training city, this many :func:`~marl_amod.algos.meta.skew` variants as more tasks (the
+    whole demand's shape: each region's requests out x (share / average share) ^ (gamma - 1),
+    forecast included; :func:`~marl_amod.algos.meta.skew_tasks`), demonstrated by MPC-F
+    (``skew_episodes`` each) and driven in the DAgger rounds like the cities; drawn with the
+    hotspot variants (``hotspot_share``). The held-out cities' demand is more skewed than the training cities'"""
+    skew_gammas: tuple[float, float] = (1.3, 2.5)
+    """the range (log-uniform, one decimal) of the skew variants' gamma (> 1: more skewed)"""
+    skew_episodes: int = Field(32, ge=1)
+    """MPC-Forecast demonstration episodes per skew variant"""
     event_tasks: int = Field(0, ge=0)
     """per training city, this many :func:`~marl_amod.algos.meta.event_task` tasks (one fixed
     special event of the Brooklyn kind each, not in the forecast: :func:`~marl_amod.algos.meta.event_tasks`),
@@ -386,8 +396,8 @@ class Args(meta.Args):
         if (self.event_share is None) != (not self.event_tasks):
             raise ValueError(f"event_tasks {self.event_tasks} with event_share {self.event_share}: event tasks need the share of "
                              "the draws that goes to them, and a share needs event tasks")  # fmt: skip
-        if self.hotspot_share is not None and not self.hotspot_variants:
-            raise ValueError(f"hotspot_share {self.hotspot_share} without hotspot_variants: there are no variants to draw")
+        if self.hotspot_share is not None and not (self.hotspot_variants or self.skew_variants):
+            raise ValueError(f"hotspot_share {self.hotspot_share} without hotspot_variants or skew_variants: there are no variants to draw")
         if self.dagger_rounds and self.dagger_first >= self.updates:
             raise ValueError(f"dagger_first {self.dagger_first} is not before the last update ({self.updates}): no DAgger round "
                              "would run (lower dagger_first, raise updates, or dagger_rounds: 0)")  # fmt: skip
@@ -437,9 +447,18 @@ def draw_trials(demos: CityDemos, args: meta.Args, rng: np.random.Generator) -> 
 
 
 def tasks(args: Args) -> tuple[list[str], list[str]]:
-    """(the training cities, their hotspot variants): the tasks an update draws from."""
-    return list(args.cities), meta.hotspot_tasks(args.cities, args.hotspot_variants, args.hotspot_multipliers, args.seed,
-                                                 args.hotspot_distinct_regions)  # fmt: skip
+    """(the training cities, their hotspot then skew variants): the tasks an update draws from."""
+    return list(args.cities), hotspot_names(args) + skew_names(args)
+
+
+def hotspot_names(args: Args) -> list[str]:
+    """The training cities' hotspot variants (none unless ``hotspot_variants``)."""
+    return meta.hotspot_tasks(args.cities, args.hotspot_variants, args.hotspot_multipliers, args.seed, args.hotspot_distinct_regions)
+
+
+def skew_names(args: Args) -> list[str]:
+    """The training cities' skew variants (none unless ``skew_variants``)."""
+    return meta.skew_tasks(args.cities, args.skew_variants, args.skew_gammas, args.seed)
 
 
 def event_names(args: Args) -> list[str]:
@@ -491,7 +510,9 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     C.seed_everything(args.seed)
     plain, variants = tasks(args)
     walls = collect_demos(args.demos, plain, args.demo_episodes, args.seed, args.lookahead)
-    walls |= collect_demos(args.demos, variants, args.hotspot_episodes, args.seed, args.lookahead)
+    hot, skewed = hotspot_names(args), skew_names(args)
+    walls |= collect_demos(args.demos, hot, args.hotspot_episodes, args.seed, args.lookahead)
+    walls |= collect_demos(args.demos, skewed, args.skew_episodes, args.seed, args.lookahead)
     events = event_names(args)
     walls |= collect_demos(args.demos, events, args.event_episodes, args.seed, args.lookahead)
     cities = {name: meta.task_city(name) for name in dict.fromkeys([*plain, *variants, *events, *args.val_cities])}
@@ -506,7 +527,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         st = C.load_state(resume, "meta-bc")
         if st.get("tasks", names) != names:  # its updates and DAgger rounds are of those tasks (older states: not recorded)
             raise DataError(f"{resume} trained on the tasks {st['tasks']}; this config names {names}: resume with the run's "
-                            "cities, seed and hotspot settings (hotspot_variants, hotspot_multipliers, hotspot_distinct_regions)")  # fmt: skip
+                            "cities, seed, hotspot and skew settings (hotspot_variants, hotspot_multipliers, hotspot_distinct_regions, skew_variants, skew_gammas)")  # fmt: skip
         if st.get("hotspot_share") != args.hotspot_share:  # its draws were of that share (older states: every task as often)
             raise DataError(f"{resume} drew its variants with hotspot_share {st.get('hotspot_share')}; this config sets "
                             f"{args.hotspot_share}: resume with the run's share (the card names one)")  # fmt: skip
@@ -550,9 +571,12 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     model.load_state_dict(book.best.state)
     extra = {"updates": step, "demonstrations": {"policy": "mpc-forecast", "cities": list(args.cities), "episodes_per_city": args.demo_episodes,
              "collection_wall_s": round(sum(walls.values()), 1)}, **warm}  # fmt: skip
-    if variants:
-        extra["demonstrations"] |= {"hotspot_variants": variants, "episodes_per_variant": args.hotspot_episodes,
-                                    **({"variants_share_of_draws": args.hotspot_share} if args.hotspot_share is not None else {})}  # fmt: skip
+    if hot:
+        extra["demonstrations"] |= {"hotspot_variants": hot, "episodes_per_variant": args.hotspot_episodes}
+    if skewed:
+        extra["demonstrations"] |= {"skew_variants": skewed, "skew_gammas": list(args.skew_gammas), "episodes_per_skew_variant": args.skew_episodes}
+    if variants and args.hotspot_share is not None:
+        extra["demonstrations"] |= {"variants_share_of_draws": args.hotspot_share}
     if events:
         extra["demonstrations"] |= {"event_tasks": events, "episodes_per_event_task": args.event_episodes, "event_share_of_draws": args.event_share,
                                     "event_expert": MPCToldTheShock.name}  # fmt: skip

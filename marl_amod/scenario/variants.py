@@ -1,20 +1,23 @@
 """Scenario variants by name: a scenario with one change to its demand, rebuilt from the name alone.
 
-Two forms, appended to any scenario (a bundled name or a YAML path)::
+Three forms, appended to any scenario (a bundled name or a YAML path)::
 
     <scenario>~hot<region>x<multiplier>                        a hotspot (:func:`hotspot`)
+    <scenario>~skew<gamma>                                     a more (or less) skewed demand (:func:`skew`)
     <scenario>~ev<r>+<r>x<m>@<start>-<end>[dr<r>+<r>x<m>]      a special event (:func:`event_task`)
 
 ``porto~hot1x2.5`` is Porto with the requests out of region 1 x2.5 against the rest, in the draw
 and the forecast (another city, which the features show); ``porto~ev3+7x4@5-12dr0+1x0.5`` is Porto
 whose requests out of regions 3 and 7 are x4 over control steps [5, 12) while those out of 0 and 1
-are x0.5, in the draw only (a shock the forecast does not know, as a scenario's ``events``).
+are x0.5, in the draw only (a shock the forecast does not know, as a scenario's ``events``);
+``porto~skew1.6`` is Porto with every region's requests out x (its share / the average share) ^ 0.6,
+in the draw and the forecast (big regions bigger, small ones smaller; gamma 1 is the city itself).
 
 Why names: the meta study's tasks, their demonstrations, DAgger rounds and policy cards keep only a
 name, and :func:`~marl_amod.scenario.registry.load_city` (hence the envs and every CLI command)
 resolves it: the base scenario with its keyword overrides first, then the variant. Variants stack,
 left to right (``porto~hot1x3~ev2x4@0-6`` is the event on the hotspot variant). The numbers in a
-name are exact (:func:`hotspot_name`, :func:`event_name`), so the name rebuilds the city bit for bit.
+name are exact (:func:`hotspot_name`, :func:`skew_name`, :func:`event_name`), so the name rebuilds the city bit for bit.
 """
 
 from __future__ import annotations
@@ -32,20 +35,23 @@ from marl_amod.scenario.events import DemandEvent, apply_events
 from marl_amod.scenario.types import City
 
 HOTSPOT = "~hot"  # "<scenario>~hot<region>x<multiplier>": the scenario with that hotspot
+SKEW = "~skew"  # "<scenario>~skew<gamma>": the scenario with its origin shares raised to that power
 EVENT = "~ev"  # "<scenario>~ev<r>+<r>x<m>@<start>-<end>[dr<r>+<r>x<m>]": the scenario with that event
 FORMS = (
-    f"<scenario>{HOTSPOT}<region>x<multiplier> (a hotspot, e.g. porto{HOTSPOT}1x2.5) or "
+    f"<scenario>{HOTSPOT}<region>x<multiplier> (a hotspot, e.g. porto{HOTSPOT}1x2.5), "
+    f"<scenario>{SKEW}<gamma> (a demand shape, e.g. porto{SKEW}1.6) or "
     f"<scenario>{EVENT}<r>+<r>x<m>@<start>-<end>[dr<r>+<r>x<m>] (an event, e.g. porto{EVENT}3+7x4@5-12dr0+1x0.5)"
 )
 
 _NUMBER = r"\d+(?:\.\d+)?"  # what _number writes: no sign, no exponent
 _REGIONS = r"\d+(?:\+\d+)*"
 _HOTSPOT_RE = re.compile(rf"(?P<region>\d+)x(?P<m>{_NUMBER})")
+_SKEW_RE = re.compile(rf"(?P<g>{_NUMBER})")
 _EVENT_RE = re.compile(rf"(?P<up>{_REGIONS})x(?P<m>{_NUMBER})@(?P<s>\d+)-(?P<e>\d+)(?:dr(?P<down>{_REGIONS})x(?P<dm>{_NUMBER}))?")
 
 
 # --------------------------------------------------------------------------------------------
-# The two variants
+# The three variants
 # --------------------------------------------------------------------------------------------
 def hotspot(city: City, region: int, multiplier: float) -> City:
     """``city`` with the requests out of ``region`` x ``multiplier`` against the rest, every step's
@@ -59,16 +65,37 @@ def hotspot(city: City, region: int, multiplier: float) -> City:
         raise ConfigError(f"hotspot of {city.name}: region {region} (0..{city.n_regions - 1}) and multiplier {multiplier} (> 0)")
     factor = np.ones(city.n_regions)
     factor[region] = multiplier
+    return _reweighted(city, factor, hotspot_name(city.name, region, multiplier), {"hotspot": {"region": region, "multiplier": multiplier}})
+
+
+def skew(city: City, gamma: float) -> City:
+    """``city`` with every region's requests out x (s_r / mean(s)) ^ (gamma - 1), s_r the region's
+    share of the day's requests out (the forecast's over the episode, as
+    :func:`~marl_amod.algos.meta.place_table` reports it), every step's total kept, in the draw
+    *and* the forecast: gamma > 1 makes big regions bigger and small ones smaller (the shares go
+    roughly as s_r ^ gamma), gamma 1 is the city itself. Why: the held-out cities differ from the
+    training cities in the shape of their demand, not one region: the median Brooklyn region draws
+    0.10 of the average share (San Francisco 0.29, the training cities' median 0.74), the busiest
+    5.1x it (4.6; the training cities at most 4.2); a hotspot raises one region only
+    (docs/meta/README.md, "Demand-shape variants")."""
+    if not np.isfinite(gamma) or gamma <= 0:
+        raise ConfigError(f"skew of {city.name}: gamma {gamma} (a finite number > 0; 1 is the city itself)")
+    out = np.asarray(city.forecast_rate)[: city.horizon].sum(axis=(0, 2))  # (N,) expected requests out over the episode
+    share = out / max(float(out.mean()), 1e-12)
+    factor = np.where(share > 0, share, 1.0) ** (gamma - 1.0)  # a region without requests stays without them
+    return _reweighted(city, factor, skew_name(city.name, gamma), {"skew": {"gamma": gamma}})
+
+
+def _reweighted(city: City, factor: np.ndarray, name: str, meta: dict) -> City:
+    """``city`` with the requests out of each region x ``factor`` (N,), every step's total kept, in
+    the draw and the forecast, named ``name``, ``meta`` added to its meta."""
 
     def raised(rate: np.ndarray) -> np.ndarray:
         new = np.asarray(rate) * factor[:, None]  # (S, N, N): origins on axis 1
         total, now = np.asarray(rate).sum(axis=(1, 2)), new.sum(axis=(1, 2))
         return new * np.where(now > 0, total / np.maximum(now, 1e-12), 1.0)[:, None, None]
 
-    return replace(
-        city, name=hotspot_name(city.name, region, multiplier), demand_rate=raised(city.demand_rate),
-        forecast_rate=raised(city.forecast_rate), meta={**city.meta, "hotspot": {"region": region, "multiplier": multiplier}},
-    )  # fmt: skip
+    return replace(city, name=name, demand_rate=raised(city.demand_rate), forecast_rate=raised(city.forecast_rate), meta={**city.meta, **meta})
 
 
 def event_task(city: City, surge: list[int], multiplier: float, start: int, end: int, drop: list[int] = (), drop_multiplier: float = 1.0) -> City:
@@ -97,6 +124,11 @@ def hotspot_name(city: str, region: int, multiplier: float) -> str:
     """``<city>~hot<region>x<multiplier>``, the multiplier exactly (the name is what rebuilds the
     city) and short (3, not 3.0)."""
     return f"{city}{HOTSPOT}{region}x{_number(multiplier)}"
+
+
+def skew_name(city: str, gamma: float) -> str:
+    """``<city>~skew<gamma>``, gamma exactly and short (2, not 2.0): the name :func:`parse` rebuilds :func:`skew` from."""
+    return f"{city}{SKEW}{_number(gamma)}"
 
 
 def event_name(city: str, surge: list[int], multiplier: float, start: int, end: int, drop: list[int] = (), drop_multiplier: float = 1.0) -> str:
@@ -130,12 +162,14 @@ def base_city(name: str) -> str:
 def parse(name: str) -> tuple[str, Callable[[City], City] | None]:
     """``(base, change)``: the scenario a name's last variant applies to and the variant as a
     function of that city (None for a plain scenario). Checked before any city is built, so a
-    malformed name is a one-line ConfigError naming the two forms, data or not."""
+    malformed name is a one-line ConfigError naming the three forms, data or not."""
     base, variant = split(name)
     if variant is None:
         return name, None
     if variant.startswith(HOTSPOT) and (m := _HOTSPOT_RE.fullmatch(variant.removeprefix(HOTSPOT))):
         return base, partial(hotspot, region=int(m["region"]), multiplier=float(m["m"]))
+    if variant.startswith(SKEW) and (m := _SKEW_RE.fullmatch(variant.removeprefix(SKEW))):
+        return base, partial(skew, gamma=float(m["g"]))
     if variant.startswith(EVENT) and (m := _EVENT_RE.fullmatch(variant.removeprefix(EVENT))):
         regions = lambda text: [int(r) for r in text.split("+")]  # noqa: E731
         drop = {"drop": regions(m["down"]), "drop_multiplier": float(m["dm"])} if m["down"] else {}
