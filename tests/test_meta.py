@@ -493,5 +493,10 @@ def test_compare_reads_the_standard_error_of_its_mean_over_the_episodes(tmp_path
         files[-1].write_text(json.dumps({"policy": str(i), "seed": 1000, "episodes": 3, "tasks": tasks}))
     meta_diagnostics.compare([str(f) for f in files])
     out = capsys.readouterr().out
-    assert "+250.000 profit" in out and "by episode 0.000" in out
+    assert "+250.000 profit" in out and "by episode 0.000" in out and "+24.98% of the first's mean" in out  # 250 / 1,001 (the non-inferiority rule reads it)
+    for i, gap in enumerate((10.0, 5.0)):  # skew variants: their own group, read as the gap to MPC-F
+        tasks = {"porto~skew2.7": {"policy": [100.0 - gap] * 3, "mpc-forecast": [100.0] * 3}}
+        files[i].write_text(json.dumps({"policy": str(i), "seed": 1000, "episodes": 3, "tasks": tasks}))
+    meta_diagnostics.compare([str(f) for f in files])
+    assert "-5.000% gap to MPC-F" in capsys.readouterr().out
 
