@@ -10,7 +10,7 @@ scored on each validation set (``--episodes`` episodes of ``marl-amod evaluate -
 the report seed 0 is refused: these are selection numbers) and its per-episode profits are kept in
 ``--out`` (keyed by the file's sha256, so a retrained file is scored again and the rest resumes).
 A recipe is one or more training seeds' files; per episode its profit is their mean, and against
-the reference (one file, the shipped cell) it gets the paired mean difference over all episodes
+the reference (one file, the shipped cell; or another recipe, seed s against seed s) it gets the paired mean difference over all episodes
 of all sets, its standard error (the per-episode differences' std / sqrt(episodes): the seeds
 share the episodes, so they are not counted as independent), how many episodes it is above, and
 each seed's own difference. ``passes``: the difference is at least ``--margin`` and two standard
@@ -46,8 +46,11 @@ def profits(policy: str, scenario: str, seed: int, episodes: int, cache: dict[st
 
 
 def compare(recipe: np.ndarray, reference: np.ndarray, margin: float) -> dict[str, Any]:
-    """``recipe`` (seeds, episodes) against ``reference`` (episodes): the paired test of the docs' rules."""
-    d = recipe.mean(0) - reference
+    """``recipe`` (seeds, episodes) against ``reference`` (one file's or as many seeds' episodes): the
+    paired test of the docs' rules."""
+    if len(reference) not in (1, len(recipe)):
+        raise SystemExit(f"a reference of {len(reference)} seeds pairs with one of 1 or {len(recipe)}")
+    d = (recipe - reference).mean(0)
     se = float(d.std(ddof=1) / np.sqrt(d.size))
     diff = float(d.mean())
     return {"diff": diff, "se": se, "above": int((d > 0).sum()), "episodes": int(d.size),
@@ -91,7 +94,7 @@ def main() -> None:
     table["tests"] = {}
     for pair in args.against:
         rec, _, ref = pair.partition(":")
-        table["tests"][pair] = compare(scored[rec], scored[ref][0], args.margin)
+        table["tests"][pair] = compare(scored[rec], scored[ref], args.margin)
     args.out.write_text(json.dumps(table, indent=1) + "\n")
     for name, s in table["summary"].items():
         print(
