@@ -384,7 +384,7 @@ def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp
 
 def test_a_resume_refuses_a_config_that_names_other_tasks(tasks, tmp_path):
     """The state's updates and DAgger rounds are of its tasks: resumed with other hotspot variants
-    (or cities), the run would train on tasks it was not started on and collect the missing tasks'
+    (or cities, or event tasks), the run would train on tasks it was not started on and collect the missing tasks'
     earlier DAgger rounds with a later model."""
     args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
                    cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=1, eval_every=2,
@@ -394,4 +394,6 @@ def test_a_resume_refuses_a_config_that_names_other_tasks(tasks, tmp_path):
     state = str(tmp_path / "bc" / "state.pt")
     with pytest.raises(DataError, match="hotspot"):
         ALGOS["meta-bc"].train(args.model_copy(update={"updates": 2, "hotspot_variants": 0}), resume=state)
+    with pytest.raises(DataError, match=r"event settings \(event_tasks, event_multipliers\)"):  # the message names what made them
+        ALGOS["meta-bc"].train(args.model_copy(update={"updates": 2, "event_tasks": 1, "event_episodes": 1, "event_share": 0.5}), resume=state)
     assert ALGOS["meta-bc"].train(args.model_copy(update={"updates": 2}), resume=state)["card"]["updates"] == 2
