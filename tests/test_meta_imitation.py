@@ -270,6 +270,18 @@ def test_event_tasks_are_drawn_in_their_share_and_refused_without_one():
             args_for("meta-bc", values)
 
 
+def test_a_bad_event_setting_fails_before_any_demonstration_is_collected(tasks, tmp_path, monkeypatch):
+    """The event tasks are named (and their settings checked) before the cities' demonstrations are
+    collected, as the hotspot variants are: not after minutes of collection."""
+    collected: list[list[str]] = []
+    monkeypatch.setattr(mi, "collect_demos", lambda folder, names, *a, **k: collected.append(list(names)) or {})
+    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], demos=str(tmp_path / "demos"), event_tasks=1,
+                   event_share=0.5, event_multipliers=(1.0, 2.0), run_dir=str(tmp_path / "bc"))  # fmt: skip
+    with pytest.raises(ConfigError, match="event_multipliers"):
+        mi.train(args)
+    assert collected == []
+
+
 def test_event_tasks_are_demonstrated_and_labelled_by_mpc_told_the_event(tasks, tmp_path, monkeypatch):
     """One event task per city: its own demonstrations (``event_episodes``) and DAgger episodes,
     every one labelled by MPC told the event (and the cities' by MPC-Forecast), named on the card,

@@ -490,9 +490,9 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     torch.set_num_threads(args.threads)
     C.seed_everything(args.seed)
     plain, variants = tasks(args)
+    events = event_names(args)  # named before any collection: a bad event setting fails now, not after the demonstrations
     walls = collect_demos(args.demos, plain, args.demo_episodes, args.seed, args.lookahead)
     walls |= collect_demos(args.demos, variants, args.hotspot_episodes, args.seed, args.lookahead)
-    events = event_names(args)
     walls |= collect_demos(args.demos, events, args.event_episodes, args.seed, args.lookahead)
     cities = {name: meta.task_city(name) for name in dict.fromkeys([*plain, *variants, *events, *args.val_cities])}
     data = load_all(args, cities, [*plain, *variants, *events])
