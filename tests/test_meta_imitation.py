@@ -271,14 +271,17 @@ def test_event_tasks_are_drawn_in_their_share_and_refused_without_one():
 
 
 def test_a_bad_event_setting_fails_before_any_demonstration_is_collected(tasks, tmp_path, monkeypatch):
-    """The event tasks are named (and their settings checked) before the cities' demonstrations are
-    collected, as the hotspot variants are: not after minutes of collection."""
+    """The event tasks are named (and their settings checked), and every task and validation city
+    built, before the cities' demonstrations are collected, as the hotspot variants are: not after
+    minutes of collection."""
     collected: list[list[str]] = []
     monkeypatch.setattr(mi, "collect_demos", lambda folder, names, *a, **k: collected.append(list(names)) or {})
     args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], demos=str(tmp_path / "demos"), event_tasks=1,
                    event_share=0.5, event_multipliers=(1.0, 2.0), run_dir=str(tmp_path / "bc"))  # fmt: skip
     with pytest.raises(ConfigError, match="event_multipliers"):
         mi.train(args)
+    with pytest.raises(ConfigError, match="no_such_city"):  # a validation city's name too
+        mi.train(args.model_copy(update={"event_tasks": 0, "event_share": None, "val_cities": ["no_such_city"]}))
     assert collected == []
 
 

@@ -490,11 +490,12 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     torch.set_num_threads(args.threads)
     C.seed_everything(args.seed)
     plain, variants = tasks(args)
-    events = event_names(args)  # named before any collection: a bad event setting fails now, not after the demonstrations
+    events = event_names(args)
+    # every task and validation city built before any collection: a bad name or setting fails now, not after the demonstrations
+    cities = {name: meta.task_city(name) for name in dict.fromkeys([*plain, *variants, *events, *args.val_cities])}
     walls = collect_demos(args.demos, plain, args.demo_episodes, args.seed, args.lookahead)
     walls |= collect_demos(args.demos, variants, args.hotspot_episodes, args.seed, args.lookahead)
     walls |= collect_demos(args.demos, events, args.event_episodes, args.seed, args.lookahead)
-    cities = {name: meta.task_city(name) for name in dict.fromkeys([*plain, *variants, *events, *args.val_cities])}
     data = load_all(args, cities, [*plain, *variants, *events])
     names = list(data)
     model = meta.make_model(args)
