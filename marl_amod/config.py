@@ -21,18 +21,15 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from marl_amod.data import read_yaml
-from marl_amod.errors import ConfigError
+from marl_amod.errors import UNKNOWN_KEY, ConfigError, pydantic_problem
 
 
 def problems(where: str, exc: ValidationError, prefix: str = "") -> ConfigError:
     """One ``where: key: message`` line per pydantic error, never pydantic's multi-line dump."""
     lines = []
     for err in exc.errors():
-        key = ".".join(str(p) for p in (*([prefix] if prefix else []), *err["loc"])) or "config"
-        msg = err["msg"].removeprefix("Value error, ")
-        if err["type"] == "extra_forbidden":
-            msg = "unknown key"
-        lines.append(f"{where}: {key}: {msg}")
+        key, msg = pydantic_problem(err, (prefix,) if prefix else (), UNKNOWN_KEY)
+        lines.append(f"{where}: {key or 'config'}: {msg}")
     return ConfigError("\n".join(lines))
 
 
