@@ -187,7 +187,9 @@ def collect_demos(
     for name in cities:
         city = meta.task_city(name)
         path = demo_path(folder, city.name)
-        if not path.is_file():
+        if path.is_file():
+            check_demo_file(path, episodes, seed, lookahead)
+        else:
             start = time.perf_counter()
             arrays = collect_city(city, episodes, seed, lookahead, learner, trial_episodes, seed_of, shock_prob)
             wall = time.perf_counter() - start
@@ -198,6 +200,18 @@ def collect_demos(
             tmp.replace(path)
         walls[city.name] = float(np.load(path)["wall_s"])
     return walls
+
+
+def check_demo_file(path: Path, episodes: int, seed: int, lookahead: int) -> None:
+    """An existing file is reused only if it holds what this run asks for (its episode count, seed and
+    lookahead): a run that asks for more episodes over an older folder would otherwise train on the
+    old ones while its card states the new count."""
+    with np.load(path) as data:
+        held = (int(data["x"].shape[0]), int(data["seed"]), int(data["lookahead"]))
+    if held != (episodes, seed, lookahead):
+        raise DataError(f"{path} holds {held[0]} episodes of seed {held[1]} at lookahead {held[2]}; this run asks for "
+                        f"{episodes} of seed {seed} at lookahead {lookahead}: remove the file to collect it anew, "
+                        "or give the run another demonstrations folder")  # fmt: skip
 
 
 def load_demos(folder: str | Path, city: City, lookahead: int, structure: bool = False, place: bool = False) -> CityDemos:
