@@ -81,6 +81,12 @@ class CommonArgs(BaseModel):
             raise ValueError("; ".join(f"{k} is not read: {why}" for k, why in bad.items()))
         return self
 
+    @model_validator(mode="after")
+    def _validation_apart_from_report(self) -> CommonArgs:
+        if self.eval_seed == self.final_eval_seed:  # the kept actor would be chosen on the episodes it is reported on
+            raise ValueError(f"eval_seed {self.eval_seed} is final_eval_seed's: validation must not run on the report streams")
+        return self
+
 
 def _read_config(path: Path, chain: tuple[Path, ...] = ()) -> dict[str, Any]:
     """The file's keys over those of the config it ``extends:`` (``args`` merged key by key)."""
