@@ -14,7 +14,7 @@ the reference (one file, the shipped cell; or another recipe, seed s against see
 of all sets, its standard error (the per-episode differences' std / sqrt(episodes): the seeds
 share the episodes, so they are not counted as independent), how many episodes it is above, and
 each seed's own difference. ``passes``: the difference is at least ``--margin`` and two standard
-errors (docs/offline/index.md, "BC fidelity" 12 and 15).
+errors (docs/offline/bc_fidelity.md, "BC fidelity" 12 and 15).
 """
 
 from __future__ import annotations
