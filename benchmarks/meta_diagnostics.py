@@ -247,16 +247,16 @@ def hotspot(policy: str, cities: list[str], multiplier: float | None, episodes: 
             print(line, flush=True)
 
 
-def tasks(policy: str, names: list[str], episodes: int, out: str, seed: int = 1000, mpc_from: str | None = None) -> None:
-    """Per-episode profits of ``policy`` (K = 3) and MPC-Forecast on each task, into ``out``;
+def tasks(policy: str, names: list[str], episodes: int, out: str, seed: int = 1000, mpc_from: str | None = None, k: int = 3) -> None:
+    """Per-episode profits of ``policy`` (adapted over ``k`` episodes) and MPC-Forecast on each task, into ``out``;
     with ``mpc_from`` (an earlier ``out`` of the same episodes) MPC-F's are read from there, not rerun."""
-    record: dict[str, Any] = {"policy": policy, "seed": seed, "episodes": episodes, "tasks": {}}
+    record: dict[str, Any] = {"policy": policy, "seed": seed, "episodes": episodes, "k": k, "tasks": {}}
     old = json.load(open(mpc_from)) if mpc_from else {"tasks": {}}
     if mpc_from and (old["seed"], old["episodes"]) != (seed, episodes):
         raise SystemExit(f"--mpc-from {mpc_from}: other episodes (seed {old['seed']}, {old['episodes']} episodes)")
     for name in names:
         task = meta.task_city(name)
-        mine = [m["profit"] for m in evaluate(meta.load_policy(policy, task, seed=seed), task, episodes, seed)["per_episode"]]
+        mine = [m["profit"] for m in evaluate(meta.load_policy(policy, task, k, seed=seed), task, episodes, seed)["per_episode"]]
         theirs = old["tasks"].get(name, {}).get("mpc-forecast") or [m["profit"] for m in evaluate(MPCForecast(), task, episodes, seed)["per_episode"]]
         record["tasks"][name] = {"policy": mine, "mpc-forecast": theirs}
         gap = 100 * (1 - np.mean(record["tasks"][name]["policy"]) / np.mean(record["tasks"][name]["mpc-forecast"]))
@@ -277,8 +277,9 @@ def compare(files: list[str]) -> None:
     """The rule's numbers of each ``tasks`` file, and the second against the first paired by episode."""
     recs = [json.load(open(f)) for f in files]
     names = list(recs[0]["tasks"])
-    if any(list(r["tasks"]) != names or r["episodes"] != recs[0]["episodes"] or r["seed"] != recs[0]["seed"] for r in recs):
-        raise SystemExit("compare: the files hold other tasks, episodes or seeds")
+    if any(list(r["tasks"]) != names or (r["episodes"], r["seed"], r.get("k", 3)) != (recs[0]["episodes"], recs[0]["seed"], recs[0].get("k", 3))
+           for r in recs):  # fmt: skip
+        raise SystemExit("compare: the files hold other tasks, episodes, seeds or adaptation episodes (k)")
     hot, skewed, events = ([n for n in names if kind in n] for kind in (meta.HOTSPOT, meta.SKEW, meta.EVENT))
 
     def per_episode(r: dict[str, Any], group: list[str], what: str) -> np.ndarray:

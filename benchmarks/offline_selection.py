@@ -4,7 +4,7 @@
     python benchmarks/offline_selection.py --configs configs/iql/nyc_brooklyn_mpc_forecast_expectile09.yaml \
         --candidates 8 32 --concentrations 1000 10000 --report  # a sharper IQL critic, then the chosen setting on the report seeds
 
-The page's table (docs/offline/index.md, "BC fidelity" 8) is what the script prints at the end.
+The page's table (docs/offline/bc_fidelity.md, "BC fidelity" 8) is what the script prints at the end.
 
 For each config (default: IQL and CQL on the MPC-Forecast dataset) and training seed this trains
 the config again with its critic shipped in the file (``runs/selection/<stem>_s<seed>.pt``; seed s

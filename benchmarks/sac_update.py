@@ -14,7 +14,7 @@ one torch thread: on a shared machine it varies less than wall time.
         [--batch-size 100] [--updates 300] [--compile] [--ref REV [--rounds 10]] [--json out.json]
 
 ``--compile`` wraps the actor and both critics in ``torch.compile`` (inductor) first, to compare
-with eager PyTorch (not used by training: slower here, see docs/training.md).
+with eager PyTorch (not used by training: slower here, see docs/studies/sac_update.md).
 
 ``--ref REV`` also times ``marl_amod/algos/sac.py`` as of git revision REV (the rest of the
 package from this tree) in the same process, alternating the two in ``--rounds`` rounds, and

@@ -31,7 +31,7 @@ from pydantic import BaseModel, ConfigDict, ValidationError
 from marl_amod.baselines.base import WeightPolicy
 from marl_amod.env import observations as ob
 from marl_amod.env.features import n_features, node_features
-from marl_amod.errors import ConfigError, DataError
+from marl_amod.errors import ConfigError, DataError, pydantic_problems
 from marl_amod.files import atomic_write, file_sha256, write_json
 from marl_amod.models.distributions import dirichlet_mean
 from marl_amod.scenario import City
@@ -232,8 +232,7 @@ def _card_of(path: Path, raw: dict[str, Any]) -> PolicyCard:
     try:
         return PolicyCard.model_validate(raw)
     except ValidationError as exc:
-        what = "; ".join(f"{'.'.join(map(str, e['loc']))}: {'missing' if e['type'] == 'missing' else e['msg']}" for e in exc.errors())
-        raise DataError(f"{path}: its card is incomplete ({what})") from None
+        raise DataError(f"{path}: its card is incomplete ({pydantic_problems(exc, {'missing': 'missing'})})") from None
 
 
 def read_card(path: str | Path) -> dict[str, Any]:
@@ -402,8 +401,7 @@ def _selection(raw: Selection | dict[str, Any] | None) -> Selection | None:
     try:
         return None if raw is None else Selection.model_validate(raw)
     except ValidationError as exc:
-        what = "; ".join(f"{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors())
-        raise ConfigError(f"selection: {what}") from None
+        raise ConfigError(f"selection: {pydantic_problems(exc)}") from None
 
 
 def load_policy(path: str | Path, city: City | str | None = None, selection: Selection | dict[str, Any] | None = None) -> WeightPolicy:

@@ -21,18 +21,15 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from marl_amod.data import read_yaml
-from marl_amod.errors import ConfigError
+from marl_amod.errors import UNKNOWN_KEY, ConfigError, pydantic_problem
 
 
 def problems(where: str, exc: ValidationError, prefix: str = "") -> ConfigError:
     """One ``where: key: message`` line per pydantic error, never pydantic's multi-line dump."""
     lines = []
     for err in exc.errors():
-        key = ".".join(str(p) for p in (*([prefix] if prefix else []), *err["loc"])) or "config"
-        msg = err["msg"].removeprefix("Value error, ")
-        if err["type"] == "extra_forbidden":
-            msg = "unknown key"
-        lines.append(f"{where}: {key}: {msg}")
+        key, msg = pydantic_problem(err, (prefix,) if prefix else (), UNKNOWN_KEY)
+        lines.append(f"{where}: {key or 'config'}: {msg}")
     return ConfigError("\n".join(lines))
 
 
@@ -82,6 +79,12 @@ class CommonArgs(BaseModel):
         bad = {k: why for k, why in self.ignored_keys().items() if k in self.model_fields_set}
         if bad:
             raise ValueError("; ".join(f"{k} is not read: {why}" for k, why in bad.items()))
+        return self
+
+    @model_validator(mode="after")
+    def _validation_apart_from_report(self) -> CommonArgs:
+        if self.eval_seed == self.final_eval_seed:  # the kept actor would be chosen on the episodes it is reported on
+            raise ValueError(f"eval_seed {self.eval_seed} is final_eval_seed's: validation must not run on the report streams")
         return self
 
 

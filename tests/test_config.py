@@ -139,3 +139,11 @@ def test_a_compare_run_is_a_training_config_plus_overrides(tmp_path):
     path = _write(tmp_path / "compare", "sac.yaml", {"scenario": "synthetic", "runs": [{**run, "algo": "sac"}]})
     with pytest.raises(ConfigError, match="algo sac differs from ../a2c/city.yaml's a2c"):
         load_compare_config(path)
+
+
+@pytest.mark.parametrize(("algo", "needed"), [("a2c", {}), ("sac", {}), ("iql", {"dataset": "d.npz"}), ("meta-bc", {})])
+def test_validation_on_the_report_streams_is_refused(tmp_path, algo, needed):
+    path = _write(tmp_path, "run.yaml", {"algo": algo, "args": {**needed, "eval_seed": 0}})
+    with pytest.raises(ConfigError, match=rf"^{path}: args: eval_seed 0 is final_eval_seed's: validation must not run on the report streams"):
+        load_train_config(path)
+    assert load_train_config(_write(tmp_path, "ok.yaml", {"algo": algo, "args": {**needed, "eval_seed": 7}}))  # any other stream is fine

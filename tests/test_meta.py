@@ -500,3 +500,19 @@ def test_compare_reads_the_standard_error_of_its_mean_over_the_episodes(tmp_path
     meta_diagnostics.compare([str(f) for f in files])
     assert "-5.000% gap to MPC-F" in capsys.readouterr().out
 
+
+
+def test_final_card_evaluation_runs_on_validation_streams_not_report_seeds(tmp_path):
+    # the held-out city's profit on the card comes from the validation streams (eval_seed), and the
+    # card says so: the report seeds 0..9 are scored once per shipped change, never by a training run
+    args = meta.Args(scenario="synthetic", cities=["porto"], val_cities=["porto"], hidden=8, trial_episodes=2, eval_seed=1000,
+                     final_eval_episodes=2, run_dir=str(tmp_path / "run"))  # fmt: skip
+    torch.manual_seed(0)
+    model = meta.make_model(args)
+    card = meta.finish(args, model, 1.0, 0, None)["card"]
+    assert card["eval_seed"] == 1000 and card["eval_streams"] == "validation"
+    city = load_city("synthetic")
+    on_validation = evaluate(meta.adapt(model, city, 1, args.lookahead, seed=1000), city, 2, 1000)["metrics"]["profit"]
+    assert card["profit_mean"] == on_validation["mean"] and card["profit_std"] == on_validation["std"]
+    with pytest.raises(ValueError, match="final_eval_seed is not read"):  # pydantic's; a config file gets a ConfigError
+        meta.Args(scenario="synthetic", cities=["porto"], final_eval_seed=3)

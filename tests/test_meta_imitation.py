@@ -62,6 +62,10 @@ def test_collection_is_split_by_city_resumes_and_refuses_held_out_cities(tasks, 
         mi.collect_demos(folder, ["nyc_brooklyn"], episodes=1, seed=0, lookahead=6)
     with pytest.raises(DataError, match="lookahead"):
         mi.load_demos(folder, load_city(tasks[0]), lookahead=3)
+    for episodes, seed, lookahead in [(2, 0, 6), (1, 1, 6), (1, 0, 3)]:  # a stale file is refused, not reused
+        with pytest.raises(DataError, match="holds 1 episodes of seed 0 at lookahead 6; this run asks for"):
+            mi.collect_demos(folder, tasks, episodes=episodes, seed=seed, lookahead=lookahead)
+    assert (folder / "small.npz").stat().st_mtime_ns == stamp
 
 
 def test_imitation_fits_mpc_forecasts_distribution(tasks, tmp_path):
@@ -270,6 +274,21 @@ def test_event_tasks_are_drawn_in_their_share_and_refused_without_one():
             args_for("meta-bc", values)
 
 
+def test_a_bad_event_setting_fails_before_any_demonstration_is_collected(tasks, tmp_path, monkeypatch):
+    """The event tasks are named (and their settings checked), and every task and validation city
+    built, before the cities' demonstrations are collected, as the hotspot variants are: not after
+    minutes of collection."""
+    collected: list[list[str]] = []
+    monkeypatch.setattr(mi, "collect_demos", lambda folder, names, *a, **k: collected.append(list(names)) or {})
+    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], demos=str(tmp_path / "demos"), event_tasks=1,
+                   event_share=0.5, event_multipliers=(1.0, 2.0), run_dir=str(tmp_path / "bc"))  # fmt: skip
+    with pytest.raises(ConfigError, match="event_multipliers"):
+        mi.train(args)
+    with pytest.raises(ConfigError, match="no_such_city"):  # a validation city's name too
+        mi.train(args.model_copy(update={"event_tasks": 0, "event_share": None, "val_cities": ["no_such_city"]}))
+    assert collected == []
+
+
 def test_event_tasks_are_demonstrated_and_labelled_by_mpc_told_the_event(tasks, tmp_path, monkeypatch):
     """One event task per city: its own demonstrations (``event_episodes``) and DAgger episodes,
     every one labelled by MPC told the event (and the cities' by MPC-Forecast), named on the card,
@@ -384,7 +403,7 @@ def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp
 
 def test_a_resume_refuses_a_config_that_names_other_tasks(tasks, tmp_path):
     """The state's updates and DAgger rounds are of its tasks: resumed with other hotspot variants
-    (or cities), the run would train on tasks it was not started on and collect the missing tasks'
+    (or cities, or event tasks), the run would train on tasks it was not started on and collect the missing tasks'
     earlier DAgger rounds with a later model."""
     args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
                    cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=1, eval_every=2,
@@ -394,6 +413,8 @@ def test_a_resume_refuses_a_config_that_names_other_tasks(tasks, tmp_path):
     state = str(tmp_path / "bc" / "state.pt")
     with pytest.raises(DataError, match="hotspot"):
         ALGOS["meta-bc"].train(args.model_copy(update={"updates": 2, "hotspot_variants": 0}), resume=state)
+    with pytest.raises(DataError, match=r"event settings \(event_tasks, event_multipliers\)"):  # the message names what made them
+        ALGOS["meta-bc"].train(args.model_copy(update={"updates": 2, "event_tasks": 1, "event_episodes": 1, "event_share": 0.5}), resume=state)
     assert ALGOS["meta-bc"].train(args.model_copy(update={"updates": 2}), resume=state)["card"]["updates"] == 2
 
 

@@ -415,6 +415,28 @@ def test_the_table_finds_each_cell_under_the_actor_its_file_names(tmp_path):
         offline_table.cell_name(tmp_path, "bc", "nyc_brooklyn", "dtv")
 
 
+def test_the_paired_rule_averages_a_recipes_seeds_per_episode_and_refuses_the_report_seeds():
+    """benchmarks/offline_paired.py: the docs' selection test (margin and two standard errors of the
+    paired mean); a recipe against one file, or against another recipe seed by seed."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    import offline_paired
+
+    ref = np.array([[100.0, 200.0, 300.0, 400.0]])
+    recipe = ref + np.array([[150.0, 250.0, 150.0, 250.0], [50.0, -50.0, 50.0, -50.0]])  # per episode +100, +100, ...
+    t = offline_paired.compare(recipe, ref, margin=100.0)
+    assert t["diff"] == pytest.approx(100.0) and t["se"] == pytest.approx(0.0) and t["passes"] and t["above"] == 4
+    assert t["per_seed"] == [pytest.approx(200.0), pytest.approx(0.0)]
+    assert not offline_paired.compare(recipe, ref, margin=100.5)["passes"]
+    paired = offline_paired.compare(recipe, recipe - 10.0, margin=10.0)  # seed s against seed s
+    assert paired["diff"] == pytest.approx(10.0) and paired["per_seed"] == [pytest.approx(10.0)] * 2
+    with pytest.raises(SystemExit, match="pairs with one of 1 or 2"):
+        offline_paired.compare(recipe, np.zeros((3, 4)), margin=0.0)
+    with pytest.raises(SystemExit, match="report seeds"):
+        offline_paired.profits("inf", "nyc_brooklyn", 0, 10, {})
+
+
 def test_sink_margin_keeps_a_receiving_regions_target_under_the_envs_floor():
     """The env plays floor(w_i M): a clone's share a little below a planner's exact target loses a
     vehicle at the region that receives; the margin centres that target inside the floor's bin,

@@ -496,7 +496,8 @@ class Args(C.RunArgs):
         return {"actor": "meta-RL always uses the recurrent GNN", "mode": "meta-RL is centralised",
                 "central_critic": "meta-RL is centralised", "critic_time": "the recurrent critic reads t / horizon already",
                 "actor_time": "the recurrent actor reads t / horizon already",
-                "arrivals_now": "meta-RL reads its own task features (task_features), not the env's node columns"}  # fmt: skip
+                "arrivals_now": "meta-RL reads its own task features (task_features), not the env's node columns",
+                "final_eval_seed": "the held-out card evaluation runs on the validation streams (eval_seed); report seeds: marl-amod evaluate"}  # fmt: skip
 
 
 def make_model(args: Args) -> RecurrentGNN:
@@ -692,20 +693,22 @@ def finish(
     args: Args, model: RecurrentGNN, wall_s: float, episodes: int, config_path: str | None, algorithm: str = "meta",
     extra: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Adapt to the held-out ``scenario`` and report there (report seeds), then the policy card
-    (``extra``: algorithm-specific fields, e.g. the demonstrations an imitation run learned from)."""
+    """Adapt to the held-out ``scenario`` and evaluate there on the *validation* streams
+    (``eval_seed``, the card's ``eval_seed``: the report seeds 0..9 are scored once per shipped
+    change, by ``marl-amod evaluate``, never by a training run), then the policy card (``extra``:
+    algorithm-specific fields, e.g. the demonstrations an imitation run learned from)."""
     from marl_amod.checkpoints import make_card, save_policy
     from marl_amod.evaluation import evaluate
     from marl_amod.files import write_json
 
     city = load_city(args.scenario)
-    policy = adapt(model, city, args.trial_episodes - 1, args.lookahead, seed=args.final_eval_seed)
-    result = evaluate(policy, city, args.final_eval_episodes, args.final_eval_seed)
+    policy = adapt(model, city, args.trial_episodes - 1, args.lookahead, seed=args.eval_seed)
+    result = evaluate(policy, city, args.final_eval_episodes, args.eval_seed)
     profit = result["metrics"]["profit"]
     card = make_card(
         scenario=city.name, n_regions=None, algorithm=algorithm, mode="centralised", actor="recurrent", conv=args.conv,
         hidden=args.hidden, n_features=model.n_features, lookahead=args.lookahead, seed=args.seed,
-        episodes_trained=episodes, eval_episodes=args.final_eval_episodes, eval_seed=args.final_eval_seed,
+        episodes_trained=episodes, eval_episodes=args.final_eval_episodes, eval_seed=args.eval_seed, eval_streams="validation",
         profit_mean=profit["mean"], profit_std=profit["std"], served_demand_mean=result["metrics"]["served_demand"]["mean"],
         training_wall_s=round(wall_s, 1), torch_threads=torch.get_num_threads(), config=config_path,
         args=args.model_dump(mode="json"), **(extra or {}),

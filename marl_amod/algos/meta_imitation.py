@@ -187,7 +187,9 @@ def collect_demos(
     for name in cities:
         city = meta.task_city(name)
         path = demo_path(folder, city.name)
-        if not path.is_file():
+        if path.is_file():
+            check_demo_file(path, episodes, seed, lookahead)
+        else:
             start = time.perf_counter()
             arrays = collect_city(city, episodes, seed, lookahead, learner, trial_episodes, seed_of, shock_prob)
             wall = time.perf_counter() - start
@@ -198,6 +200,18 @@ def collect_demos(
             tmp.replace(path)
         walls[city.name] = float(np.load(path)["wall_s"])
     return walls
+
+
+def check_demo_file(path: Path, episodes: int, seed: int, lookahead: int) -> None:
+    """An existing file is reused only if it holds what this run asks for (its episode count, seed and
+    lookahead): a run that asks for more episodes over an older folder would otherwise train on the
+    old ones while its card states the new count."""
+    with np.load(path) as data:
+        held = (int(data["x"].shape[0]), int(data["seed"]), int(data["lookahead"]))
+    if held != (episodes, seed, lookahead):
+        raise DataError(f"{path} holds {held[0]} episodes of seed {held[1]} at lookahead {held[2]}; this run asks for "
+                        f"{episodes} of seed {seed} at lookahead {lookahead}: remove the file to collect it anew, "
+                        "or give the run another demonstrations folder")  # fmt: skip
 
 
 def load_demos(folder: str | Path, city: City, lookahead: int, structure: bool = False, place: bool = False) -> CityDemos:
@@ -509,13 +523,14 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     torch.set_num_threads(args.threads)
     C.seed_everything(args.seed)
     plain, variants = tasks(args)
+    events = event_names(args)
+    # every task and validation city built before any collection: a bad name or setting fails now, not after the demonstrations
+    cities = {name: meta.task_city(name) for name in dict.fromkeys([*plain, *variants, *events, *args.val_cities])}
     walls = collect_demos(args.demos, plain, args.demo_episodes, args.seed, args.lookahead)
     hot, skewed = hotspot_names(args), skew_names(args)
     walls |= collect_demos(args.demos, hot, args.hotspot_episodes, args.seed, args.lookahead)
     walls |= collect_demos(args.demos, skewed, args.skew_episodes, args.seed, args.lookahead)
-    events = event_names(args)
     walls |= collect_demos(args.demos, events, args.event_episodes, args.seed, args.lookahead)
-    cities = {name: meta.task_city(name) for name in dict.fromkeys([*plain, *variants, *events, *args.val_cities])}
     data = load_all(args, cities, [*plain, *variants, *events])
     names = list(data)
     model = meta.make_model(args)
@@ -527,13 +542,12 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         st = C.load_state(resume, "meta-bc")
         if st.get("tasks", names) != names:  # its updates and DAgger rounds are of those tasks (older states: not recorded)
             raise DataError(f"{resume} trained on the tasks {st['tasks']}; this config names {names}: resume with the run's "
-                            "cities, seed, hotspot and skew settings (hotspot_variants, hotspot_multipliers, hotspot_distinct_regions, skew_variants, skew_gammas)")  # fmt: skip
-        if st.get("hotspot_share") != args.hotspot_share:  # its draws were of that share (older states: every task as often)
-            raise DataError(f"{resume} drew its variants with hotspot_share {st.get('hotspot_share')}; this config sets "
-                            f"{args.hotspot_share}: resume with the run's share (the card names one)")  # fmt: skip
-        if st.get("event_share") != args.event_share:
-            raise DataError(f"{resume} drew its event tasks with event_share {st.get('event_share')}; this config sets "
-                            f"{args.event_share}: resume with the run's share (the card names one)")  # fmt: skip
+                            "cities, seed, hotspot and skew settings (hotspot_variants, hotspot_multipliers, hotspot_distinct_regions, "
+                            "skew_variants, skew_gammas) and event settings (event_tasks, event_multipliers)")  # fmt: skip
+        for key, drawn in (("hotspot_share", "variants"), ("event_share", "event tasks")):  # older states: every task as often
+            if st.get(key) != getattr(args, key):
+                raise DataError(f"{resume} drew its {drawn} with {key} {st.get(key)}; this config sets "
+                                f"{getattr(args, key)}: resume with the run's share (the card names one)")  # fmt: skip
         model.load_state_dict(st["model"]), opt.load_state_dict(st["opt"])
         step, prior_wall, best = st["episode"], st["wall_s"], C.BestActor(st["best_val"], st["best_actor"])
         rng.bit_generator.state = st["city_rng"]

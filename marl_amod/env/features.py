@@ -10,7 +10,7 @@ For region i at step t, with look-ahead T (6 by default) and scale 0.01:
 * ``arrivals_now`` (opt-in, ``arrivals_now=True``): vehicles arriving at i during step t, idle
   from t+1 (1 column). ``supply[1]`` counts idle now plus the arrivals of step t+1, so these are in
   no other column, yet they are the fleet MPC's plan starts from at its first step; the paper's
-  observation leaves them out, so the default does too (docs/training.md, synthetic city).
+  observation leaves them out, so the default does too (docs/studies/synthetic_city.md).
 
 Steps past the tabulated horizon count as zero (:func:`~marl_amod.scenario.types.step_rows`).
 """

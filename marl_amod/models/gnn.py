@@ -6,7 +6,7 @@ the regions relabels the outputs (permutation equivariance). That reach is one h
 output depends on its own and its neighbours' features only. ``readout`` (off by default, the
 paper's model) appends a pooled summary of the whole fleet to every node before the head
 (:class:`FleetReadout`), which keeps both properties; on the MPC-Forecast clone it moved the
-GNN only slightly towards the MLP (docs/offline/index.md, "BC fidelity" 6). ``agent_ids`` (off
+GNN only slightly towards the MLP (docs/offline/bc_fidelity.md, "BC fidelity" 6). ``agent_ids`` (off
 by default) appends a one-hot of the region index to every node's input (:class:`RegionIdentity`,
 the agent-ID input of parameter-shared MARL policies): a region's output can then depend on
 where it is, not only on what it sees, which gives up both properties (the model is tied to

@@ -15,7 +15,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, model_validator
 
 from marl_amod.data import read_yaml, resolve
-from marl_amod.errors import ConfigError
+from marl_amod.errors import UNKNOWN_KEY, ConfigError, pydantic_problem
 from marl_amod.scenario.events import DemandEvent, apply_events
 from marl_amod.scenario.json_city import load_json_city
 from marl_amod.scenario.synthetic import grid_city
@@ -201,13 +201,10 @@ def _problem(err: Any, model: type[_Spec], source: str, overrides: dict[str, Any
     """One pydantic error as ``key: message``; an unknown top-level key (a typo, or a keyword
     override such as ``fleet=`` on a scenario that has no fleet) lists the keys that exist."""
     loc = err["loc"]
-    key = ".".join(map(str, loc))
-    msg = err["msg"].removeprefix("Value error, ")
-    if err["type"] == "extra_forbidden":
-        msg = "unknown key"
-        if len(loc) == 1:
-            given = " (a keyword override)" if loc[0] in overrides else ""
-            msg = f"unknown key{given}; a {source} scenario has {', '.join(k for k in model.model_fields if k != 'source')}"
+    key, msg = pydantic_problem(err, words=UNKNOWN_KEY)
+    if err["type"] == "extra_forbidden" and len(loc) == 1:
+        given = " (a keyword override)" if loc[0] in overrides else ""
+        msg = f"unknown key{given}; a {source} scenario has {', '.join(k for k in model.model_fields if k != 'source')}"
     return (f"{key}: " if key else "") + msg
 
 

@@ -30,7 +30,7 @@ from functools import partial
 import numpy as np
 from pydantic import ValidationError
 
-from marl_amod.errors import ConfigError
+from marl_amod.errors import ConfigError, pydantic_problems
 from marl_amod.scenario.events import DemandEvent, apply_events
 from marl_amod.scenario.types import City
 
@@ -111,8 +111,7 @@ def event_task(city: City, surge: list[int], multiplier: float, start: int, end:
         try:
             events.append(DemandEvent(name=what, regions=list(regions), start=start, end=end, multiplier=m))
         except ValidationError as err:  # one line naming the task, not pydantic's report
-            problems = "; ".join(".".join(map(str, e["loc"])) + (": " if e["loc"] else "") + e["msg"].removeprefix("Value error, ") for e in err.errors())
-            raise ConfigError(f"event task of {city.name}, its {what}: {problems}") from None
+            raise ConfigError(f"event task of {city.name}, its {what}: {pydantic_problems(err)}") from None
     shocked = apply_events(city, events, f"event task of {city.name}")
     return replace(shocked, name=event_name(city.name, list(surge), multiplier, start, end, list(drop), drop_multiplier))
 
