@@ -23,6 +23,8 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 from marl_amod.data import read_yaml
 from marl_amod.errors import UNKNOWN_KEY, ConfigError, pydantic_problem
 
+REPORT_SEED = 0  # the report streams: `marl-amod evaluate --seed 0`, scored once per shipped change
+
 
 def problems(where: str, exc: ValidationError, prefix: str = "") -> ConfigError:
     """One ``where: key: message`` line per pydantic error, never pydantic's multi-line dump."""
@@ -83,8 +85,11 @@ class CommonArgs(BaseModel):
 
     @model_validator(mode="after")
     def _validation_apart_from_report(self) -> CommonArgs:
-        if self.eval_seed == self.final_eval_seed:  # the kept actor would be chosen on the episodes it is reported on
-            raise ValueError(f"eval_seed {self.eval_seed} is final_eval_seed's: validation must not run on the report streams")
+        # the kept actor would be chosen on the episodes it is reported on: the run's final evaluation's, or the
+        # report streams of `marl-amod evaluate --seed 0` (a config that moves final_eval_seed elsewhere still has them)
+        report = {REPORT_SEED: "the report seed (marl-amod evaluate --seed 0)", self.final_eval_seed: "final_eval_seed's"}
+        if self.eval_seed in report:
+            raise ValueError(f"eval_seed {self.eval_seed} is {report[self.eval_seed]}: validation must not run on the report streams")
         return self
 
 
