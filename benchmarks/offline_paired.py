@@ -8,7 +8,7 @@
 Every policy (a policy file, or a registered policy such as a dataset's behaviour ``inf``) is
 scored on each validation set (``--episodes`` episodes of ``marl-amod evaluate --seed <set>``;
 the report seed 0 is refused: these are selection numbers) and its per-episode profits are kept in
-``--out`` (keyed by the file's sha256, so a retrained file is scored again and the rest resumes).
+``--out`` (keyed by the file's sha256 and the scenario, so a retrained file is scored again and the rest resumes).
 A recipe is one or more training seeds' files; per episode its profit is their mean, and against
 the reference (one file, the shipped cell; or another recipe, seed s against seed s) it gets the paired mean difference over all episodes
 of all sets, its standard error (the per-episode differences' std / sqrt(episodes): the seeds
@@ -37,7 +37,7 @@ def profits(policy: str, scenario: str, seed: int, episodes: int, cache: dict[st
     if seed == REPORT_SEED:
         raise SystemExit(f"seed {REPORT_SEED} is the report seeds: validate on other sets")
     ident = file_sha256(policy)[:16] if Path(policy).is_file() else policy
-    key = f"{policy}|{ident}@{seed}x{episodes}"
+    key = f"{policy}|{ident}|{scenario}@{seed}x{episodes}"  # another --scenario over the same --out is scored anew
     if key not in cache:
         result = evaluate(policy, scenario, episodes, seed)
         cache[key] = [float(m["profit"]) for m in result["per_episode"]]

@@ -437,6 +437,30 @@ def test_the_paired_rule_averages_a_recipes_seeds_per_episode_and_refuses_the_re
         offline_paired.profits("inf", "nyc_brooklyn", 0, 10, {})
 
 
+def test_the_paired_cache_is_kept_per_scenario(monkeypatch):
+    """benchmarks/offline_paired.py resumes from ``--out``: a policy's episodes on one scenario are
+    not read back as its episodes on another."""
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    import offline_paired
+
+    import marl_amod.evaluation
+
+    calls = []
+
+    def fake(policy, scenario, episodes, seed):
+        calls.append(scenario)
+        return {"per_episode": [{"profit": 1.0 if scenario == "nyc_brooklyn" else 2.0}] * episodes}
+
+    monkeypatch.setattr(marl_amod.evaluation, "evaluate", fake)
+    cache: dict = {}
+    assert offline_paired.profits("inf", "nyc_brooklyn", 7000, 2, cache) == [1.0, 1.0]
+    assert offline_paired.profits("inf", "nyc_brooklyn", 7000, 2, cache) == [1.0, 1.0]  # resumed: not run again
+    assert offline_paired.profits("inf", "san_francisco", 7000, 2, cache) == [2.0, 2.0]
+    assert calls == ["nyc_brooklyn", "san_francisco"]
+
+
 def test_sink_margin_keeps_a_receiving_regions_target_under_the_envs_floor():
     """The env plays floor(w_i M): a clone's share a little below a planner's exact target loses a
     vehicle at the region that receives; the margin centres that target inside the floor's bin,
