@@ -26,12 +26,12 @@
 * ``event``: the share of the idle fleet each policy asks for in the Brooklyn event's surge
   regions and halved hotspots, inside the event window and outside, and the requests left
   unserved at the surge: does the memory notice the shock?
-* ``tasks``: each episode's profit of the policy (K = 3, as deployed) and of MPC-Forecast (not
-  told an event task's event) on training-city tasks (hotspot variants ``<city>~hot<r>x<m>``,
+* ``tasks``: each episode's profit of the policy (K = ``--k``, 3 as deployed) and of MPC-Forecast (not
+  told an event task's event) on training-city tasks (hotspot variants ``<city>~hot<r>x<m>``, skew variants ``<city>~skew<gamma>``,
   event tasks ``<city>~ev...``: ``meta.task_city``), validation episodes (seed 1000), written to
   ``--out`` (with ``--mpc-from`` an earlier file's MPC-F profits of the same tasks and episodes are reused);
-  ``compare A.json B.json``: per file the mean gap to MPC-F over the hotspot variants and the
-  mean profit over the event tasks, and B - A paired by episode with its standard error (over
+  ``compare A.json B.json``: per file the mean gap to MPC-F over the hotspot variants (and, apart,
+  the skew variants) and the mean profit over the event tasks, and B - A paired by episode with its standard error (over
   the episodes, each the tasks' mean: ``paired_se``): what a selection rule reads
   (docs/meta/README.md, "The event tasks").
 
@@ -358,6 +358,7 @@ def main() -> None:
     parser.add_argument("--validation", action="store_true", help="k: the training cities' validation return instead")
     parser.add_argument("--out", default=None, help="tasks: the JSON of per-episode profits")
     parser.add_argument("--mpc-from", default=None, help="tasks: reuse MPC-F's profits from this earlier --out")
+    parser.add_argument("--k", type=int, default=3, help="tasks: the policy's adaptation episodes before each scored one")
     parser.add_argument("--own", action="store_true", help="hotspot: also on the states the policy reaches itself (8 episodes, labelled by MPC-F)")
     args = parser.parse_args()
     torch.manual_seed(0)  # the policy's sampled adaptation episodes (gap, heldout, hotspot --own): a rerun repeats them
@@ -373,7 +374,7 @@ def main() -> None:
     elif args.what == "tasks":
         if not args.out:
             parser.error("tasks needs --out")
-        tasks(args.policy, args.cities.split(","), args.episodes, args.out, mpc_from=args.mpc_from)
+        tasks(args.policy, args.cities.split(","), args.episodes, args.out, mpc_from=args.mpc_from, k=args.k)
     elif args.what == "compare":
         if not args.files:
             parser.error("compare needs tasks --out files: A.json B.json")

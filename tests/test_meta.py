@@ -501,6 +501,24 @@ def test_compare_reads_the_standard_error_of_its_mean_over_the_episodes(tmp_path
     assert "-5.000% gap to MPC-F" in capsys.readouterr().out
 
 
+def test_the_tasks_diagnostic_adapts_over_the_k_it_is_given(tmp_path, monkeypatch):
+    """benchmarks/meta_diagnostics.py tasks --k: the adaptation episodes reach the policy and the
+    file (compare pairs only files of one k)."""
+    import json
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    import meta_diagnostics
+
+    adapted = []
+    monkeypatch.setattr(meta_diagnostics.meta, "load_policy", lambda path, task, k, seed: adapted.append(k) or "equal-distribution")
+    out = tmp_path / "tasks.json"
+    monkeypatch.setattr(sys, "argv", ["meta_diagnostics.py", "tasks", "--cities", "synthetic", "--episodes", "1", "--k", "1", "--out", str(out)])
+    meta_diagnostics.main()
+    assert adapted == [1] and json.loads(out.read_text())["k"] == 1
+
+
 
 def test_final_card_evaluation_runs_on_validation_streams_not_report_seeds(tmp_path):
     # the held-out city's profit on the card comes from the validation streams (eval_seed), and the
