@@ -188,7 +188,7 @@ def collect_demos(
         city = meta.task_city(name)
         path = demo_path(folder, city.name)
         if path.is_file():
-            check_demo_file(path, episodes, seed, lookahead)
+            check_demo_file(path, episodes, lookahead)
         else:
             start = time.perf_counter()
             arrays = collect_city(city, episodes, seed, lookahead, learner, trial_episodes, seed_of, shock_prob)
@@ -202,16 +202,17 @@ def collect_demos(
     return walls
 
 
-def check_demo_file(path: Path, episodes: int, seed: int, lookahead: int) -> None:
-    """An existing file is reused only if it holds what this run asks for (its episode count, seed and
+def check_demo_file(path: Path, episodes: int, lookahead: int) -> None:
+    """An existing file is reused only if it holds what this run asks for (its episode count and
     lookahead): a run that asks for more episodes over an older folder would otherwise train on the
-    old ones while its card states the new count."""
+    old ones while its card states the new count. Another training seed's file is reused (its
+    streams, :func:`demo_seed`, are apart from every report and validation stream whatever the
+    seed): configs/meta/bc_dagger_place.yaml (seed 1) learns from bc.yaml's seed-0 demonstrations."""
     with np.load(path) as data:
-        held = (int(data["x"].shape[0]), int(data["seed"]), int(data["lookahead"]))
-    if held != (episodes, seed, lookahead):
-        raise DataError(f"{path} holds {held[0]} episodes of seed {held[1]} at lookahead {held[2]}; this run asks for "
-                        f"{episodes} of seed {seed} at lookahead {lookahead}: remove the file to collect it anew, "
-                        "or give the run another demonstrations folder")  # fmt: skip
+        held = (int(data["x"].shape[0]), int(data["lookahead"]))
+    if held != (episodes, lookahead):
+        raise DataError(f"{path} holds {held[0]} episodes at lookahead {held[1]}; this run asks for {episodes} at lookahead "
+                        f"{lookahead}: remove the file to collect it anew, or give the run another demonstrations folder")  # fmt: skip
 
 
 def load_demos(folder: str | Path, city: City, lookahead: int, structure: bool = False, place: bool = False) -> CityDemos:
