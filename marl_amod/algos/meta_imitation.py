@@ -177,7 +177,7 @@ def collect_demos(
     trial_episodes: int = 1, seed_of: Callable[[int, int], np.random.SeedSequence] = demo_seed, shock_prob: float = 0.0,
 ) -> dict[str, float]:
     """Write ``folder/<task>.npz`` for each task (a city or a :func:`~marl_amod.algos.meta.task_city`
-    variant) not yet there (resumable, split by task; with
+    variant) not yet there (resumable, split by task; a file there is checked, :func:`check_demo_file`; with
     ``learner``, a DAgger round: :func:`collect_city`); returns the collection wall seconds of every
     city's file (recorded in it)."""
     held = meta.held_out_among(cities)
@@ -377,7 +377,7 @@ class Args(meta.Args):
     to the cities; uniform within each). None: every task as often, so with one variant a city is
     drawn half as often as without, and with two a third (a cost the held-out city without a dominant hotspot showed)"""
     skew_variants: int = Field(0, ge=0)
-    """per training city, this many :func:`~marl_amod.algos.meta.skew` variants as more tasks (the
+    """per training city, this many :func:`~marl_amod.scenario.variants.skew` variants as more tasks (the
     whole demand's shape: each region's requests out x (share / average share) ^ (gamma - 1),
     forecast included; :func:`~marl_amod.algos.meta.skew_tasks`), demonstrated by MPC-F
     (``skew_episodes`` each) and driven in the DAgger rounds like the cities; drawn with the
@@ -491,7 +491,7 @@ def draw_task(names: list[str], plain: int, share: float | None, rng: np.random.
 
 
 def draw_run_task(args: Args, names: list[str], plain: int, events: list[str], rng: np.random.Generator) -> str:
-    """One update's task of the run's ``names`` (cities, hotspot variants, then ``events``): an
+    """One update's task of the run's ``names`` (cities, hotspot and skew variants, then ``events``): an
     event task in ``event_share`` of the draws (uniform among them), else :func:`draw_task` over the
     rest; without event tasks exactly :func:`draw_task`'s draws (the same generator calls)."""
     if events and rng.random() < args.event_share:
