@@ -60,7 +60,7 @@ def hotspot(city: City, region: int, multiplier: float) -> City:
     busiest region draws 4.6 (San Francisco) and 5.1 (Brooklyn) times a region's average share of
     the requests, every training city's at most 4.2, and MPC-Forecast sends it 0.29-0.31 of the
     idle fleet against at most 0.14 in a training city; the meta policy, never shown that, sends
-    0.15-0.25 (docs/meta/README.md, "Where the held-out gap comes from")."""
+    0.15-0.25 (docs/meta/log.md, "Where the held-out gap comes from")."""
     if not 0 <= region < city.n_regions or not np.isfinite(multiplier) or multiplier <= 0:
         raise ConfigError(f"hotspot of {city.name}: region {region} (0..{city.n_regions - 1}) and multiplier {multiplier} (> 0)")
     factor = np.ones(city.n_regions)
@@ -77,7 +77,7 @@ def skew(city: City, gamma: float) -> City:
     training cities in the shape of their demand, not one region: the median Brooklyn region draws
     0.10 of the average share (San Francisco 0.29, the training cities' median 0.74), the busiest
     5.1x it (4.6; the training cities at most 4.2); a hotspot raises one region only
-    (docs/meta/README.md, "Demand-shape variants")."""
+    (docs/meta/log.md, "Demand-shape variants")."""
     if not np.isfinite(gamma) or gamma <= 0:
         raise ConfigError(f"skew of {city.name}: gamma {gamma} (a finite number > 0; 1 is the city itself)")
     out = np.asarray(city.forecast_rate)[: city.horizon].sum(axis=(0, 2))  # (N,) expected requests out over the episode
