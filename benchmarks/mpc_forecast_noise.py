@@ -24,6 +24,7 @@ from marl_amod.evaluation import evaluate
 from marl_amod.scenario import load_city
 
 SCENARIOS = ["san_francisco", "nyc_brooklyn", "shenzhen_downtown_west", "nyc_brooklyn_event"]
+NOISES = [0.0, 0.5, 1.0, 2.0]
 # the paper's MPC-Forecast below its MPC-Oracle (profit, thousands): the inter-city and special-event tables
 PAPER_GAP = {"san_francisco": (13.9, 15.9), "nyc_brooklyn": (56.5, 57.2), "shenzhen_downtown_west": (60.6, 65.2),
              "nyc_brooklyn_event": (47.5, 57.5)}  # fmt: skip
@@ -35,9 +36,13 @@ def mean_profit(policy: str, scenario: str, episodes: int, seed: int, **options:
 
 
 def table(rows: dict, noises: list[float], episodes: int, seed: int) -> str:
-    """The markdown page: one row per scenario, MPC-Forecast's gap (score) at each noise."""
+    """The markdown page: one row per scenario, MPC-Forecast's gap (score) at each noise, under the
+    command that makes it (the scenarios and noises named when they are not the defaults)."""
+    command = f"python benchmarks/mpc_forecast_noise.py --episodes {episodes} --seed {seed}"
+    command += f" --noises {' '.join(f'{s:g}' for s in noises)}" if list(noises) != NOISES else ""
+    command += f" --scenarios {' '.join(rows)}" if list(rows) != SCENARIOS else ""
     lines = [
-        f"<!-- python benchmarks/mpc_forecast_noise.py --episodes {episodes} --seed {seed} -->",
+        f"<!-- {command} -->",
         f"MPC-Forecast's profit gap to MPC-Oracle (normalised score in brackets: equal distribution 0, "
         f"MPC-Oracle 100) as its forecast's log-normal noise grows; {episodes} episodes, seed {seed} (the tables' "
         "report episodes). The last column is the paper's MPC-Forecast against its own MPC-Oracle.",
@@ -59,7 +64,7 @@ def table(rows: dict, noises: list[float], episodes: int, seed: int) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenarios", nargs="+", default=SCENARIOS)
-    parser.add_argument("--noises", type=float, nargs="+", default=[0.0, 0.5, 1.0, 2.0])
+    parser.add_argument("--noises", type=float, nargs="+", default=NOISES)
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--output", type=Path, default=Path("docs/meta/forecast_noise.md"))

@@ -534,3 +534,22 @@ def test_final_card_evaluation_runs_on_validation_streams_not_report_seeds(tmp_p
     assert card["profit_mean"] == on_validation["mean"] and card["profit_std"] == on_validation["std"]
     with pytest.raises(ValueError, match="final_eval_seed is not read"):  # pydantic's; a config file gets a ConfigError
         meta.Args(scenario="synthetic", cities=["porto"], final_eval_seed=3)
+
+
+def test_the_forecast_noise_page_names_the_command_that_makes_it():
+    """benchmarks/mpc_forecast_noise.py: the page's first line is the command that regenerates it,
+    the scenarios and noises included when they are not the defaults."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    import mpc_forecast_noise
+
+    row = {"equal-distribution": 0.0, "mpc-oracle": 100.0, "mpc-forecast": {"0": 90.0, "1": 80.0}}
+    page = mpc_forecast_noise.table({"nyc_brooklyn": row}, [0.0, 1.0], 2, 7000)
+    assert page.splitlines()[0] == "<!-- python benchmarks/mpc_forecast_noise.py --episodes 2 --seed 7000 --noises 0 1 --scenarios nyc_brooklyn -->"
+    assert "| nyc_brooklyn | 10.0% (90) | 20.0% (80) | 1.2% |" in page
+    rows = {name: {**row, "mpc-forecast": {f"{s:g}": 90.0 for s in mpc_forecast_noise.NOISES}} for name in mpc_forecast_noise.SCENARIOS}
+    assert mpc_forecast_noise.table(rows, mpc_forecast_noise.NOISES, 10, 0).splitlines()[0] == (
+        "<!-- python benchmarks/mpc_forecast_noise.py --episodes 10 --seed 0 -->"
+    )
