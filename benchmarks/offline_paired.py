@@ -78,6 +78,10 @@ def main() -> None:
     import torch
 
     torch.set_num_threads(1)
+    known = [named(spec)[0] for spec in args.reference + args.recipe]
+    for pair in args.against:  # before any episode is scored, not a KeyError after all of them
+        if any(name not in known for name in pair.partition(":")[::2]):
+            raise SystemExit(f"--against {pair!r}: give RECIPE:REFERENCE, two of the names {known}")
     table: dict[str, Any] = json.loads(args.out.read_text()) if args.out.is_file() else {}
     cache = table.setdefault("profits", {})
     scored: dict[str, np.ndarray] = {}

@@ -437,7 +437,7 @@ def test_the_paired_rule_averages_a_recipes_seeds_per_episode_and_refuses_the_re
         offline_paired.profits("inf", "nyc_brooklyn", 0, 10, {})
 
 
-def test_the_paired_cache_is_kept_per_scenario(monkeypatch):
+def test_the_paired_cache_is_kept_per_scenario(monkeypatch, tmp_path):
     """benchmarks/offline_paired.py resumes from ``--out``: a policy's episodes on one scenario are
     not read back as its episodes on another."""
     import sys
@@ -459,6 +459,11 @@ def test_the_paired_cache_is_kept_per_scenario(monkeypatch):
     assert offline_paired.profits("inf", "nyc_brooklyn", 7000, 2, cache) == [1.0, 1.0]  # resumed: not run again
     assert offline_paired.profits("inf", "san_francisco", 7000, 2, cache) == [2.0, 2.0]
     assert calls == ["nyc_brooklyn", "san_francisco"]
+    monkeypatch.setattr(sys, "argv", ["offline_paired.py", "--sets", "7000", "--out", str(tmp_path / "score.json"), "--reference", "ref=inf",
+                                      "--recipe", "new=equal-distribution", "--against", "new:reference"])  # fmt: skip
+    with pytest.raises(SystemExit, match=r"--against 'new:reference': give RECIPE:REFERENCE, two of the names \['ref', 'new'\]"):
+        offline_paired.main()
+    assert calls == ["nyc_brooklyn", "san_francisco"]  # refused before any episode is scored
 
 
 def test_sink_margin_keeps_a_receiving_regions_target_under_the_envs_floor():
