@@ -397,7 +397,7 @@ class Args(meta.Args):
     """demonstration episodes per event task"""
     event_share: float | None = Field(None, gt=0, lt=1)
     """the share of an update's draws that go to the event tasks (uniform among them); the rest as
-    without them (cities and hotspot variants, ``hotspot_share``)"""
+    without them (cities and hotspot and skew variants, ``hotspot_share``)"""
     pad_cities: bool = True
     """an update's cities padded into one batch (the same losses to float rounding): 1.12-1.16x
     faster at hidden 64 x 16 trials per city, 1.4-1.8x at 4 trials (``benchmarks/meta_update.py``);
