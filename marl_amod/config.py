@@ -87,7 +87,7 @@ class CommonArgs(BaseModel):
     def _validation_apart_from_report(self) -> CommonArgs:
         # the kept actor would be chosen on the episodes it is reported on: the run's final evaluation's, or the
         # report streams of `marl-amod evaluate --seed 0` (a config that moves final_eval_seed elsewhere still has them)
-        report = {REPORT_SEED: "the report seed (marl-amod evaluate --seed 0)", self.final_eval_seed: "final_eval_seed's"}
+        report = {self.final_eval_seed: "final_eval_seed's", REPORT_SEED: "the report seed (marl-amod evaluate --seed 0)"}
         if self.eval_seed in report:
             raise ValueError(f"eval_seed {self.eval_seed} is {report[self.eval_seed]}: validation must not run on the report streams")
         return self

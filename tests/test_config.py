@@ -144,11 +144,14 @@ def test_a_compare_run_is_a_training_config_plus_overrides(tmp_path):
 @pytest.mark.parametrize(("algo", "needed"), [("a2c", {}), ("sac", {}), ("iql", {"dataset": "d.npz"}), ("meta-bc", {})])
 def test_validation_on_the_report_streams_is_refused(tmp_path, algo, needed):
     path = _write(tmp_path, "run.yaml", {"algo": algo, "args": {**needed, "eval_seed": 0}})
-    with pytest.raises(ConfigError, match=rf"^{path}: args: eval_seed 0 is final_eval_seed's: validation must not run on the report streams"):
+    report = r"eval_seed 0 is the report seed \(marl-amod evaluate --seed 0\): validation must not run on the report streams"
+    with pytest.raises(ConfigError, match=rf"^{path}: args: {report}"):
         load_train_config(path)
     assert load_train_config(_write(tmp_path, "ok.yaml", {"algo": algo, "args": {**needed, "eval_seed": 7}}))  # any other stream is fine
     if algo == "meta-bc":  # reads no final_eval_seed (its card is scored on the validation streams)
         return
     moved = {**needed, "eval_seed": 0, "final_eval_seed": 7000}  # final_eval_seed moved: seed 0 is still the report streams
-    with pytest.raises(ConfigError, match=r"args: eval_seed 0 is the report seed \(marl-amod evaluate --seed 0\): validation must not"):
+    with pytest.raises(ConfigError, match=f"args: {report}"):
         load_train_config(_write(tmp_path, "moved.yaml", {"algo": algo, "args": moved}))
+    with pytest.raises(ConfigError, match="args: eval_seed 7000 is final_eval_seed's: validation must not run on the report streams"):
+        load_train_config(_write(tmp_path, "same.yaml", {"algo": algo, "args": {**moved, "eval_seed": 7000}}))
