@@ -94,6 +94,9 @@ def test_imitation_ships_a_meta_policy_that_warm_starts_rl2(tasks, tmp_path):
                    eval_episodes=2, final_eval_episodes=1, run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
     card = ALGOS["meta-bc"].train(args)["card"]
     assert card["algorithm"] == "meta-bc" and card["demonstrations"]["episodes_per_city"] == 2 and card["updates"] == 4
+    assert card["demonstrations"]["seeds"] == [0]
+    seed1 = ALGOS["meta-bc"].train(args.model_copy(update={"seed": 1, "run_dir": str(tmp_path / "bc1"), "policy_out": ""}))["card"]
+    assert seed1["demonstrations"]["seeds"] == [0]  # a seed-1 run reused the seed-0 files: its card says so
     assert np.isfinite(evaluate(str(tmp_path / "bc.pt"), "synthetic", episodes=1)["metrics"]["profit"]["mean"])
     # RL² from that start, with the imitation term: 1 update of 2 cities x 2 trials x 2 episodes
     rl = meta.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, episodes=8, trial_episodes=2, num_envs=2,

@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import functools
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -213,6 +213,16 @@ def check_demo_file(path: Path, episodes: int, lookahead: int) -> None:
     if held != (episodes, lookahead):
         raise DataError(f"{path} holds {held[0]} episodes at lookahead {held[1]}; this run asks for {episodes} at lookahead "
                         f"{lookahead}: remove the file to collect it anew, or give the run another demonstrations folder")  # fmt: skip
+
+
+def demo_seeds(folder: str | Path, tasks: Iterable[str]) -> list[int]:
+    """The seeds the tasks' demonstration files were collected with: a file of another seed is
+    reused (:func:`check_demo_file`), so the card says which streams the run learnt from."""
+    seeds = set()
+    for task in tasks:
+        with np.load(demo_path(folder, task)) as data:
+            seeds.add(int(data["seed"]))
+    return sorted(seeds)
 
 
 def load_demos(folder: str | Path, city: City, lookahead: int, structure: bool = False, place: bool = False) -> CityDemos:
@@ -585,7 +595,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     log.close()
     model.load_state_dict(book.best.state)
     extra = {"updates": step, "demonstrations": {"policy": "mpc-forecast", "cities": list(args.cities), "episodes_per_city": args.demo_episodes,
-             "collection_wall_s": round(sum(walls.values()), 1)}, **warm}  # fmt: skip
+             "seeds": demo_seeds(args.demos, walls), "collection_wall_s": round(sum(walls.values()), 1)}, **warm}  # fmt: skip
     if hot:
         extra["demonstrations"] |= {"hotspot_variants": hot, "episodes_per_variant": args.hotspot_episodes}
     if skewed:
