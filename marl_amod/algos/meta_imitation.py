@@ -538,7 +538,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     # every task and validation city built before any collection: a bad name or setting fails now, not after the demonstrations
     cities = {name: meta.task_city(name) for name in dict.fromkeys([*plain, *variants, *events, *args.val_cities])}
     walls = collect_demos(args.demos, plain, args.demo_episodes, args.seed, args.lookahead)
-    hot, skewed = hotspot_names(args), skew_names(args)
+    n_hot = args.hotspot_variants * len(plain)  # hotspot_tasks names exactly that many per city, or refuses
+    hot, skewed = variants[:n_hot], variants[n_hot:]
     walls |= collect_demos(args.demos, hot, args.hotspot_episodes, args.seed, args.lookahead)
     walls |= collect_demos(args.demos, skewed, args.skew_episodes, args.seed, args.lookahead)
     walls |= collect_demos(args.demos, events, args.event_episodes, args.seed, args.lookahead)
