@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-REPORT_SEED = 0
+from marl_amod.config import REPORT_SEED
 
 
 def profits(policy: str, scenario: str, seed: int, episodes: int, cache: dict[str, Any]) -> list[float]:
