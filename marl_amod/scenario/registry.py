@@ -252,7 +252,7 @@ def _identity(relative: str | None) -> tuple:
 
 def load_city(name_or_path: str = DEFAULT_SCENARIO, **overrides: Any) -> City:
     """The city for a scenario name (see :func:`available`) or YAML path, or a variant of one
-    (``<scenario>~hot...``, ``<scenario>~ev...``: :mod:`.variants`), built on the scenario with the
+    (``<scenario>~hot...``, ``<scenario>~skew...``, ``<scenario>~ev...``: :mod:`.variants`), built on the scenario with the
     overrides applied.
 
     Cached on the validated scenario keys and the identity (resolved path, mtime, size) of its data
