@@ -259,8 +259,8 @@ def tasks(policy: str, names: list[str], episodes: int, out: str, seed: int = 10
         mine = [m["profit"] for m in evaluate(meta.load_policy(policy, task, k, seed=seed), task, episodes, seed)["per_episode"]]
         theirs = old["tasks"].get(name, {}).get("mpc-forecast") or [m["profit"] for m in evaluate(MPCForecast(), task, episodes, seed)["per_episode"]]
         record["tasks"][name] = {"policy": mine, "mpc-forecast": theirs}
-        gap = 100 * (1 - np.mean(record["tasks"][name]["policy"]) / np.mean(record["tasks"][name]["mpc-forecast"]))
-        print(f"{name:44s} policy {np.mean(record['tasks'][name]['policy']):10,.0f}  MPC-F {np.mean(record['tasks'][name]['mpc-forecast']):10,.0f}  gap {gap:5.2f}%", flush=True)
+        gap = 100 * (1 - np.mean(mine) / np.mean(theirs))
+        print(f"{name:44s} policy {np.mean(mine):10,.0f}  MPC-F {np.mean(theirs):10,.0f}  gap {gap:5.2f}%", flush=True)
     with open(out, "w") as f:
         json.dump(record, f, indent=1)
 
@@ -302,7 +302,7 @@ def compare(files: list[str]) -> None:
                   f"{d.shape[0]} tasks; the {d.size} pairs as independent: {pooled:.3f})"
                   + (f"; {100 * d.mean() / vals[0].mean():+.2f}% of the first's mean" if what == "profit" else ""))  # fmt: skip
         if what == "profit":
-            m = per_episode({"tasks": {n: {"policy": recs[0]["tasks"][n]["mpc-forecast"], "mpc-forecast": recs[0]["tasks"][n]["mpc-forecast"]} for n in group}}, group, "profit")
+            m = np.array([recs[0]["tasks"][n]["mpc-forecast"] for n in group], dtype=np.float64)
             print(f"  MPC-Forecast (not told the events): mean profit {m.mean():.1f}")
 
 
