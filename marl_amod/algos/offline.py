@@ -215,10 +215,10 @@ def imitation_loss(
     may spend its error at the busiest ones, where MPC sends its vehicles. The absolute error prices
     every vehicle alike (and is minimised by the median, not the mean, where the logged targets are
     tied). What each did on MPC-Forecast: docs/offline "BC fidelity" 11.
-    ``shortfall`` prices a vehicle short at a receiving region (logged target above its idle count, read
-    from the node features as :func:`sink_margin_targets` does) 1 + ``shortfall`` times one over: the
-    quantile loss of the receivers' targets, where a vehicle short leaves requests unserved; ``surplus``
-    prices a vehicle over there 1 + ``surplus`` times (``surplus_price``: a move that was paid for).
+    ``shortfall`` prices a vehicle short at a receiving region (:func:`receivers`) 1 + ``shortfall``
+    times one over: the quantile loss of the receivers' targets, where a vehicle short leaves
+    requests unserved; ``surplus`` prices a vehicle over there 1 + ``surplus`` times
+    (``surplus_price``: a move that was paid for).
     """
     alpha = concentrations(actor, b, graph, local, time=time)  # (B, N)
     mean = alpha / alpha.sum(-1, keepdim=True)
@@ -228,11 +228,19 @@ def imitation_loss(
     if kind == "l1":
         short, over = (y - mean).clamp_min(0), (mean - y).clamp_min(0)
         if shortfall or surplus:
-            idle = torch.round(b["x"][..., 0] / FEATURE_SCALE)  # (B, N) vehicles
-            receives = y * idle.sum(-1, keepdim=True) > idle + 0.5
+            _, receives = receivers(b["x"], y)
             short, over = short * (1 + shortfall * receives), over * (1 + surplus * receives)
         return (short + over).sum(-1)
     raise ConfigError(f"unknown imitation loss {kind!r}; known: ce, l1")
+
+
+def receivers(x: torch.Tensor, y: torch.Tensor, scale: float = FEATURE_SCALE) -> tuple[torch.Tensor, torch.Tensor]:
+    """(idle vehicles, receives) per region (..., N): the idle counts read from the node features
+    (column 0 times ``scale``) and whether the logged target shares ``y`` ask a region for more
+    than it holds (y M above its idle count): the regions a planner moves vehicles into, where a
+    vehicle short leaves requests unserved."""
+    idle = torch.round(x[..., 0] / scale)
+    return idle, y * idle.sum(-1, keepdim=True) > idle + 0.5
 
 
 def sink_margin_targets(x: torch.Tensor, action: torch.Tensor, margin: float, scale: float = FEATURE_SCALE) -> torch.Tensor:
@@ -247,11 +255,10 @@ def sink_margin_targets(x: torch.Tensor, action: torch.Tensor, margin: float, sc
     M are read from the node features (idle times ``scale``); steps with no idle vehicle keep the
     logged share.
     """
-    idle = torch.round(x[..., 0] / scale)  # (T, N)
-    m = idle.sum(-1, keepdim=True)
     y = action / action.sum(-1, keepdim=True).clamp_min(1e-12)
+    idle, sink = receivers(x, y, scale)  # (T, N) each
+    m = idle.sum(-1, keepdim=True)
     target = y * m  # the logged targets in vehicles
-    sink = target > idle + 0.5
     others = torch.where(sink, torch.zeros_like(target), target)
     extra = torch.minimum(margin * sink.sum(-1, keepdim=True), others.sum(-1, keepdim=True))
     moved = target + margin * sink - extra * others / others.sum(-1, keepdim=True).clamp_min(1e-12)
