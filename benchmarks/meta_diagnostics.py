@@ -55,6 +55,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from scipy.stats import sem
 
 from marl_amod.algos import meta
 from marl_amod.algos import meta_imitation as mi
@@ -270,7 +271,7 @@ def paired_se(d: np.ndarray) -> tuple[float, float]:
     taken as independent, as the docs' first rules read it; over the episodes, each the tasks' mean).
     The second is the one for a fixed set of tasks whose episode k all come from one seed: a task's
     steady gain is not noise, and an episode that moves every task is one draw."""
-    return float(d.std(ddof=1) / np.sqrt(d.size)), float(d.mean(0).std(ddof=1) / np.sqrt(d.shape[1]))
+    return float(sem(d, axis=None)), float(sem(d.mean(0)))
 
 
 def compare(files: list[str]) -> None:

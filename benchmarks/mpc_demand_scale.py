@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import sem
 
 from marl_amod.evaluation import evaluate
 from marl_amod.scenario import load_city
@@ -26,7 +27,7 @@ from marl_amod.scenario import load_city
 def paired(profit: np.ndarray, reference: np.ndarray) -> dict[str, float]:
     """Mean and standard error of the per-episode difference to the reference."""
     diff = profit - reference
-    return {"diff": float(diff.mean()), "se": float(diff.std(ddof=1) / np.sqrt(diff.size))}
+    return {"diff": float(diff.mean()), "se": float(sem(diff, axis=None))}
 
 
 def resume(output: Path, scenario: str, episodes: int, seed: int) -> dict:

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy.stats import sem
 
 from marl_amod.config import REPORT_SEED
 
@@ -51,7 +52,7 @@ def compare(recipe: np.ndarray, reference: np.ndarray, margin: float) -> dict[st
     if len(reference) not in (1, len(recipe)):
         raise SystemExit(f"a reference of {len(reference)} seeds pairs with one of 1 or {len(recipe)}")
     d = (recipe - reference).mean(0)
-    se = float(d.std(ddof=1) / np.sqrt(d.size))
+    se = float(sem(d))
     diff = float(d.mean())
     return {"diff": diff, "se": se, "above": int((d > 0).sum()), "episodes": int(d.size),
             "per_seed": [float(x) for x in (recipe - reference).mean(1)], "passes": diff >= margin and diff >= 2 * se}  # fmt: skip
