@@ -70,8 +70,9 @@ the memory those left: a handful of episodes and no gradient step.
 from __future__ import annotations
 
 import copy
+import itertools
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -249,6 +250,18 @@ def random_shock(city: City, rng: np.random.Generator) -> City:
     return event_task(city, regions[:up], multiplier, start, end, regions[up:], drop_multiplier)
 
 
+def first_distinct(draws: Iterator[str | None], n: int) -> list[str] | None:
+    """The first ``n`` distinct task names among ``1000 n`` draws (None: a draw refused), or None
+    if there are fewer. Why distinct: a repeated name would be one task counted twice."""
+    names: list[str] = []
+    for name in itertools.islice(draws, 1000 * n):
+        if name is not None and name not in names:
+            names.append(name)
+            if len(names) == n:
+                return names
+    return None
+
+
 def event_tasks(cities: list[str], per_city: int, multipliers: tuple[float, float], seed: int) -> list[str]:
     """``per_city`` event tasks of each city, drawn like the Brooklyn event: two regions outside the
     city's two busiest surge x a multiplier log-uniform in ``multipliers`` (one decimal) for 6-10
@@ -260,30 +273,29 @@ def event_tasks(cities: list[str], per_city: int, multipliers: tuple[float, floa
                           "decimal is kept, so a lower one would name surges of x1)")  # fmt: skip
     names: list[str] = []
     for i, name in enumerate(cities if per_city else []):
-        city, rng = load_city(name), np.random.default_rng([seed, i, 6037])
+        city = load_city(name)
         if city.n_regions < 4 or city.horizon < 2:
             raise ConfigError(f"event tasks of {name}: need at least 4 regions (the two busiest and two that surge) and 2 control steps")
-        busiest = np.argsort(-place_table(city)[:, 2], kind="stable")[:2]
-        others = np.setdiff1d(np.arange(city.n_regions), busiest)
-        mine: list[str] = []
-        for _ in range(1000 * per_city):
-            surge = sorted(int(r) for r in rng.choice(others, size=2, replace=False))
-            multiplier = round(float(np.exp(rng.uniform(np.log(lo), np.log(hi)))), 1)
-            longest = min(10, city.horizon - 1)
-            length = int(rng.integers(min(6, longest), longest + 1))
-            start = int(rng.integers(0, city.horizon - length + 1))
-            dropped = rng.random() < 0.75
-            drop_m = round(float(rng.uniform(0.3, 0.8)), 1)
-            task = event_name(name, surge, multiplier, start, start + length, sorted(map(int, busiest)) if dropped else [], drop_m)
-            if task not in mine:  # a duplicate would be one task counted twice: draw again
-                mine.append(task)
-            if len(mine) == per_city:
-                break
-        else:
+        mine = first_distinct(_event_draws(name, city, np.random.default_rng([seed, i, 6037]), lo, hi), per_city)
+        if mine is None:
             raise ConfigError(f"{per_city} distinct event tasks of {name} not found (its {city.n_regions} regions, {city.horizon} "
                               f"control steps, event_multipliers {list(multipliers)} to one decimal): ask for fewer")  # fmt: skip
         names += mine
     return names
+
+
+def _event_draws(name: str, city: City, rng: np.random.Generator, lo: float, hi: float) -> Iterator[str]:
+    busiest = np.argsort(-place_table(city)[:, 2], kind="stable")[:2]
+    others = np.setdiff1d(np.arange(city.n_regions), busiest)
+    longest = min(10, city.horizon - 1)
+    while True:
+        surge = sorted(int(r) for r in rng.choice(others, size=2, replace=False))
+        multiplier = round(float(np.exp(rng.uniform(np.log(lo), np.log(hi)))), 1)
+        length = int(rng.integers(min(6, longest), longest + 1))
+        start = int(rng.integers(0, city.horizon - length + 1))
+        dropped = rng.random() < 0.75
+        drop_m = round(float(rng.uniform(0.3, 0.8)), 1)
+        yield event_name(name, surge, multiplier, start, start + length, sorted(map(int, busiest)) if dropped else [], drop_m)
 
 
 def hotspot_tasks(cities: list[str], variants: int, multipliers: tuple[float, float], seed: int, distinct_regions: bool = False) -> list[str]:
@@ -298,26 +310,26 @@ def hotspot_tasks(cities: list[str], variants: int, multipliers: tuple[float, fl
         raise ConfigError(f"hotspot_multipliers {list(multipliers)}: a range [low, high] with 0.05 <= low <= high (one decimal is kept)")
     names: list[str] = []
     for i, name in enumerate(cities if variants else []):
-        city, rng = load_city(name), np.random.default_rng([seed, i, 6029])
-        out = place_table(city)[:, 2].astype(np.float64)
-        mine: list[str] = []
-        regions: set[int] = set()
-        for _ in range(1000 * variants):  # a duplicate would be one task counted twice: draw again
-            region = int(rng.choice(city.n_regions, p=out / out.sum()))
-            multiplier = round(float(np.exp(rng.uniform(np.log(lo), np.log(hi)))), 1)
-            if distinct_regions and region in regions:
-                continue
-            if (task := hotspot_name(name, region, multiplier)) not in mine:
-                mine.append(task)
-                regions.add(region)
-            if len(mine) == variants:
-                break
-        else:
+        draws = _hotspot_draws(name, load_city(name), np.random.default_rng([seed, i, 6029]), lo, hi, distinct_regions)
+        if (mine := first_distinct(draws, variants)) is None:
             raise ConfigError(f"{variants} distinct hotspot variants of {name} not found in hotspot_multipliers {list(multipliers)} "
                               f"(one decimal) x its busy regions{' (each region once: hotspot_distinct_regions)' if distinct_regions else ''}: "
                               "ask for fewer, or widen the range")  # fmt: skip
         names += mine
     return names
+
+
+def _hotspot_draws(name: str, city: City, rng: np.random.Generator, lo: float, hi: float, distinct_regions: bool) -> Iterator[str | None]:
+    out = place_table(city)[:, 2].astype(np.float64)
+    used: set[int] = set()  # with distinct_regions a region not used yet names a new task, so every yield is kept
+    while True:
+        region = int(rng.choice(city.n_regions, p=out / out.sum()))
+        multiplier = round(float(np.exp(rng.uniform(np.log(lo), np.log(hi)))), 1)
+        if distinct_regions and region in used:
+            yield None
+            continue
+        used.add(region)
+        yield hotspot_name(name, region, multiplier)
 
 
 def skew_tasks(cities: list[str], variants: int, gammas: tuple[float, float], seed: int) -> list[str]:
@@ -329,14 +341,9 @@ def skew_tasks(cities: list[str], variants: int, gammas: tuple[float, float], se
         raise ConfigError(f"skew_gammas {list(gammas)}: a range [low, high] with 0.1 <= low <= high (one decimal is kept)")
     names: list[str] = []
     for i, name in enumerate(cities if variants else []):
-        rng, mine = np.random.default_rng([seed, i, 7057]), []
-        for _ in range(1000 * variants):
-            gamma = round(float(np.exp(rng.uniform(np.log(lo), np.log(hi)))), 1)
-            if gamma != 1 and (task := skew_name(name, gamma)) not in mine:
-                mine.append(task)
-            if len(mine) == variants:
-                break
-        else:
+        rng = np.random.default_rng([seed, i, 7057])
+        gammas_drawn = (round(float(np.exp(rng.uniform(np.log(lo), np.log(hi)))), 1) for _ in itertools.count())
+        if (mine := first_distinct((skew_name(name, g) if g != 1 else None for g in gammas_drawn), variants)) is None:
             raise ConfigError(f"{variants} distinct skew variants of {name} not found in skew_gammas {list(gammas)} "
                               "(one decimal, gamma 1 excluded): ask for fewer, or widen the range")  # fmt: skip
         names += mine
