@@ -33,7 +33,9 @@
   ``compare A.json B.json``: per file the mean gap to MPC-F over the hotspot variants (and, apart,
   the skew variants) and the mean profit over the event tasks, and B - A paired by episode with its standard error (over
   the episodes, each the tasks' mean: ``paired_se``): what a selection rule reads
-  (docs/meta/log.md, "The event tasks").
+  (docs/meta/log.md, "The event tasks"). That error is the episodes' noise for two fixed
+  policies only: two training seeds of one recipe differ by 5-10 times it (log.md, "A second
+  training seed"), so compare a candidate against more than one run of the recipe it would replace.
 
     python benchmarks/meta_diagnostics.py gap [--policy policies/meta_rl_hot_cities.pt]
     python benchmarks/meta_diagnostics.py k --ks 0,1,3,10 [--validation]
