@@ -34,7 +34,7 @@
   the skew variants) and the mean profit over the event tasks, and B - A paired by episode with its standard error (over
   the episodes, each the tasks' mean: ``paired_se``): what a selection rule reads
   (docs/meta/log.md, "The event tasks"). That error is the episodes' noise for two fixed
-  policies only: two training seeds of one recipe differ by 5-10 times it (log.md, "A second
+  policies only: two training seeds of one recipe differed by 8-9 times it on the events and skew variants (log.md, "A second
   training seed"), so compare a candidate against more than one run of the recipe it would replace.
 
     python benchmarks/meta_diagnostics.py gap [--policy policies/meta_rl_hot_cities.pt]
