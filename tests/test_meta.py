@@ -553,3 +553,14 @@ def test_the_forecast_noise_page_names_the_command_that_makes_it():
     assert mpc_forecast_noise.table(rows, mpc_forecast_noise.NOISES, 10, 0).splitlines()[0] == (
         "<!-- python benchmarks/mpc_forecast_noise.py --episodes 10 --seed 0 -->"
     )
+
+
+def test_first_distinct_keeps_the_first_n_new_names_skips_refused_draws_and_gives_up_after_1000_n():
+    """The loop every task drawer shares: repeats and refused draws (None) are not kept, the order is the
+    draws', and a stream with too few distinct names within 1000 n draws gives None (the drawer's error)."""
+    assert meta.first_distinct(iter(["a", None, "a", "b", "c", "d"]), 3) == ["a", "b", "c"]
+    assert meta.first_distinct(iter(["a", "a", None]), 2) is None  # the stream ends first
+    late = iter(["a"] * 1999 + ["b"])  # the second name arrives at draw 2,000, the last one the budget allows
+    assert meta.first_distinct(late, 2) == ["a", "b"]
+    too_late = iter(["a"] * 2000 + ["b"])
+    assert meta.first_distinct(too_late, 2) is None
