@@ -185,6 +185,38 @@ def test_the_stay_prior_starts_from_the_idle_vehicles_distribution():
     np.testing.assert_allclose(agent.act(system, sample=False)[0][0], w, rtol=1e-5)
 
 
+def test_the_demand_prior_gives_an_emptied_busy_region_weight():
+    """With ``demand_prior`` g and a zero actor output the mean is (1 - f - g) idle share + g demand
+    share + f / N: a region with no idle vehicles but the requests gets g of the fleet, where the
+    stay prior alone gives it the floor; the padded path agrees; bad settings are refused."""
+    from marl_amod.models.dense import DenseGraph, PaddedGraphs
+    from marl_amod.models.recurrent import STAY_FLOOR
+
+    lookahead, n = 2, 4
+    cols = meta.demand_columns(lookahead)
+    model = RecurrentGNN(meta.n_task_features(lookahead), hidden=8, stay_prior=True, demand_prior=0.3, demand_columns=cols)
+    torch.nn.init.zeros_(model.actor[-1].weight), torch.nn.init.zeros_(model.actor[-1].bias)
+    x = torch.zeros(n, meta.n_task_features(lookahead))
+    x[:, 0] = torch.tensor([0.0, 2.0, 1.0, 1.0])  # idle: region 0 emptied
+    x[0, cols[1]], x[0, cols[2]], x[1, cols[0]] = 2.0, 1.0, 1.0  # region 0 served 2 and left 1 unserved; region 1 expects 1
+    edges = torch.as_tensor(np.array(grid_city(rows=2, cols=2).edge_index))
+    zeros = torch.zeros(n)
+    alpha, _, _ = model(x, zeros, zeros, torch.zeros(()), model.initial_memory(n), edges)
+    mean = alpha / alpha.sum()
+    expect = (1 - STAY_FLOOR - 0.3) * torch.tensor([0.0, 0.5, 0.25, 0.25]) + 0.3 * torch.tensor([0.75, 0.25, 0, 0]) + STAY_FLOOR / n
+    torch.testing.assert_close(mean, expect)
+    assert mean[0] > 0.2 > STAY_FLOOR / n
+    padded = PaddedGraphs([DenseGraph(edges, n), DenseGraph(torch.as_tensor(np.array(grid_city(rows=2, cols=3).edge_index)), 6)])
+    xp = torch.rand(2, 1, 6, x.shape[-1]) * 5  # the padding holds noise
+    xp[0, 0, :n] = x
+    ap, _, _ = model(xp, torch.zeros(2, 1, 6), torch.zeros(2, 1, 6), torch.zeros(2, 1), torch.zeros(2, 1, 6, 8), padded)
+    torch.testing.assert_close(ap[0, 0, :n], alpha), torch.testing.assert_close(ap[0, 0, n:], torch.zeros(2))
+    for bad in ({"stay_prior": False}, {"demand_prior": 0.95}, {"demand_columns": ()}):
+        kwargs = {"stay_prior": True, "demand_prior": 0.3, "demand_columns": cols} | bad
+        with pytest.raises(ValueError, match="demand_prior"):
+            RecurrentGNN(meta.n_task_features(lookahead), hidden=8, **kwargs)
+
+
 def test_each_regions_reward_reaches_the_memory():
     """The same team reward split differently over the regions: the policy must tell them apart
     (a special event shows as a local reward, not only as a blur in the team's)."""

@@ -149,6 +149,12 @@ def task_features(
     return np.concatenate(cols, axis=-1).astype(np.float32)
 
 
+def demand_columns(lookahead: int) -> tuple[int, int, int]:
+    """The task-feature columns that count requests out of a region: expected at t+1, served and
+    left unserved at the step just dispatched (in vehicles per region)."""
+    return 1 + lookahead, 1 + 2 * lookahead, 2 + 2 * lookahead
+
+
 N_STRUCTURE = 3  # + T: columns of structure_table
 N_PLACE = 5  # columns of place_table
 
@@ -463,6 +469,9 @@ class Args(C.RunArgs):
     heads (:class:`~marl_amod.models.gnn.FleetReadout`)"""
     stay_prior: bool = False
     """the actor outputs log-ratios to the idle vehicles' distribution (:class:`RecurrentGNN`): untrained, it keeps vehicles where they are"""
+    demand_prior: float = Field(0.0, ge=0, le=0.9)
+    """with ``stay_prior``, the share of the prior given to the regions' requests (:func:`demand_columns`):
+    a busy region its own demand has emptied keeps weight (:class:`RecurrentGNN`)"""
     episodes: int = Field(20000, ge=1)
     """training episodes in all (updates x cities_per_update x num_envs x trial_episodes)"""
     trial_episodes: int = Field(6, ge=2, le=11)
@@ -510,7 +519,9 @@ class Args(C.RunArgs):
 def make_model(args: Args) -> RecurrentGNN:
     """The run's recurrent GNN (its inputs: the task features and the optional column sets)."""
     n_features = n_task_features(args.lookahead, args.city_features, args.place_features)
-    return RecurrentGNN(n_features, args.hidden, args.conv, args.stay_prior, args.readout)
+    if args.demand_prior and not args.stay_prior:
+        raise ConfigError("demand_prior mixes into the stay prior: set stay_prior too")
+    return RecurrentGNN(n_features, args.hidden, args.conv, args.stay_prior, args.readout, args.demand_prior, demand_columns(args.lookahead))
 
 
 def held_out_among(tasks: list[str]) -> list[str]:
@@ -786,15 +797,18 @@ def load_meta(path: str | Path, like: RecurrentGNN | None = None) -> tuple[Recur
     if card["algorithm"] not in META_ALGOS:
         raise DataError(f"{path} is a {card['algorithm']} policy, not a meta-RL one")
 
-    model = RecurrentGNN(card["n_features"], card["hidden"], card["conv"], card["args"].get("stay_prior", False), card["args"].get("readout", "none"))
+    args = card["args"]
+    model = RecurrentGNN(card["n_features"], card["hidden"], card["conv"], args.get("stay_prior", False), args.get("readout", "none"),
+                         args.get("demand_prior", 0.0), demand_columns(card["lookahead"]))  # fmt: skip
     try:
         model.load_state_dict(blob["state_dict"])
     except RuntimeError as exc:
         raise DataError(f"{path}: weights do not fit its card: {str(exc).splitlines()[0]}") from None
     theirs, ours = model.state_dict(), (like.state_dict() if like is not None else None)
-    if ours is not None and (set(theirs) != set(ours) or any(theirs[k].shape != ours[k].shape for k in ours) or model.stay_prior != like.stay_prior):
+    if ours is not None and (set(theirs) != set(ours) or any(theirs[k].shape != ours[k].shape for k in ours)
+                             or (model.stay_prior, model.demand_prior) != (like.stay_prior, like.demand_prior)):
         raise DataError(f"{path} is a recurrent GNN with {card['n_features']} features, hidden {card['hidden']}, {card['conv']}, "
-                        f"readout {model.readout_kind}; this run's differs (set lookahead, hidden, conv, stay_prior and readout to match)")  # fmt: skip
+                        f"readout {model.readout_kind}; this run's differs (set lookahead, hidden, conv, stay_prior, demand_prior and readout to match)")  # fmt: skip
     model.eval()
     return model, card
 

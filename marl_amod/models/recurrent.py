@@ -54,13 +54,25 @@ class RecurrentGNN(nn.Module):
     ``readout`` (:class:`~marl_amod.models.gnn.FleetReadout`, after the message passing): both heads
     also see a pool over all regions (mean and/or max of a learned map of (memory, neighbours)):
     MPC-Forecast plans for the whole fleet, one hop of messages shows a region only its neighbours.
+
+    ``demand_prior`` (a share g, with ``stay_prior``): the prior mixes in the regions' share of the
+    requests, the sum of the feature columns ``demand_columns`` (the requests just served and left
+    unserved, and those expected next step): alpha_i = c N ((1 - f - g) idle share_i + g demand
+    share_i + f / N) exp(a_i). Why: the idle share alone reads a region emptied by its own demand (a
+    dominant hotspot, a surge) as "few vehicles wanted", so filling it takes a log-ratio that grows
+    without bound as its idle vehicles run out, on states imitation rarely showed (docs/meta/log.md,
+    "Where the held-out gap is now"); with demand in the prior an emptied busy region keeps weight.
     """
 
     def __init__(
-        self, n_features: int, hidden: int = 64, conv: ConvKind = "sage", stay_prior: bool = False, readout: Readout = "none"
+        self, n_features: int, hidden: int = 64, conv: ConvKind = "sage", stay_prior: bool = False, readout: Readout = "none",
+        demand_prior: float = 0.0, demand_columns: tuple[int, ...] = (),
     ) -> None:
         super().__init__()
+        if demand_prior and (not stay_prior or not demand_columns or demand_prior + STAY_FLOOR > 1 or max(demand_columns) >= n_features):
+            raise ValueError(f"demand_prior {demand_prior} needs stay_prior, demand columns among the {n_features} features and a share <= {1 - STAY_FLOOR}")
         self.hidden, self.stay_prior, self.n_features, self.readout_kind = hidden, stay_prior, n_features, readout
+        self.demand_prior, self.demand_columns = float(demand_prior), tuple(demand_columns)
         self.encode = nn.Sequential(nn.Linear(n_features + N_FEEDBACK, hidden), nn.ReLU())
         self.memory = nn.GRUCell(hidden, hidden)
         self.conv = make_conv(conv, hidden)
@@ -97,11 +109,11 @@ class RecurrentGNN(nn.Module):
         actor, per_region = self.actor(z).squeeze(-1), self.critic(z).squeeze(-1)  # (..., N) each
         regions = n if mask is None else mask.sum(-1, keepdim=True)  # each city's own N
         if self.stay_prior:
-            idle = x[..., 0].clamp_min(0)  # (..., N) idle vehicles per region, in per-city units
-            if mask is not None:
-                idle = idle.masked_fill(~mask, 0.0)
-            share = idle / idle.sum(-1, keepdim=True).clamp_min(1e-9)
-            stay = (1 - STAY_FLOOR) * share + STAY_FLOOR / regions
+            idle = x[..., 0]  # (..., N) idle vehicles per region, in per-city units
+            stay = (1 - STAY_FLOOR - self.demand_prior) * _share(idle, mask) + STAY_FLOOR / regions
+            if self.demand_prior:
+                demand = x[..., list(self.demand_columns)].sum(-1)  # (..., N) requests, in per-city units
+                stay = stay + self.demand_prior * _share(demand, mask)
             alpha = STAY_CONCENTRATION * regions * stay * torch.exp(actor.clamp(-10, 10))  # (..., N)
         else:
             alpha = concentration(actor)  # (..., N)
@@ -111,3 +123,9 @@ class RecurrentGNN(nn.Module):
             alpha = alpha.masked_fill(~mask, 0.0)
             value = per_region.masked_fill(~mask, 0.0).sum(-1) / regions.squeeze(-1)
         return alpha, value, memory
+
+
+def _share(v: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """(..., N) counts -> their distribution over the (real) regions; negatives count 0, all zero stays zero."""
+    v = v.clamp_min(0) if mask is None else v.clamp_min(0).masked_fill(~mask, 0.0)
+    return v / v.sum(-1, keepdim=True).clamp_min(1e-9)
