@@ -180,6 +180,24 @@ def test_dagger_rounds_join_the_demonstrations_and_resume_from_disk(tasks, tmp_p
     assert np.isfinite(run_strategy("meta-rl", "synthetic", episodes=1, meta_policy=str(tmp_path / "bc3.pt"), adapt_episodes=1)["metrics"]["profit"]["mean"])
 
 
+def test_stop_after_cuts_the_run_not_its_schedule(tasks, tmp_path):
+    """A run stopped by ``stop_after`` took the first updates of the full schedule: resumed without
+    it, it ends on the same weights as the run that was never stopped."""
+    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
+                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=4, eval_every=2,
+                   eval_episodes=1, final_eval_episodes=1, lr=0.01, lr_final=0.001, run_dir=str(tmp_path / "whole"),
+                   policy_out=str(tmp_path / "whole.pt"))  # fmt: skip
+    ALGOS["meta-bc"].train(args)
+    cut = args.model_copy(update={"stop_after": 3, "run_dir": str(tmp_path / "cut"), "policy_out": str(tmp_path / "cut.pt")})
+    assert ALGOS["meta-bc"].train(cut)["card"]["updates"] == 3
+    state = torch.load(tmp_path / "cut" / "state.pt", weights_only=False)
+    assert state["episode"] == 3 and state["opt"]["param_groups"][0]["lr"] == pytest.approx(mi.lr_at(args, 2))  # the 4-update decay
+    ALGOS["meta-bc"].train(cut.model_copy(update={"stop_after": None}), resume=str(tmp_path / "cut" / "state.pt"))
+    whole, resumed = (torch.load(tmp_path / d / "state.pt", weights_only=False)["model"] for d in ("whole", "cut"))
+    for key in whole:
+        torch.testing.assert_close(resumed[key], whole[key])
+
+
 @pytest.mark.parametrize(("first", "every", "rounds", "starts"), [(0, 3, 2, [0, 3]), (0, 500, 5, [0, 500, 1000, 1500, 2000]),
                                                                  (4, 3, 3, [4, 7, 10]), (5, 10, 1, [5])])
 def test_dagger_rounds_start_at_the_offset_and_a_resume_reads_back_the_ones_begun(first, every, rounds, starts):

@@ -350,6 +350,10 @@ class Args(meta.Args):
     """MPC-Forecast episodes per training city"""
     updates: int = Field(600, ge=1)
     """gradient steps, each on ``cities_per_update`` cities x ``num_envs`` trials of ``trial_episodes`` episodes"""
+    stop_after: int | None = Field(None, ge=1)
+    """stop (validate, save) after this many updates without changing the schedule over ``updates``
+    (step size, DAgger rounds): a replicate on a slower machine stops where the run it pairs with
+    stopped at its time limit, instead of fewer updates in the same seconds"""
     eval_every: int = Field(100, ge=1)
     """updates between validations (meta-RL's adapted validation on ``val_cities``; the best is kept)"""
     lr_final: float | None = Field(None, gt=0)
@@ -574,8 +578,9 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         return C.state_path(args), step
 
     dagger_wall = sum(dagger_round(args, model, k, data, cities) for k in range(1, started_rounds(args, step) + 1))  # resumed: read back
+    last = min(args.updates, args.stop_after or args.updates)
     with C.interruptible(save):
-        while step < args.updates:
+        while step < last:
             if k := round_due(args, step):
                 dagger_wall += dagger_round(args, model, k, data, cities)
             draws = []
@@ -591,7 +596,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
             opt.step()
             step += 1
             stats = {"loss/imitation": ce.item(), "loss/value": vl.item()}
-            if book.close(step, args.updates, stats, step % args.eval_every == 0 or step >= args.updates, save):
+            if book.close(step, args.updates, stats, step % args.eval_every == 0 or step >= last, save):
                 break
     log.close()
     model.load_state_dict(book.best.state)
