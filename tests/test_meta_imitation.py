@@ -198,6 +198,20 @@ def test_stop_after_cuts_the_run_not_its_schedule(tasks, tmp_path):
         torch.testing.assert_close(resumed[key], whole[key])
 
 
+def test_a_demand_prior_policy_loads_with_its_prior_and_refuses_to_warm_start_another(tasks, tmp_path):
+    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
+                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=1, eval_every=1,
+                   eval_episodes=1, final_eval_episodes=1, stay_prior=True, demand_prior=0.25, run_dir=str(tmp_path / "run"),
+                   policy_out=str(tmp_path / "p.pt"))  # fmt: skip
+    ALGOS["meta-bc"].train(args)
+    model, card = meta.load_meta(tmp_path / "p.pt")
+    assert model.demand_prior == 0.25 and model.demand_columns == meta.demand_columns(card["lookahead"])
+    with pytest.raises(DataError, match="demand_prior"):
+        meta.load_meta(tmp_path / "p.pt", like=meta.make_model(args.model_copy(update={"demand_prior": 0.0})))
+    with pytest.raises(ConfigError, match="stay_prior"):
+        meta.make_model(args.model_copy(update={"stay_prior": False}))
+
+
 @pytest.mark.parametrize(("first", "every", "rounds", "starts"), [(0, 3, 2, [0, 3]), (0, 500, 5, [0, 500, 1000, 1500, 2000]),
                                                                  (4, 3, 3, [4, 7, 10]), (5, 10, 1, [5])])
 def test_dagger_rounds_start_at_the_offset_and_a_resume_reads_back_the_ones_begun(first, every, rounds, starts):
