@@ -208,8 +208,8 @@ def test_a_demand_prior_policy_loads_with_its_prior_and_refuses_to_warm_start_an
     assert model.demand_prior == 0.25 and model.demand_columns == meta.demand_columns(card["lookahead"])
     with pytest.raises(DataError, match="demand_prior"):
         meta.load_meta(tmp_path / "p.pt", like=meta.make_model(args.model_copy(update={"demand_prior": 0.0})))
-    with pytest.raises(ConfigError, match="stay_prior"):
-        meta.make_model(args.model_copy(update={"stay_prior": False}))
+    with pytest.raises(ConfigError, match="stay_prior"):  # with the config, before any demonstration is collected
+        args_for("meta-bc", {"scenario": "synthetic", "cities": tasks, "demand_prior": 0.25})
 
 
 @pytest.mark.parametrize(("first", "every", "rounds", "starts"), [(0, 3, 2, [0, 3]), (0, 500, 5, [0, 500, 1000, 1500, 2000]),

@@ -80,7 +80,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 import torch.nn.functional as F
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from marl_amod.algos import common as C
 from marl_amod.algos.rollout import train_seed
@@ -508,6 +508,12 @@ class Args(C.RunArgs):
     run_dir: str = "runs/meta"
     """logs, the resumable training state"""
 
+    @model_validator(mode="after")
+    def _prior(self) -> Args:
+        if self.demand_prior and not self.stay_prior:  # refused with the config, not after the demonstrations
+            raise ValueError(f"demand_prior {self.demand_prior} mixes into the stay prior: set stay_prior too")
+        return self
+
     def ignored_keys(self) -> dict[str, str]:
         return {"actor": "meta-RL always uses the recurrent GNN", "mode": "meta-RL is centralised",
                 "central_critic": "meta-RL is centralised", "critic_time": "the recurrent critic reads t / horizon already",
@@ -519,8 +525,6 @@ class Args(C.RunArgs):
 def make_model(args: Args) -> RecurrentGNN:
     """The run's recurrent GNN (its inputs: the task features and the optional column sets)."""
     n_features = n_task_features(args.lookahead, args.city_features, args.place_features)
-    if args.demand_prior and not args.stay_prior:
-        raise ConfigError("demand_prior mixes into the stay prior: set stay_prior too")
     return RecurrentGNN(n_features, args.hidden, args.conv, args.stay_prior, args.readout, args.demand_prior, demand_columns(args.lookahead))
 
 
