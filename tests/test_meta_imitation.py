@@ -409,8 +409,8 @@ def test_shocked_dagger_trials_are_labelled_by_mpc_told_the_shock(tasks):
     assert differ > 0
 
 
-@pytest.mark.parametrize("readout", ["none", "mean-max"])
-def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp_path, readout):
+@pytest.mark.parametrize(("readout", "own"), [("none", False), ("mean-max", False), ("mean-max", True)])
+def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp_path, readout, own):
     """One update's cities of different sizes (6 and 9 regions; one drawn twice, one with a shorter
     trial) in one padded batch give the mean of the per-city losses and the same gradients: the
     padding reaches no message, pool, stay prior, value or cross-entropy."""
@@ -427,9 +427,9 @@ def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp
     def loss_and_grads(ce, vl):
         return [ce, vl, *torch.autograd.grad(ce + 0.5 * vl, list(model.parameters()))]
 
-    one_by_one = [mi.imitation_losses(model, d, e, g, gamma=0.97) for d, e, g in draws]
+    one_by_one = [mi.imitation_losses(model, d, e, g, gamma=0.97, own_prev_action=own) for d, e, g in draws]
     want = loss_and_grads(torch.stack([c for c, _ in one_by_one]).mean(), torch.stack([v for _, v in one_by_one]).mean())
-    got = loss_and_grads(*mi.cities_losses(model, draws, gamma=0.97))
+    got = loss_and_grads(*mi.cities_losses(model, draws, gamma=0.97, own_prev_action=own))
     assert demos[0].x.shape[2] != demos[1].x.shape[2] and want[0] > 0 and want[1] > 0
     for a, b in zip(got, want, strict=True):
         torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-4)
@@ -494,3 +494,24 @@ def test_skew_tasks_are_a_function_of_the_seed_distinct_and_never_the_city_itsel
     for bad in ((0.0, 2.0), (3.0, 2.0), (1.2, float("inf"))):
         with pytest.raises(ConfigError, match="skew_gammas"):
             meta.skew_tasks(["synthetic"], 1, bad, seed=0)
+
+
+def test_own_prev_action_feeds_the_memory_the_models_own_moves_not_the_played_ones(tasks, tmp_path):
+    """With ``own_prev_action`` what was played does not reach the output (no copycat channel), and the
+    means are those of a trial whose played moves were the model's own means, as deployed
+    deterministically; without it the played moves do reach it."""
+    mi.collect_demos(tmp_path / "d", tasks[1:], episodes=2, seed=0, lookahead=6)
+    city = load_city(tasks[1])
+    demos, graph = mi.load_demos(tmp_path / "d", city, 6), meta.city_graph(city)
+    torch.manual_seed(0)
+    model = RecurrentGNN(meta.n_task_features(6), hidden=8, stay_prior=True)
+    trials = mi.Trials.of_city(demos, np.array([[0], [1]]))  # one trial of two episodes
+    shuffled = mi.Trials(**{**vars(trials), "action": trials.action.flip(-1)})
+    with torch.no_grad():
+        own = mi.teacher_forced(model, trials, graph, own_prev_action=True)[0]
+        torch.testing.assert_close(mi.teacher_forced(model, shuffled, graph, own_prev_action=True)[0], own)
+        assert not torch.allclose(mi.teacher_forced(model, shuffled, graph)[0], mi.teacher_forced(model, trials, graph)[0])
+        as_played = mi.Trials(**{**vars(trials), "action": own.reshape(trials.action.shape)})
+        torch.testing.assert_close(mi.teacher_forced(model, as_played, graph)[0], own)
+    args = args_for("meta-bc", {"scenario": "synthetic", "cities": tasks, "own_prev_action": True})
+    assert args.own_prev_action

@@ -280,22 +280,23 @@ class Trials:
 
 
 def imitation_losses(
-    model: RecurrentGNN, demos: CityDemos, episodes: np.ndarray, graph: DenseGraph, gamma: float
+    model: RecurrentGNN, demos: CityDemos, episodes: np.ndarray, graph: DenseGraph, gamma: float, own_prev_action: bool = False
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(actor cross-entropy, critic loss) of B trials of one city with teacher forcing; ``episodes``
     (K, B) are the demonstration episodes of each trial, the memory carried across its K episodes."""
-    return trial_losses(model, Trials.of_city(demos, episodes), graph, gamma)
+    return trial_losses(model, Trials.of_city(demos, episodes), graph, gamma, own_prev_action)
 
 
 def cities_losses(
-    model: RecurrentGNN, draws: list[tuple[CityDemos, np.ndarray, DenseGraph]], gamma: float, padded: bool = True
+    model: RecurrentGNN, draws: list[tuple[CityDemos, np.ndarray, DenseGraph]], gamma: float, padded: bool = True,
+    own_prev_action: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The mean over the drawn cities of :func:`imitation_losses`. ``padded``: the cities of each
     trial length in one batch (:class:`~marl_amod.models.dense.PaddedGraphs`), one forward pass
     per step for all of them, the same losses to float rounding (tested); else one city after
     another (what pays where tensors outgrow the cache: ``benchmarks/meta_update.py``)."""
     if not padded:
-        losses = [imitation_losses(model, demos, episodes, graph, gamma) for demos, episodes, graph in draws]
+        losses = [imitation_losses(model, demos, episodes, graph, gamma, own_prev_action) for demos, episodes, graph in draws]
         return torch.stack([c for c, _ in losses]).mean(), torch.stack([v for _, v in losses]).mean()
     groups: dict[int, list[int]] = {}
     for i, (demos, _, _) in enumerate(draws):
@@ -303,15 +304,22 @@ def cities_losses(
     ce, vl = torch.zeros(()), torch.zeros(())
     for members in groups.values():
         batch = Trials.padded([Trials.of_city(draws[i][0], draws[i][1]) for i in members])
-        g_ce, g_vl = trial_losses(model, batch, PaddedGraphs([draws[i][2] for i in members]), gamma)
+        g_ce, g_vl = trial_losses(model, batch, PaddedGraphs([draws[i][2] for i in members]), gamma, own_prev_action)
         ce, vl = ce + g_ce * len(members), vl + g_vl * len(members)  # every city has B trials of T steps: equal weights
     return ce / len(draws), vl / len(draws)
 
 
-def teacher_forced(model: RecurrentGNN, trials: Trials, graph: DenseGraph | PaddedGraphs) -> tuple[torch.Tensor, torch.Tensor]:
+def teacher_forced(
+    model: RecurrentGNN, trials: Trials, graph: DenseGraph | PaddedGraphs, own_prev_action: bool = False
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(Dirichlet means (K T, *lead, N), values (K T, *lead)) of ``model`` run over teacher-forced
     trials: the memory carried across the K episodes, the previous action and rewards those of the
-    trials (restarting at zero with each episode). What the losses and the diagnostics read."""
+    trials (restarting at zero with each episode). What the losses and the diagnostics read.
+
+    ``own_prev_action``: the previous action the memory reads is the model's own mean at the step
+    before (detached, as deployed) instead of what was played there. In a demonstration that is
+    MPC-F's move, which predicts its next one: a channel the deployed policy never has (it reads its
+    own moves), the copycat problem of imitation from histories."""
     k_eps, t_steps, *lead, n, _ = trials.x.shape
     memory = model.initial_memory(n, *lead)
     means, values = [], []
@@ -321,15 +329,18 @@ def teacher_forced(model: RecurrentGNN, trials: Trials, graph: DenseGraph | Padd
             alpha, v, memory = model(trials.x[k, t], prev_a, prev_rr, prev_r, memory, graph)
             means.append(alpha / alpha.sum(-1, keepdim=True))
             values.append(v)
-            prev_a, prev_rr, prev_r = trials.action[k, t] * trials.regions, trials.region_reward[k, t], trials.reward[k, t]
+            played = means[-1].detach() if own_prev_action else trials.action[k, t]
+            prev_a, prev_rr, prev_r = played * trials.regions, trials.region_reward[k, t], trials.reward[k, t]
     return torch.stack(means), torch.stack(values)
 
 
-def trial_losses(model: RecurrentGNN, trials: Trials, graph: DenseGraph | PaddedGraphs, gamma: float) -> tuple[torch.Tensor, torch.Tensor]:
+def trial_losses(
+    model: RecurrentGNN, trials: Trials, graph: DenseGraph | PaddedGraphs, gamma: float, own_prev_action: bool = False
+) -> tuple[torch.Tensor, torch.Tensor]:
     """(actor cross-entropy, critic loss) of teacher-forced trials: the actor fits the Dirichlet
     mean to MPC-F's shares, the critic the discounted return to the trial's end; both means over
     every decision of every trial (padded regions carry share 0 and alpha 0, so they add nothing)."""
-    means, values = teacher_forced(model, trials, graph)
+    means, values = teacher_forced(model, trials, graph, own_prev_action)
     share, rewards = trials.share.flatten(0, 1), trials.reward.flatten(0, 1)  # (K T, *lead, N), (K T, *lead)
     ce = -(share * torch.log(means.clamp_min(1e-8))).sum(-1)  # (K T, *lead)
     ret, running = [], torch.zeros(rewards.shape[1:])
@@ -412,6 +423,11 @@ class Args(meta.Args):
     event_share: float | None = Field(None, gt=0, lt=1)
     """the share of an update's draws that go to the event tasks (uniform among them); the rest as
     without them (cities and hotspot and skew variants, ``hotspot_share``)"""
+    own_prev_action: bool = False
+    """the previous action the memory reads in training is the model's own (its mean at the step
+    before, as deployed) instead of what was played (MPC-F's move in a demonstration): MPC-F's move
+    predicts its next one, so a policy trained on it leans on a channel that at deployment carries
+    its own mistakes forward (the copycat problem; ``teacher_forced``)"""
     pad_cities: bool = True
     """an update's cities padded into one batch (the same losses to float rounding): 1.12-1.16x
     faster at hidden 64 x 16 trials per city, 1.4-1.8x at 4 trials (``benchmarks/meta_update.py``);
@@ -587,7 +603,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
             for _ in range(args.cities_per_update):
                 demos, graph = data[draw_run_task(args, names, len(plain), events, rng)]
                 draws.append((demos, draw_trials(demos, args, rng), graph))
-            ce, vl = cities_losses(model, draws, args.gamma, args.pad_cities)
+            ce, vl = cities_losses(model, draws, args.gamma, args.pad_cities, args.own_prev_action)
             for group in opt.param_groups:
                 group["lr"] = lr_at(args, step)
             opt.zero_grad()
