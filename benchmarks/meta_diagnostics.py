@@ -26,6 +26,10 @@
 * ``event``: the share of the idle fleet each policy asks for in the Brooklyn event's surge
   regions and halved hotspots, inside the event window and outside, and the requests left
   unserved at the surge: does the memory notice the shock?
+* ``transplant``: which inputs differ on the policy's own path: trials driven by MPC-F and by the
+  policy on the same demand streams, MPC-F's inputs (previous moves, rewards, each feature group)
+  moved into the policy's own trials, then teacher-forced: the busiest region's share and the
+  share misplaced (docs/meta/log.md, "The policy's own moves as its previous action").
 * ``tasks``: each episode's profit of the policy (K = ``--k``, 3 as deployed) and of MPC-Forecast (not
   told an event task's event) on training-city tasks (hotspot variants ``<city>~hot<r>x<m>``, skew variants ``<city>~skew<gamma>``,
   event tasks ``<city>~ev...``: ``meta.task_city``), validation episodes (seed 1000), written to
@@ -44,6 +48,7 @@
     python benchmarks/meta_diagnostics.py where [--cities nyc_brooklyn]
     python benchmarks/meta_diagnostics.py hotspot --cities porto,washington_dc --multiplier 3 --episodes 6
     python benchmarks/meta_diagnostics.py hotspot --cities san_francisco --episodes 0 --own
+    python benchmarks/meta_diagnostics.py transplant --cities san_francisco,nyc_brooklyn --episodes 8
     python benchmarks/meta_diagnostics.py tasks --cities porto~hot1x2.5,porto~ev7+12x6@6-14dr1+2x0.5 --episodes 20 --out A.json
     python benchmarks/meta_diagnostics.py compare A.json B.json
 """
@@ -250,6 +255,39 @@ def hotspot(policy: str, cities: list[str], multiplier: float | None, episodes: 
             print(line, flush=True)
 
 
+def _transplanted(model: meta.RecurrentGNN, graph: meta.DenseGraph, region: int, label: str, d: mi.CityDemos) -> None:
+    means, share = forced(model, d, graph)
+    print(f"  {label:44s} r{region} {means[..., region].mean():.3f} ({share[..., region].mean():.3f})  misplaced {misplaced(means, share):.3f}", flush=True)
+
+
+def transplant(policy: str, cities: list[str], episodes: int = 8) -> None:
+    """Which inputs make the policy's own path differ from MPC-F's? Trials driven by MPC-F and by the
+    policy on the same demand streams (each decision has a twin with the same requests); MPC-F's
+    inputs moved group by group into the policy's own trials, then teacher-forced: the share asked
+    for the busiest region (MPC-F's label on those states) and the share misplaced."""
+    model, card = meta.load_meta(policy)
+    la = card["lookahead"]
+    groups = {"idle vehicles": [0], "supply": list(range(1, 1 + la)), "expected demand": list(range(1 + la, 1 + 2 * la)),
+              "served, unserved": [1 + 2 * la, 2 + 2 * la], "clock": [3 + 2 * la]}  # fmt: skip
+    for name in cities:
+        city = meta.task_city(name)
+        region, graph = int(meta.place_table(city)[:, 2].argmax()), meta.city_graph(city)
+        theirs = labelled(model, city, episodes, la, fresh(778))
+        own = labelled(model, city, episodes, la, fresh(778), learner=model)
+        rows = {"nothing (all its own)": own,
+                "moves as the previous actions": mi.CityDemos(own.x, own.share, own.region_reward, own.reward, theirs.action),
+                "rewards as the previous rewards": mi.CityDemos(own.x, own.share, theirs.region_reward, theirs.reward, own.action)}  # fmt: skip
+        for label, cols in groups.items():
+            x = own.x.clone()
+            x[..., cols] = theirs.x[..., cols]
+            rows[label] = mi.CityDemos(x, own.share, own.region_reward, own.reward, own.action)
+        rows["whole trials (MPC-F's own states)"] = theirs
+        rows["whole trials, the policy's moves as previous"] = mi.CityDemos(theirs.x, theirs.share, theirs.region_reward, theirs.reward, own.action)
+        print(f"{name}: the policy's own trials ({episodes} episodes) with MPC-F's ...: the busiest region asked (MPC-F's label)")
+        for label, d in rows.items():
+            _transplanted(model, graph, region, label, d)
+
+
 def tasks(policy: str, names: list[str], episodes: int, out: str, seed: int = 1000, mpc_from: str | None = None, k: int = 3) -> None:
     """Per-episode profits of ``policy`` (adapted over ``k`` episodes) and MPC-Forecast on each task, into ``out``;
     with ``mpc_from`` (an earlier ``out`` of the same episodes) MPC-F's are read from there, not rerun."""
@@ -350,7 +388,7 @@ def where(policy: str, cities: list[str], episodes: int = 10, seed: int = 1000, 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hotspot", "tasks", "compare"])
+    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hotspot", "transplant", "tasks", "compare"])
     parser.add_argument("files", nargs="*", help="compare: two tasks --out files (the second against the first)")
     parser.add_argument("--policy", default="policies/meta_rl_hot_cities.pt")
     parser.add_argument("--demos", default="runs/meta_demos")
@@ -372,6 +410,8 @@ def main() -> None:
         heldout(args.policy, args.demos, args.cities.split(","), args.episodes)
     elif args.what == "hotspot":
         hotspot(args.policy, args.cities.split(","), args.multiplier, args.episodes, own=args.own)
+    elif args.what == "transplant":
+        transplant(args.policy, args.cities.split(","), args.episodes)
     elif args.what == "where":
         where(args.policy, [c for c in args.cities.split(",") if c in meta.HELD_OUT])
     elif args.what == "tasks":
