@@ -187,12 +187,13 @@ def columns(d: mi.CityDemos) -> np.ndarray:
     return np.concatenate([x, d.region_reward.numpy().reshape(-1, 1), team], axis=1)
 
 
-def forced(model: meta.RecurrentGNN, d: mi.CityDemos, graph: meta.DenseGraph) -> tuple[torch.Tensor, torch.Tensor]:
+def forced(model: meta.RecurrentGNN, d: mi.CityDemos, graph: meta.DenseGraph, own_prev_action: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """(the policy's Dirichlet means, MPC-F's shares), (decisions, B, N), teacher-forced over trials
-    of 4 episodes (the memory carried as in training)."""
+    of 4 episodes (the memory carried as in training; ``own_prev_action``: reading its own means as
+    the previous actions, :func:`~marl_amod.algos.meta_imitation.teacher_forced`)."""
     trials = mi.Trials.of_city(d, np.arange(d.episodes).reshape(-1, 4).T)
     with torch.no_grad():
-        means = mi.teacher_forced(model, trials, graph)[0]
+        means = mi.teacher_forced(model, trials, graph, own_prev_action)[0]
     return means, trials.share.flatten(0, 1)
 
 
@@ -255,8 +256,8 @@ def hotspot(policy: str, cities: list[str], multiplier: float | None, episodes: 
             print(line, flush=True)
 
 
-def _transplanted(model: meta.RecurrentGNN, graph: meta.DenseGraph, region: int, label: str, d: mi.CityDemos) -> None:
-    means, share = forced(model, d, graph)
+def _transplanted(model: meta.RecurrentGNN, graph: meta.DenseGraph, region: int, label: str, d: mi.CityDemos, own_prev_action: bool = False) -> None:
+    means, share = forced(model, d, graph, own_prev_action)
     print(f"  {label:44s} r{region} {means[..., region].mean():.3f} ({share[..., region].mean():.3f})  misplaced {misplaced(means, share):.3f}", flush=True)
 
 
@@ -286,6 +287,7 @@ def transplant(policy: str, cities: list[str], episodes: int = 8) -> None:
         print(f"{name}: the policy's own trials ({episodes} episodes) with MPC-F's ...: the busiest region asked (MPC-F's label)")
         for label, d in rows.items():
             _transplanted(model, graph, region, label, d)
+        _transplanted(model, graph, region, "whole trials, its own means as previous", theirs, own_prev_action=True)  # as own_prev_action trains
 
 
 def tasks(policy: str, names: list[str], episodes: int, out: str, seed: int = 1000, mpc_from: str | None = None, k: int = 3) -> None:
