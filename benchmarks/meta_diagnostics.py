@@ -58,6 +58,7 @@ from __future__ import annotations
 import argparse
 import json
 from collections.abc import Callable, Iterator
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -267,23 +268,27 @@ def transplant(policy: str, cities: list[str], episodes: int = 8) -> None:
     inputs moved group by group into the policy's own trials, then teacher-forced: the share asked
     for the busiest region (MPC-F's label on those states) and the share misplaced."""
     model, card = meta.load_meta(policy)
-    la = card["lookahead"]
-    groups = {"idle vehicles": [0], "supply": list(range(1, 1 + la)), "expected demand": list(range(1 + la, 1 + 2 * la)),
-              "served, unserved": [1 + 2 * la, 2 + 2 * la], "clock": [3 + 2 * la]}  # fmt: skip
+    lookahead = card["lookahead"]
+    names = feature_names(lookahead, *meta.features_read(model, lookahead))
+    group_of = {"idle": "idle vehicles", "supply": "supply", "value": "expected demand", "served": "served, unserved", "unserved": "served, unserved", "t": "clock"}
+    groups: dict[str, list[int]] = {}
+    for j, column in enumerate(names):  # "supply+3" is in the group of "supply"; the city's own columns are the same on both paths
+        if label := group_of.get(column.split("+")[0]):
+            groups.setdefault(label, []).append(j)
     for name in cities:
         city = meta.task_city(name)
         region, graph = int(meta.place_table(city)[:, 2].argmax()), meta.city_graph(city)
-        theirs = labelled(model, city, episodes, la, fresh(778))
-        own = labelled(model, city, episodes, la, fresh(778), learner=model)
+        theirs = labelled(model, city, episodes, lookahead, fresh(778))
+        own = labelled(model, city, episodes, lookahead, fresh(778), learner=model)
         rows = {"nothing (all its own)": own,
-                "moves as the previous actions": mi.CityDemos(own.x, own.share, own.region_reward, own.reward, theirs.action),
-                "rewards as the previous rewards": mi.CityDemos(own.x, own.share, theirs.region_reward, theirs.reward, own.action)}  # fmt: skip
+                "moves as the previous actions": replace(own, action=theirs.action),
+                "rewards as the previous rewards": replace(own, region_reward=theirs.region_reward, reward=theirs.reward)}  # fmt: skip
         for label, cols in groups.items():
             x = own.x.clone()
             x[..., cols] = theirs.x[..., cols]
-            rows[label] = mi.CityDemos(x, own.share, own.region_reward, own.reward, own.action)
+            rows[label] = replace(own, x=x)
         rows["whole trials (MPC-F's own states)"] = theirs
-        rows["whole trials, the policy's moves as previous"] = mi.CityDemos(theirs.x, theirs.share, theirs.region_reward, theirs.reward, own.action)
+        rows["whole trials, the policy's moves as previous"] = replace(theirs, action=own.action)
         print(f"{name}: the policy's own trials ({episodes} episodes) with MPC-F's ...: the busiest region asked (MPC-F's label)")
         for label, d in rows.items():
             _transplanted(model, graph, region, label, d)

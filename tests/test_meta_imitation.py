@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -506,12 +508,12 @@ def test_own_prev_action_feeds_the_memory_the_models_own_moves_not_the_played_on
     torch.manual_seed(0)
     model = RecurrentGNN(meta.n_task_features(6), hidden=8, stay_prior=True)
     trials = mi.Trials.of_city(demos, np.array([[0], [1]]))  # one trial of two episodes
-    shuffled = mi.Trials(**{**vars(trials), "action": trials.action.flip(-1)})
+    shuffled = replace(trials, action=trials.action.flip(-1))
     with torch.no_grad():
         own = mi.teacher_forced(model, trials, graph, own_prev_action=True)[0]
         torch.testing.assert_close(mi.teacher_forced(model, shuffled, graph, own_prev_action=True)[0], own)
         assert not torch.allclose(mi.teacher_forced(model, shuffled, graph)[0], mi.teacher_forced(model, trials, graph)[0])
-        as_played = mi.Trials(**{**vars(trials), "action": own.reshape(trials.action.shape)})
+        as_played = replace(trials, action=own.reshape(trials.action.shape))
         torch.testing.assert_close(mi.teacher_forced(model, as_played, graph)[0], own)
     args = args_for("meta-bc", {"scenario": "synthetic", "cities": tasks, "own_prev_action": True})
     assert args.own_prev_action
