@@ -10,6 +10,7 @@ import torch
 
 from marl_amod.algos import meta
 from marl_amod.algos import meta_imitation as mi
+from marl_amod.algos import offline as O
 from marl_amod.algos.registry import ALGOS, args_for
 from marl_amod.baselines.mpc import MPCForecast
 from marl_amod.errors import ConfigError, DataError
@@ -411,8 +412,11 @@ def test_shocked_dagger_trials_are_labelled_by_mpc_told_the_shock(tasks):
     assert differ > 0
 
 
-@pytest.mark.parametrize(("readout", "own"), [("none", False), ("mean-max", False), ("mean-max", True)])
-def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp_path, readout, own):
+@pytest.mark.parametrize(
+    ("readout", "fit"),
+    [("none", mi.Fit()), ("mean-max", mi.Fit()), ("mean-max", mi.Fit(own_prev_action=True)), ("mean-max", mi.Fit(imitation="l1", shortfall=2.0))],
+)
+def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp_path, readout, fit):
     """One update's cities of different sizes (6 and 9 regions; one drawn twice, one with a shorter
     trial) in one padded batch give the mean of the per-city losses and the same gradients: the
     padding reaches no message, pool, stay prior, value or cross-entropy."""
@@ -429,9 +433,9 @@ def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp
     def loss_and_grads(ce, vl):
         return [ce, vl, *torch.autograd.grad(ce + 0.5 * vl, list(model.parameters()))]
 
-    one_by_one = [mi.imitation_losses(model, d, e, g, gamma=0.97, own_prev_action=own) for d, e, g in draws]
+    one_by_one = [mi.imitation_losses(model, d, e, g, gamma=0.97, fit=fit) for d, e, g in draws]
     want = loss_and_grads(torch.stack([c for c, _ in one_by_one]).mean(), torch.stack([v for _, v in one_by_one]).mean())
-    got = loss_and_grads(*mi.cities_losses(model, draws, gamma=0.97, own_prev_action=own))
+    got = loss_and_grads(*mi.cities_losses(model, draws, gamma=0.97, fit=fit))
     assert demos[0].x.shape[2] != demos[1].x.shape[2] and want[0] > 0 and want[1] > 0
     for a, b in zip(got, want, strict=True):
         torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-4)
@@ -517,3 +521,35 @@ def test_own_prev_action_feeds_the_memory_the_models_own_moves_not_the_played_on
         torch.testing.assert_close(mi.teacher_forced(model, as_played, graph)[0], own)
     args = args_for("meta-bc", {"scenario": "synthetic", "cities": tasks, "own_prev_action": True})
     assert args.own_prev_action
+
+
+def test_receiving_marks_the_regions_mpc_moves_vehicles_into(tasks, tmp_path):
+    """On MPC-F's demonstrations the receivers are the regions whose target exceeds their idle vehicles
+    (read back from the features' per-city units), and only those: the regions the l1 loss prices a
+    vehicle short at 1 + shortfall_weight times."""
+    mi.collect_demos(tmp_path / "d", tasks[1:], episodes=2, seed=0, lookahead=6)
+    city = load_city(tasks[1])
+    demos = mi.load_demos(tmp_path / "d", city, 6)
+    idle = demos.x[..., 0] * meta.CityScale.of(city).vehicles  # vehicles
+    target = demos.share * idle.sum(-1, keepdim=True)  # MPC-F keeps the idle fleet, so its targets in vehicles
+    want = target > idle + 0.5
+    got = mi.receiving(demos.x[..., 0], demos.share)
+    assert want.any() and (~want).any()
+    assert torch.equal(got, want)
+
+
+def test_l1_shortfall_prices_a_receivers_missing_vehicles_higher(tasks):
+    """The meta-policy's l1 loss with a shortfall weight: the same miss costs more where MPC-F sends
+    vehicles than where it takes them from, and a shortfall weight needs the l1 loss."""
+    idle, share = torch.tensor([[2.0, 2.0]]), torch.tensor([[0.75, 0.25]])  # region 0 receives
+    receives = mi.receiving(idle, share)
+    assert receives.tolist() == [[True, False]]
+    short_at_receiver = O.shares_loss(torch.tensor([[0.65, 0.35]]), share, "l1", receives, 2.0)
+    short_at_sender = O.shares_loss(torch.tensor([[0.85, 0.15]]), share, "l1", receives, 2.0)
+    torch.testing.assert_close(short_at_receiver, torch.tensor([0.4]))  # 0.1 short x 3 + 0.1 over
+    torch.testing.assert_close(short_at_sender, torch.tensor([0.2]))
+    with pytest.raises(ConfigError, match="shortfall_weight"):
+        args_for("meta-bc", {"scenario": "synthetic", "cities": tasks, "shortfall_weight": 2.0})
+    assert args_for("meta-bc", {"scenario": "synthetic", "cities": tasks, "imitation": "l1", "shortfall_weight": 2.0}).fit == mi.Fit(
+        imitation="l1", shortfall=2.0
+    )

@@ -55,6 +55,7 @@ from pydantic import Field, model_validator
 
 from marl_amod.algos import common as C
 from marl_amod.algos import meta
+from marl_amod.algos import offline as O
 from marl_amod.algos.meta import CityScale, task_features
 from marl_amod.baselines.mpc import MPCForecast
 from marl_amod.errors import DataError
@@ -279,24 +280,33 @@ class Trials:
                    torch.tensor(sizes).view(-1, 1, 1))  # fmt: skip
 
 
+@dataclass(frozen=True)
+class Fit:
+    """How the actor fits MPC-F's labels over teacher-forced trials (the losses below; ``Args.fit``)."""
+
+    own_prev_action: bool = False  # the memory reads the model's own previous mean (:func:`teacher_forced`)
+    imitation: O.Imitation = "ce"  # the label loss (:func:`marl_amod.algos.offline.shares_loss`)
+    shortfall: float = 0.0  # with "l1": a vehicle short at a receiving region (:func:`receiving`) costs 1 + this
+
+
 def imitation_losses(
-    model: RecurrentGNN, demos: CityDemos, episodes: np.ndarray, graph: DenseGraph, gamma: float, own_prev_action: bool = False
+    model: RecurrentGNN, demos: CityDemos, episodes: np.ndarray, graph: DenseGraph, gamma: float, fit: Fit = Fit()
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(actor cross-entropy, critic loss) of B trials of one city with teacher forcing; ``episodes``
+    """(actor loss, critic loss) of B trials of one city with teacher forcing; ``episodes``
     (K, B) are the demonstration episodes of each trial, the memory carried across its K episodes."""
-    return trial_losses(model, Trials.of_city(demos, episodes), graph, gamma, own_prev_action)
+    return trial_losses(model, Trials.of_city(demos, episodes), graph, gamma, fit)
 
 
 def cities_losses(
     model: RecurrentGNN, draws: list[tuple[CityDemos, np.ndarray, DenseGraph]], gamma: float, padded: bool = True,
-    own_prev_action: bool = False,
+    fit: Fit = Fit(),
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The mean over the drawn cities of :func:`imitation_losses`. ``padded``: the cities of each
     trial length in one batch (:class:`~marl_amod.models.dense.PaddedGraphs`), one forward pass
     per step for all of them, the same losses to float rounding (tested); else one city after
     another (what pays where tensors outgrow the cache: ``benchmarks/meta_update.py``)."""
     if not padded:
-        losses = [imitation_losses(model, demos, episodes, graph, gamma, own_prev_action) for demos, episodes, graph in draws]
+        losses = [imitation_losses(model, demos, episodes, graph, gamma, fit) for demos, episodes, graph in draws]
         return torch.stack([c for c, _ in losses]).mean(), torch.stack([v for _, v in losses]).mean()
     groups: dict[int, list[int]] = {}
     for i, (demos, _, _) in enumerate(draws):
@@ -304,7 +314,7 @@ def cities_losses(
     ce, vl = torch.zeros(()), torch.zeros(())
     for members in groups.values():
         batch = Trials.padded([Trials.of_city(draws[i][0], draws[i][1]) for i in members])
-        g_ce, g_vl = trial_losses(model, batch, PaddedGraphs([draws[i][2] for i in members]), gamma, own_prev_action)
+        g_ce, g_vl = trial_losses(model, batch, PaddedGraphs([draws[i][2] for i in members]), gamma, fit)
         ce, vl = ce + g_ce * len(members), vl + g_vl * len(members)  # every city has B trials of T steps: equal weights
     return ce / len(draws), vl / len(draws)
 
@@ -335,20 +345,33 @@ def teacher_forced(
 
 
 def trial_losses(
-    model: RecurrentGNN, trials: Trials, graph: DenseGraph | PaddedGraphs, gamma: float, own_prev_action: bool = False
+    model: RecurrentGNN, trials: Trials, graph: DenseGraph | PaddedGraphs, gamma: float, fit: Fit = Fit()
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """(actor cross-entropy, critic loss) of teacher-forced trials: the actor fits the Dirichlet
-    mean to MPC-F's shares, the critic the discounted return to the trial's end; both means over
-    every decision of every trial (padded regions carry share 0 and alpha 0, so they add nothing)."""
-    means, values = teacher_forced(model, trials, graph, own_prev_action)
+    """(actor loss, critic loss) of teacher-forced trials: the actor fits the Dirichlet mean to
+    MPC-F's shares (``fit.imitation``), the critic the discounted return to the trial's end; both
+    means over every decision of every trial (padded regions carry share 0 and alpha 0, so they add nothing)."""
+    means, values = teacher_forced(model, trials, graph, fit.own_prev_action)
     share, rewards = trials.share.flatten(0, 1), trials.reward.flatten(0, 1)  # (K T, *lead, N), (K T, *lead)
-    ce = -(share * torch.log(means.clamp_min(1e-8))).sum(-1)  # (K T, *lead)
+    receives = receiving(trials.x.flatten(0, 1)[..., 0], share) if fit.imitation == "l1" and fit.shortfall else None
+    ce = O.shares_loss(means, share, fit.imitation, receives, fit.shortfall)  # (K T, *lead)
     ret, running = [], torch.zeros(rewards.shape[1:])
     for rew in reversed(rewards):  # discounted return to the trial's end, as the RL critic's targets
         running = rew + gamma * running
         ret.append(running)
     target = torch.stack(ret[::-1])
     return ce.mean(), F.smooth_l1_loss(values, target)
+
+
+def receiving(idle: torch.Tensor, share: torch.Tensor) -> torch.Tensor:
+    """Whether MPC-F's shares ``share`` (..., N) ask a region for more than the idle vehicles it
+    holds (``idle``, the features' first column: any per-city unit, only their proportions count):
+    the regions it moves vehicles into, where a vehicle short leaves requests unserved. MPC-F's
+    targets keep the idle fleet, so a receiver's share is at least one vehicle (1 / M >= 1e-4 here)
+    above its idle share, and every other region's equals it to float rounding."""
+    return share > idle / idle.sum(-1, keepdim=True).clamp_min(1e-12) + RECEIVE_TOL
+
+
+RECEIVE_TOL = 1e-5
 
 
 # --------------------------------------------------------------------------------------------
@@ -428,6 +451,14 @@ class Args(meta.Args):
     before, as deployed) instead of what was played (MPC-F's move in a demonstration): MPC-F's move
     predicts its next one, so a policy trained on it leans on a channel that at deployment carries
     its own mistakes forward (the copycat problem; ``teacher_forced``)"""
+    imitation: O.Imitation = "ce"
+    """the actor's loss against MPC-F's shares (:func:`marl_amod.algos.offline.shares_loss`): ce, the
+    cross-entropy, which near its optimum prices a vehicle off at a region holding a third of the
+    fleet some 30 times less than at one holding 1%; l1, every vehicle alike (the offline clone of
+    MPC-F in Brooklyn, whose error was at the busiest regions too, halved its gap with it)"""
+    shortfall_weight: float = Field(0.0, ge=0)
+    """with ``imitation: l1``, a vehicle short at a receiving region (:func:`receiving`) costs 1 + this
+    times one over: a vehicle short there leaves requests unserved (offline's selected weight: 2)"""
     pad_cities: bool = True
     """an update's cities padded into one batch (the same losses to float rounding): 1.12-1.16x
     faster at hidden 64 x 16 trials per city, 1.4-1.8x at 4 trials (``benchmarks/meta_update.py``);
@@ -443,10 +474,17 @@ class Args(meta.Args):
                              "the draws that goes to them, and a share needs event tasks")  # fmt: skip
         if self.hotspot_share is not None and not (self.hotspot_variants or self.skew_variants):
             raise ValueError(f"hotspot_share {self.hotspot_share} without hotspot_variants or skew_variants: there are no variants to draw")
+        if self.shortfall_weight and self.imitation != "l1":
+            raise ValueError(f"shortfall_weight {self.shortfall_weight} with imitation {self.imitation!r}: only l1 prices a "
+                             "vehicle short apart (set imitation: l1, or shortfall_weight: 0)")  # fmt: skip
         if self.dagger_rounds and self.dagger_first >= self.updates:
             raise ValueError(f"dagger_first {self.dagger_first} is not before the last update ({self.updates}): no DAgger round "
                              "would run (lower dagger_first, raise updates, or dagger_rounds: 0)")  # fmt: skip
         return self
+
+    @property
+    def fit(self) -> Fit:
+        return Fit(self.own_prev_action, self.imitation, self.shortfall_weight)
 
     def ignored_keys(self) -> dict[str, str]:
         return {**super().ignored_keys(), "episodes": "imitation takes no env episodes; set updates",
@@ -603,7 +641,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
             for _ in range(args.cities_per_update):
                 demos, graph = data[draw_run_task(args, names, len(plain), events, rng)]
                 draws.append((demos, draw_trials(demos, args, rng), graph))
-            ce, vl = cities_losses(model, draws, args.gamma, args.pad_cities, args.own_prev_action)
+            ce, vl = cities_losses(model, draws, args.gamma, args.pad_cities, args.fit)
             for group in opt.param_groups:
                 group["lr"] = lr_at(args, step)
             opt.zero_grad()

@@ -223,12 +223,23 @@ def imitation_loss(
     alpha = concentrations(actor, b, graph, local, time=time)  # (B, N)
     mean = alpha / alpha.sum(-1, keepdim=True)
     y = b["action"] / b["action"].sum(-1, keepdim=True).clamp_min(1e-12)
+    receives = receivers(b["x"], y)[1] if kind == "l1" and (shortfall or surplus) else None
+    return shares_loss(mean, y, kind, receives, shortfall, surplus)
+
+
+def shares_loss(
+    mean: torch.Tensor, y: torch.Tensor, kind: Imitation = "ce", receives: torch.Tensor | None = None,
+    shortfall: float = 0.0, surplus: float = 0.0,
+) -> torch.Tensor:
+    """Per-decision loss (...,) of playing the shares ``mean`` (..., N) where the label is ``y``: the
+    two kinds of :func:`imitation_loss`, whose docstring says why each. ``receives`` (..., N) marks
+    the receiving regions whose vehicles short (over) ``l1`` prices 1 + ``shortfall`` (``surplus``)
+    times; the meta-policy's imitation (:mod:`marl_amod.algos.meta_imitation`) reads it too."""
     if kind == "ce":
         return -(y * torch.log(mean.clamp_min(1e-8))).sum(-1)
     if kind == "l1":
         short, over = (y - mean).clamp_min(0), (mean - y).clamp_min(0)
-        if shortfall or surplus:
-            _, receives = receivers(b["x"], y)
+        if receives is not None:
             short, over = short * (1 + shortfall * receives), over * (1 + surplus * receives)
         return (short + over).sum(-1)
     raise ConfigError(f"unknown imitation loss {kind!r}; known: ce, l1")
