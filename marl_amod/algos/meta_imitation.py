@@ -362,6 +362,9 @@ def trial_losses(
     return ce.mean(), F.smooth_l1_loss(values, target)
 
 
+RECEIVE_TOL = 1e-5  # in shares: float rounding lies far below, a receiver's vehicle (1 / M) far above
+
+
 def receiving(idle: torch.Tensor, share: torch.Tensor) -> torch.Tensor:
     """Whether MPC-F's shares ``share`` (..., N) ask a region for more than the idle vehicles it
     holds (``idle``, the features' first column: any per-city unit, only their proportions count):
@@ -369,9 +372,6 @@ def receiving(idle: torch.Tensor, share: torch.Tensor) -> torch.Tensor:
     targets keep the idle fleet, so a receiver's share is at least one vehicle (1 / M >= 1e-4 here)
     above its idle share, and every other region's equals it to float rounding."""
     return share > idle / idle.sum(-1, keepdim=True).clamp_min(1e-12) + RECEIVE_TOL
-
-
-RECEIVE_TOL = 1e-5
 
 
 # --------------------------------------------------------------------------------------------
