@@ -41,7 +41,7 @@
   policies only: two training seeds of one recipe differed by 8-9 times it on the events and skew variants (log.md, "A second
   training seed"), so compare a candidate against more than one run of the recipe it would replace.
 
-    python benchmarks/meta_diagnostics.py gap [--policy policies/meta_rl_hot_cities.pt]
+    python benchmarks/meta_diagnostics.py gap [--policy policies/meta_rl_l1_cities.pt]
     python benchmarks/meta_diagnostics.py k --ks 0,1,3,10 [--validation]
     python benchmarks/meta_diagnostics.py event
     python benchmarks/meta_diagnostics.py heldout [--cities nyc_brooklyn,porto]
@@ -397,7 +397,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hotspot", "transplant", "tasks", "compare"])
     parser.add_argument("files", nargs="*", help="compare: two tasks --out files (the second against the first)")
-    parser.add_argument("--policy", default="policies/meta_rl_hot_cities.pt")
+    parser.add_argument("--policy", default="policies/meta_rl_l1_cities.pt")
     parser.add_argument("--demos", default="runs/meta_demos")
     parser.add_argument("--ks", default="0,1,2,3,4,5,6,8,10")
     parser.add_argument("--episodes", type=int, default=8, help="heldout: episodes per city and side (a multiple of 4); hotspot: validation episodes (0: none)")

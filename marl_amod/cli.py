@@ -580,7 +580,7 @@ def transfer_table(
     strategy: Annotated[
         list[str] | None, typer.Option(help="rerun only these rows (repeat); the others come from <out>/<study>.json")
     ] = None,
-    meta_policy: Annotated[str | None, typer.Option(help="the meta-policy of the meta-rl row (default: policies/meta_rl_hot_cities.pt)")] = None,
+    meta_policy: Annotated[str | None, typer.Option(help="the meta-policy of the meta-rl row (default: policies/meta_rl_l1_cities.pt)")] = None,
     data_dir: DataDir = None,
 ) -> None:
     """Every transfer strategy on a study's cities: the tables of docs/meta (markdown + JSON)."""
