@@ -311,12 +311,12 @@ def cities_losses(
     groups: dict[int, list[int]] = {}
     for i, (demos, _, _) in enumerate(draws):
         groups.setdefault(int(demos.x.shape[1]), []).append(i)
-    ce, vl = torch.zeros(()), torch.zeros(())
+    actor, vl = torch.zeros(()), torch.zeros(())
     for members in groups.values():
         batch = Trials.padded([Trials.of_city(draws[i][0], draws[i][1]) for i in members])
-        g_ce, g_vl = trial_losses(model, batch, PaddedGraphs([draws[i][2] for i in members]), gamma, fit)
-        ce, vl = ce + g_ce * len(members), vl + g_vl * len(members)  # every city has B trials of T steps: equal weights
-    return ce / len(draws), vl / len(draws)
+        g_actor, g_vl = trial_losses(model, batch, PaddedGraphs([draws[i][2] for i in members]), gamma, fit)
+        actor, vl = actor + g_actor * len(members), vl + g_vl * len(members)  # every city has B trials of T steps: equal weights
+    return actor / len(draws), vl / len(draws)
 
 
 def teacher_forced(
@@ -353,13 +353,13 @@ def trial_losses(
     means, values = teacher_forced(model, trials, graph, fit.own_prev_action)
     share, rewards = trials.share.flatten(0, 1), trials.reward.flatten(0, 1)  # (K T, *lead, N), (K T, *lead)
     receives = receiving(trials.x.flatten(0, 1)[..., 0], share) if fit.imitation == "l1" and fit.shortfall else None
-    ce = O.shares_loss(means, share, fit.imitation, receives, fit.shortfall)  # (K T, *lead)
+    actor = O.shares_loss(means, share, fit.imitation, receives, fit.shortfall)  # (K T, *lead)
     ret, running = [], torch.zeros(rewards.shape[1:])
     for rew in reversed(rewards):  # discounted return to the trial's end, as the RL critic's targets
         running = rew + gamma * running
         ret.append(running)
     target = torch.stack(ret[::-1])
-    return ce.mean(), F.smooth_l1_loss(values, target)
+    return actor.mean(), F.smooth_l1_loss(values, target)
 
 
 RECEIVE_TOL = 1e-5  # in shares: float rounding lies far below, a receiver's vehicle (1 / M) far above
