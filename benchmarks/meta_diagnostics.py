@@ -30,6 +30,10 @@
   policy on the same demand streams, MPC-F's inputs (previous moves, rewards, each feature group)
   moved into the policy's own trials, then teacher-forced: the busiest region's share and the
   share misplaced (docs/meta/log.md, "The policy's own moves as its previous action").
+* ``hold``: what the policy's moves at the episode's start and end are worth: its validation profit
+  with no rebalancing (every region keeps its idle vehicles) at the first step, at the last
+  ``--last`` steps, and at both, every other step its own, beside MPC-Forecast's on the same
+  episodes (docs/meta/log.md, "Where the held-out gap is now").
 * ``tasks``: each episode's profit of the policy (K = ``--k``, 3 as deployed) and of MPC-Forecast (not
   told an event task's event) on training-city tasks (hotspot variants ``<city>~hot<r>x<m>``, skew variants ``<city>~skew<gamma>``,
   event tasks ``<city>~ev...``: ``meta.task_city``), validation episodes (seed 1000), written to
@@ -49,6 +53,7 @@
     python benchmarks/meta_diagnostics.py hotspot --cities porto,washington_dc --multiplier 3 --episodes 6
     python benchmarks/meta_diagnostics.py hotspot --cities san_francisco --episodes 0 --own
     python benchmarks/meta_diagnostics.py transplant --cities san_francisco,nyc_brooklyn --episodes 8
+    python benchmarks/meta_diagnostics.py hold --cities nyc_brooklyn,san_francisco --last 3
     python benchmarks/meta_diagnostics.py tasks --cities porto~hot1x2.5,porto~ev7+12x6@6-14dr1+2x0.5 --episodes 20 --out A.json
     python benchmarks/meta_diagnostics.py compare A.json B.json
 """
@@ -393,9 +398,53 @@ def where(policy: str, cities: list[str], episodes: int = 10, seed: int = 1000, 
         print("  half L1 between the mean shares asked, by step: " + " ".join(f"{v:.2f}" for v in l1), flush=True)
 
 
+class Held:
+    """``pol`` with its rebalancing held (a target of -1: every region keeps its idle vehicles) at the
+    steps ``hold(step)`` picks, step 0 being the episode's first; its memory still sees its own moves."""
+
+    def __init__(self, pol: Any, hold: Callable[[int], bool]) -> None:
+        self.pol, self.hold = pol, hold
+
+    def reset(self, system: FleetSystem, rng: np.random.Generator) -> None:
+        self.pol.reset(system, rng)
+        self.t0 = system.sim.t
+
+    def target(self, system: FleetSystem) -> np.ndarray:
+        want = np.asarray(self.pol.target(system))
+        return np.full_like(want, -1) if self.hold(system.sim.t - self.t0) else want
+
+
+def episode_profit(pol: Any, city: City, e: int, seed: int = 1000) -> float:
+    """Profit of one validation episode ``e`` driven by ``pol`` (the streams ``where`` uses)."""
+    system, steps = drive(pol, city, np.random.SeedSequence([seed, e]), np.random.default_rng([seed, e, 1]))
+    for _ in steps:
+        pass
+    tot = system.sim.totals
+    return float(tot.revenue.sum() - tot.trip_cost.sum() - tot.rebalancing_cost.sum())
+
+
+def hold(policy: str, cities: list[str], last: int = 3, episodes: int = 10, seed: int = 1000, k: int = 3) -> dict[str, dict[str, float]]:
+    out: dict[str, dict[str, float]] = {}
+    for name in cities:
+        city = load_city(name)
+        n = city.horizon - 1  # control steps in an episode
+        holds: dict[str, Callable[[int], bool]] = {
+            "the policy": lambda t: False, "first step held": lambda t: t == 0,
+            f"last {last} steps held": lambda t, n=n: t >= n - last, "both held": lambda t, n=n: t == 0 or t >= n - last,
+        }
+        row = {label: float(np.mean([episode_profit(Held(meta.load_policy(policy, city, k, seed=seed), h), city, e, seed)
+                                     for e in range(episodes)])) for label, h in holds.items()}  # fmt: skip
+        row["MPC-Forecast"] = float(np.mean([episode_profit(MPCForecast(), city, e, seed) for e in range(episodes)]))
+        print(f"\n{name}: K={k}, {episodes} validation episodes (seed {seed}), mean profit an episode")
+        for label, v in row.items():
+            print(f"  {label:22s} {v:10,.0f}  ({v - row['the policy']:+,.0f})", flush=True)
+        out[name] = row
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hotspot", "transplant", "tasks", "compare"])
+    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hold", "hotspot", "transplant", "tasks", "compare"])
     parser.add_argument("files", nargs="*", help="compare: two tasks --out files (the second against the first)")
     parser.add_argument("--policy", default="policies/meta_rl_l1_cities.pt")
     parser.add_argument("--demos", default="runs/meta_demos")
@@ -407,6 +456,7 @@ def main() -> None:
     parser.add_argument("--out", default=None, help="tasks: the JSON of per-episode profits")
     parser.add_argument("--mpc-from", default=None, help="tasks: reuse MPC-F's profits from this earlier --out")
     parser.add_argument("--k", type=int, default=3, help="tasks: the policy's adaptation episodes before each scored one")
+    parser.add_argument("--last", type=int, default=3, help="hold: the episode's last steps held")
     parser.add_argument("--own", action="store_true", help="hotspot: also on the states the policy reaches itself (8 episodes, labelled by MPC-F)")
     args = parser.parse_args()
     torch.manual_seed(0)  # the policy's sampled adaptation episodes (gap, heldout, hotspot --own): a rerun repeats them
@@ -421,6 +471,8 @@ def main() -> None:
         transplant(args.policy, args.cities.split(","), args.episodes)
     elif args.what == "where":
         where(args.policy, [c for c in args.cities.split(",") if c in meta.HELD_OUT])
+    elif args.what == "hold":
+        hold(args.policy, args.cities.split(","), args.last)
     elif args.what == "tasks":
         if not args.out:
             parser.error("tasks needs --out")

@@ -596,3 +596,25 @@ def test_first_distinct_keeps_the_first_n_new_names_skips_refused_draws_and_give
     assert meta.first_distinct(late, 2) == ["a", "b"]
     too_late = iter(["a"] * 2000 + ["b"])
     assert meta.first_distinct(too_late, 2) is None
+
+
+def test_the_hold_diagnostic_holds_only_the_steps_it_names(monkeypatch):
+    """benchmarks/meta_diagnostics.py hold: a step held keeps every region's idle vehicles (a policy
+    held at every step is no rebalancing, to the dollar), and the unheld row is the policy itself."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    import meta_diagnostics as md
+
+    from marl_amod.policies import make_policy
+
+    city = md.load_city("synthetic")
+    ed = lambda: make_policy("equal-distribution")  # noqa: E731
+    always = md.episode_profit(md.Held(ed(), lambda t: True), city, 0)
+    assert always == md.episode_profit(make_policy("no-rebalancing"), city, 0)
+    assert always != md.episode_profit(ed(), city, 0)  # equal distribution does move vehicles here
+    monkeypatch.setattr(md.meta, "load_policy", lambda path, task, k, seed: ed())
+    row = md.hold("unused.pt", ["synthetic"], last=2, episodes=1)["synthetic"]
+    assert row["the policy"] == md.episode_profit(ed(), city, 0)
+    assert {"first step held", "last 2 steps held", "both held", "MPC-Forecast"} <= set(row)
