@@ -419,8 +419,7 @@ def episode_profit(pol: Any, city: City, e: int, seed: int = 1000) -> float:
     system, steps = drive(pol, city, np.random.SeedSequence([seed, e]), np.random.default_rng([seed, e, 1]))
     for _ in steps:
         pass
-    tot = system.sim.totals
-    return float(tot.revenue.sum() - tot.trip_cost.sum() - tot.rebalancing_cost.sum())
+    return float(system.sim.totals.profit.sum())
 
 
 def hold(policy: str, cities: list[str], last: int = 3, episodes: int = 10, seed: int = 1000, k: int = 3) -> dict[str, dict[str, float]]:
