@@ -414,7 +414,8 @@ def test_shocked_dagger_trials_are_labelled_by_mpc_told_the_shock(tasks):
 
 @pytest.mark.parametrize(
     ("readout", "fit"),
-    [("none", mi.Fit()), ("mean-max", mi.Fit()), ("mean-max", mi.Fit(own_prev_action=True)), ("mean-max", mi.Fit(imitation="l1", shortfall=2.0))],
+    [("none", mi.Fit()), ("mean-max", mi.Fit()), ("mean-max", mi.Fit(own_prev_action=True)), ("mean-max", mi.Fit(imitation="l1", shortfall=2.0)),
+     ("mean-max", mi.Fit(imitation="l1", end_weight=3.0))],
 )
 def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp_path, readout, fit):
     """One update's cities of different sizes (6 and 9 regions; one drawn twice, one with a shorter
@@ -552,4 +553,34 @@ def test_l1_shortfall_prices_a_receivers_missing_vehicles_higher(tasks):
         args_for("meta-bc", {"scenario": "synthetic", "cities": tasks, "shortfall_weight": 2.0})
     assert args_for("meta-bc", {"scenario": "synthetic", "cities": tasks, "imitation": "l1", "shortfall_weight": 2.0}).fit == mi.Fit(
         imitation="l1", shortfall=2.0
+    )
+
+
+def test_end_weight_counts_an_episodes_last_decisions_more(tasks, tmp_path):
+    """With ``end_weight`` the actor's loss is the per-decision loss weighted by step: each
+    episode's last ``end_steps`` decisions 1 + end_weight times the others, the weights' mean 1 (so
+    end_weight 0 is the plain mean); the critic's loss is untouched."""
+    torch.testing.assert_close(mi.step_weights(2, 5, 2, 3.0), torch.tensor([1.0, 1, 1, 4, 4] * 2) / 2.2)
+    assert torch.equal(mi.step_weights(1, 4, 3, 0.0), torch.ones(4))
+    mi.collect_demos(tmp_path / "d", tasks[1:], episodes=3, seed=0, lookahead=6)
+    city = load_city(tasks[1])
+    demos, graph = mi.load_demos(tmp_path / "d", city, 6), meta.city_graph(city)
+    episodes = np.random.default_rng(0).integers(3, size=(2, 4))
+    torch.manual_seed(0)
+    model = RecurrentGNN(meta.n_task_features(6), hidden=8, stay_prior=True)
+    trials = mi.Trials.of_city(demos, episodes)
+    k, t = trials.x.shape[:2]
+    per_decision = O.shares_loss(mi.teacher_forced(model, trials, graph)[0], trials.share.flatten(0, 1), "l1")  # (K T, B)
+    end = torch.zeros(k, t, dtype=torch.bool)
+    end[:, -3:] = True
+    end = end.flatten()
+    want = (per_decision[~end].sum() + 4 * per_decision[end].sum()) / (per_decision[~end].numel() + 4 * per_decision[end].numel())
+    plain_actor, plain_critic = mi.trial_losses(model, trials, graph, 0.97, mi.Fit(imitation="l1"))
+    actor, critic = mi.trial_losses(model, trials, graph, 0.97, mi.Fit(imitation="l1", end_weight=3.0, end_steps=3))
+    torch.testing.assert_close(actor, want)
+    torch.testing.assert_close(plain_actor, per_decision.mean())
+    torch.testing.assert_close(critic, plain_critic)
+    assert not torch.isclose(actor, plain_actor)
+    assert args_for("meta-bc", {"scenario": "synthetic", "cities": tasks, "imitation": "l1", "end_weight": 3.0}).fit == mi.Fit(
+        imitation="l1", end_weight=3.0, end_steps=3
     )
