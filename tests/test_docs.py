@@ -14,6 +14,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import results_tables  # benchmarks/ (pytest's pythonpath)
 
 ROOT = Path(__file__).resolve().parent.parent
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
@@ -30,8 +31,6 @@ EXAMPLE_ARGS = {
 # they run where their library is installed and are skipped elsewhere.
 EXAMPLE_NEEDS = {"benchmarl_task.py": "benchmarl", "agilerl_ippo.py": "agilerl", "tianshou_ppo.py": "tianshou"}
 
-sys.path.insert(0, str(ROOT / "benchmarks"))
-import results_tables  # noqa: E402
 
 
 def _quick(code: str) -> str:

@@ -3,16 +3,14 @@ distribution, the beta table and figure, and where the meso evaluations are kept
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
+import beta_sweep  # benchmarks/ (pytest's pythonpath)
+import meso_eval
+import meso_table
 import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "benchmarks"))
-import beta_sweep  # noqa: E402
-import meso_eval  # noqa: E402
-import meso_table  # noqa: E402
 
 
 def _record(policy: str, profits: list[float], seed: int = 0) -> dict:

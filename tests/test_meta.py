@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import importlib
 import sys
-from pathlib import Path
-from types import ModuleType
 
 import numpy as np
 import pytest
@@ -19,15 +16,6 @@ from marl_amod.models.recurrent import RecurrentGNN
 from marl_amod.scenario import grid_city, load_city
 from marl_amod.system import FleetSystem
 from marl_amod.transfer import STRATEGIES, normalised, run_strategy
-
-BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
-
-
-def benchmark(name: str) -> ModuleType:
-    """A script of benchmarks/ imported as a module (they are scripts, not a package)."""
-    if str(BENCHMARKS) not in sys.path:
-        sys.path.insert(0, str(BENCHMARKS))
-    return importlib.import_module(name)
 
 
 def _city_yaml(tmp_path, name, **keys):
@@ -522,7 +510,7 @@ def test_compare_reads_the_standard_error_of_its_mean_over_the_episodes(tmp_path
     amount on every episode leaves no doubt, an episode that moves every task is one draw, not T."""
     import json
 
-    meta_diagnostics = benchmark("meta_diagnostics")
+    import meta_diagnostics
 
     fixed = np.array([[1.0, 1.0, 1.0], [3.0, 3.0, 3.0]])  # (tasks, episodes): each task's gain the same every episode
     assert meta_diagnostics.paired_se(fixed) == (pytest.approx(np.std([1, 1, 1, 3, 3, 3], ddof=1) / np.sqrt(6)), 0.0)
@@ -549,7 +537,7 @@ def test_the_tasks_diagnostic_adapts_over_the_k_it_is_given(tmp_path, monkeypatc
     file (compare pairs only files of one k)."""
     import json
 
-    meta_diagnostics = benchmark("meta_diagnostics")
+    import meta_diagnostics
 
     adapted = []
     monkeypatch.setattr(meta_diagnostics.meta, "load_policy", lambda path, task, k, seed: adapted.append(k) or "equal-distribution")
@@ -579,7 +567,7 @@ def test_final_card_evaluation_runs_on_validation_streams_not_report_seeds(tmp_p
 def test_the_forecast_noise_page_names_the_command_that_makes_it():
     """benchmarks/mpc_forecast_noise.py: the page's first line is the command that regenerates it,
     the scenarios and noises included when they are not the defaults."""
-    mpc_forecast_noise = benchmark("mpc_forecast_noise")
+    import mpc_forecast_noise
 
     row = {"equal-distribution": 0.0, "mpc-oracle": 100.0, "mpc-forecast": {"0": 90.0, "1": 80.0}}
     page = mpc_forecast_noise.table({"nyc_brooklyn": row}, [0.0, 1.0], 2, 7000)
@@ -605,7 +593,7 @@ def test_first_distinct_keeps_the_first_n_new_names_skips_refused_draws_and_give
 def test_the_hold_diagnostic_holds_only_the_steps_it_names(monkeypatch):
     """benchmarks/meta_diagnostics.py hold: a step held keeps every region's idle vehicles (a policy
     held at every step is no rebalancing, to the dollar), and the unheld row is the policy itself."""
-    md = benchmark("meta_diagnostics")
+    import meta_diagnostics as md
 
     from marl_amod.policies import make_policy
 

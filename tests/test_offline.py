@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -361,9 +362,6 @@ def test_keep_best_with_a_start_ships_the_start_unless_a_validation_beats_it(tmp
 def test_training_seeds_get_their_own_files_and_start_and_the_table_averages_them(tmp_path, tiny, monkeypatch):
     """benchmarks/offline_seeds.py: seed s writes apart and starts from its start's seed-s run where
     it exists (else the config's start); offline_table.py reports mean +- std over the seeds."""
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
     import offline_seeds
     import offline_table
 
@@ -401,9 +399,6 @@ def test_training_seeds_get_their_own_files_and_start_and_the_table_averages_the
 
 def test_the_table_finds_each_cell_under_the_actor_its_file_names(tmp_path):
     """offline_table.cell_name: a cell's policy is bc_gnn_... or bc_mlp_... (the card's actor); two are an error."""
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
     import offline_table
 
     assert offline_table.cell_name(tmp_path, "bc", "nyc_brooklyn", "dtv") is None
@@ -418,9 +413,6 @@ def test_the_table_finds_each_cell_under_the_actor_its_file_names(tmp_path):
 def test_the_paired_rule_averages_a_recipes_seeds_per_episode_and_refuses_the_report_seeds():
     """benchmarks/offline_paired.py: the docs' selection test (margin and two standard errors of the
     paired mean); a recipe against one file, or against another recipe seed by seed."""
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
     import offline_paired
 
     ref = np.array([[100.0, 200.0, 300.0, 400.0]])
@@ -440,9 +432,6 @@ def test_the_paired_rule_averages_a_recipes_seeds_per_episode_and_refuses_the_re
 def test_the_paired_cache_is_kept_per_scenario(monkeypatch, tmp_path):
     """benchmarks/offline_paired.py resumes from ``--out``: a policy's episodes on one scenario are
     not read back as its episodes on another."""
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
     import offline_paired
 
     import marl_amod.evaluation

@@ -130,7 +130,6 @@ def test_learner_update_marks_its_parts_in_order_and_moves_actor_critics_and_tar
     """``Learner.update`` calls ``mark`` after each part, in the order benchmarks/sac_update.py
     reports them (so its table cannot silently lose a part), and one update changes the actor,
     the critics and, by Polyak averaging, the target critics."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
     import sac_update
 
     from marl_amod.algos.sac import Args, Learner

@@ -7,8 +7,6 @@ leave the update's numbers exactly as they were, so a shipped SAC config reruns 
 from __future__ import annotations
 
 import contextlib
-import sys
-from pathlib import Path
 
 import pytest
 import torch
@@ -44,7 +42,6 @@ def test_learner_update_matches_the_reference_update_on_fixed_inputs(monkeypatch
     """A few updates from the same weights on the same samples and noise give the same losses and
     weights as the update with no_grad targets, bit for bit, with clipping active (a small
     max_grad_norm)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
     import sac_update
 
     city = grid_city(3, 3, seed=0)
