@@ -469,7 +469,7 @@ def main() -> None:
     elif args.what == "transplant":
         transplant(args.policy, args.cities.split(","), args.episodes)
     elif args.what == "where":
-        where(args.policy, [c for c in args.cities.split(",") if c in meta.HELD_OUT])
+        where(args.policy, args.cities.split(","))
     elif args.what == "hold":
         hold(args.policy, args.cities.split(","), args.last)
     elif args.what == "tasks":
