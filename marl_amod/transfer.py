@@ -136,21 +136,19 @@ def run_strategy(
         used.update(source=meta_policy, source_city="10 training cities", source_episodes=card.get("episodes_trained"), target_episodes=k)
         warm = card.get("warm_start") or {}
         demos = warm.get("demonstrations") or card.get("demonstrations")
-        variants = (demos or {}).get("hotspot_variants", [])  # hotspot variants of those cities: more tasks
-        skewed = (demos or {}).get("skew_variants", [])  # skew variants of those cities: more tasks
-        events = (demos or {}).get("event_tasks", [])  # event tasks of those cities: more tasks still
-        if variants:
-            used["source_city"] += f" + {len(variants)} hotspot variants"
-        if skewed:
-            used["source_city"] += f" + {len(skewed)} skew variants"
-        if events:
-            used["source_city"] += f" + {len(events)} event tasks"
+        # (card key, what the table calls them, the card key of their episodes each): the tasks beside the cities
+        kinds = [("hotspot_variants", "hotspot variants", "episodes_per_variant"), ("skew_variants", "skew variants", "episodes_per_skew_variant"),
+                 ("sink_variants", "sink variants", "episodes_per_sink_variant"), ("event_tasks", "event tasks", "episodes_per_event_task")]  # fmt: skip
+        extra = {key: (demos or {}).get(key, []) for key, _, _ in kinds}
+        for key, label, _ in kinds:
+            if extra[key]:
+                used["source_city"] += f" + {len(extra[key])} {label}"
         if demos:  # trained from an imitation of MPC-Forecast on the same cities
-            used["demonstrations"] = (demos["episodes_per_city"] * len(demos["cities"]) + demos.get("episodes_per_variant", 0) * len(variants)
-                                      + demos.get("episodes_per_skew_variant", 0) * len(skewed) + demos.get("episodes_per_event_task", 0) * len(events))  # fmt: skip
+            used["demonstrations"] = demos["episodes_per_city"] * len(demos["cities"]) + sum(demos.get(each, 0) * len(extra[key]) for key, _, each in kinds)
         rounds = [d for d in (card.get("dagger"), warm.get("dagger")) if d]  # its own DAgger rounds and its start's
         if rounds and demos:  # the policy's own episodes there, labelled by MPC-F (MPC told the event on the event tasks)
-            used["dagger_episodes"] = sum(d["rounds"] * d["episodes_per_city"] for d in rounds) * (len(demos["cities"]) + len(variants) + len(skewed) + len(events))
+            tasks = len(demos["cities"]) + sum(map(len, extra.values()))
+            used["dagger_episodes"] = sum(d["rounds"] * d["episodes_per_city"] for d in rounds) * tasks
         if card["algorithm"] == "meta-bc":  # imitation only: no RL episode
             used["source_episodes"] = None
     result = evaluate(pol, city, episodes, seed)

@@ -461,33 +461,54 @@ def test_a_resume_refuses_a_config_that_names_other_tasks(tasks, tmp_path):
     assert ALGOS["meta-bc"].train(args.model_copy(update={"updates": 2}), resume=state)["card"]["updates"] == 2
 
 
-def test_skew_variants_are_tasks_with_demonstrations_of_their_own_and_a_resume_keeps_their_settings(tasks, tmp_path):
-    """One skew variant per city after the hotspot ones: its own MPC-F demonstrations
-    (``skew_episodes``), drawn with the hotspot variants under ``hotspot_share`` (which skew
-    variants alone also allow), named on the card and counted by the transfer table; a resume with
-    other skew settings is refused (its updates were of other tasks)."""
+def test_skew_and_sink_variants_are_tasks_with_demonstrations_of_their_own_and_a_resume_keeps_their_settings(tasks, tmp_path):
+    """One skew then one sink variant per city after the hotspot ones: their own MPC-F
+    demonstrations (``skew_episodes``, ``sink_episodes``), drawn with the hotspot variants under
+    ``hotspot_share`` (which skew or sink variants alone also allow), named on the card and counted
+    by the transfer table; a resume with other skew or sink settings is refused (its updates were
+    of other tasks)."""
     assert args_for("meta-bc", {"hotspot_share": 0.4, "skew_variants": 1}).hotspot_share == 0.4
+    assert args_for("meta-bc", {"hotspot_share": 0.4, "sink_variants": 1}).hotspot_share == 0.4
     args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
                    cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=1, eval_every=2,
                    eval_episodes=2, final_eval_episodes=1, hotspot_variants=1, hotspot_episodes=2, skew_variants=1,
-                   skew_gammas=(1.5, 2.5), skew_episodes=3, hotspot_share=0.5, run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
+                   skew_gammas=(1.5, 2.5), skew_episodes=3, sink_variants=1, sink_multipliers=(2.0, 4.0), sink_episodes=4,
+                   hotspot_share=0.5, run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
     plain, variants = mi.tasks(args)
-    assert variants[: len(tasks)] == mi.hotspot_names(args) and variants[len(tasks) :] == mi.skew_names(args)
-    skewed = mi.skew_names(args)
+    assert variants == mi.hotspot_names(args) + mi.skew_names(args) + mi.sink_names(args) and len(variants) == 3 * len(tasks)
+    skewed, sinks = mi.skew_names(args), mi.sink_names(args)
+    assert [meta.base_city(v) for v in sinks] == tasks and all(2.0 <= meta.task_city(v).meta["sink"]["multiplier"] <= 4.0 for v in sinks)
     assert [meta.base_city(v) for v in skewed] == tasks and all(1.5 <= meta.task_city(v).meta["skew"]["gamma"] <= 2.5 for v in skewed)
     card = ALGOS["meta-bc"].train(args)["card"]
     assert card["demonstrations"]["skew_variants"] == skewed and card["demonstrations"]["episodes_per_skew_variant"] == 3
     assert card["demonstrations"]["skew_gammas"] == [1.5, 2.5] and card["demonstrations"]["variants_share_of_draws"] == 0.5
     assert all(mi.load_demos(tmp_path / "demos", meta.task_city(v), 6).episodes == 3 for v in skewed)
+    assert card["demonstrations"]["sink_variants"] == sinks and card["demonstrations"]["episodes_per_sink_variant"] == 4
+    assert card["demonstrations"]["sink_multipliers"] == [2.0, 4.0]
+    assert all(mi.load_demos(tmp_path / "demos", meta.task_city(v), 6).episodes == 4 for v in sinks)
     state = str(tmp_path / "bc" / "state.pt")
-    for change in ({"skew_variants": 0}, {"skew_gammas": (2.6, 3.0)}):
-        with pytest.raises(DataError, match="skew"):
+    for change, named in (({"skew_variants": 0}, "skew"), ({"skew_gammas": (2.6, 3.0)}, "skew"), ({"sink_variants": 0}, "sink"),
+                          ({"sink_multipliers": (5.0, 6.0)}, "sink")):  # fmt: skip
+        with pytest.raises(DataError, match=named):
             ALGOS["meta-bc"].train(args.model_copy(update={"updates": 2, **change}), resume=state)
     from marl_amod.transfer import run_strategy
 
     rec = run_strategy("meta-rl", "synthetic", episodes=1, meta_policy=str(tmp_path / "bc.pt"), adapt_episodes=0)
-    assert rec["transfer"]["demonstrations"] == 2 * 2 + 2 * 2 + 2 * 3
-    assert rec["transfer"]["source_city"] == "10 training cities + 2 hotspot variants + 2 skew variants"
+    assert rec["transfer"]["demonstrations"] == 2 * 2 + 2 * 2 + 2 * 3 + 2 * 4
+    assert rec["transfer"]["source_city"] == "10 training cities + 2 hotspot variants + 2 skew variants + 2 sink variants"
+
+
+def test_sink_tasks_are_a_function_of_the_seed_distinct_and_on_destinations_with_arrivals():
+    names = meta.sink_tasks(["synthetic", "porto"], 2, (4.0, 8.0), seed=0)
+    assert names == meta.sink_tasks(["synthetic", "porto"], 2, (4.0, 8.0), seed=0) != meta.sink_tasks(["synthetic", "porto"], 2, (4.0, 8.0), seed=1)
+    assert len(set(names)) == 4 and [meta.base_city(n) for n in names] == ["synthetic"] * 2 + ["porto"] * 2
+    for name in names:
+        city, base = meta.task_city(name), load_city(meta.base_city(name))
+        region, m = city.meta["sink"]["region"], city.meta["sink"]["multiplier"]
+        assert 4.0 <= m <= 8.0 and base.forecast_rate[: base.horizon, :, region].sum() > 0
+    assert meta.sink_tasks(["porto"], 0, (3.0, 1.0), seed=0) == []  # no variants: the range is not read
+    with pytest.raises(ConfigError, match="sink_multipliers"):
+        meta.sink_tasks(["synthetic"], 1, (3.0, 1.0), seed=0)
 
 
 def test_skew_tasks_are_a_function_of_the_seed_distinct_and_never_the_city_itself():

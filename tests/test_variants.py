@@ -1,5 +1,5 @@
 """Scenario variants by name (scenario/variants.py): every entry point that takes a scenario name
-(load_city, parallel_env, vector_env, the CLI) takes ``<scenario>~hot<r>x<m>``,
+(load_city, parallel_env, vector_env, the CLI) takes ``<scenario>~hot<r>x<m>``, ``<scenario>~sink<r>x<m>``,
 ``<scenario>~skew<gamma>`` and ``<scenario>~ev...``, built on the scenario with its overrides first; a malformed one is one line."""
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from marl_amod.algos import meta
 from marl_amod.cli import app
 from marl_amod.errors import ConfigError
 from marl_amod.scenario import load_city
-from marl_amod.scenario.variants import base_city, event_task, hotspot, skew, split
+from marl_amod.scenario.variants import base_city, event_task, hotspot, in_out_imbalance, sink, skew, split
 
 HOT = "synthetic~hot2x3"  # requests out of region 2 x3 against the rest, draw and forecast
 EVENT = "synthetic~ev3+7x20@2-8"  # requests out of regions 3 and 7 x20 over steps [2, 8), draw only
@@ -105,6 +105,9 @@ def test_a_variant_on_a_scenario_with_events_keeps_them_and_adds_its_own(tmp_pat
         ("synthetic~skew-1", "<scenario>~skew<gamma>"),
         ("synthetic~skew1.5x2", "is no variant"),
         ("synthetic~skew0", "skew of synthetic: gamma 0.0"),
+        ("synthetic~sink2", "is no variant"),
+        ("synthetic~sink99x2", "sink of synthetic: region 99"),
+        ("synthetic~sink2x0", "sink of synthetic: region 2 (0..15) and multiplier 0.0"),
     ],
 )
 def test_a_bad_variant_is_one_line_naming_the_forms(bad, message):
@@ -157,6 +160,32 @@ def test_a_skew_variant_is_rebuilt_by_its_name_keeps_each_steps_total_and_skews_
             skew(city, bad)
         assert "\n" not in str(err.value)
     assert meta.skew_name("porto", 1.6) == "porto~skew1.6" and meta.SKEW == "~skew"
+
+
+def test_a_sink_variant_sends_more_trips_into_its_region_from_every_origin_and_keeps_each_origins_requests():
+    """``~sink<r>x<m>``: every origin's requests to r x m against its other destinations, in the draw
+    and the forecast, each origin's requests of every step kept (only where they go changes); the
+    trips in and out then differ more (in_out_imbalance); rebuilt bit for bit from its name."""
+    city = load_city("synthetic")
+    drained = sink(city, 4, 5.0)
+    assert drained.name == "synthetic~sink4x5" and drained.meta["sink"] == {"region": 4, "multiplier": 5.0} and base_city(drained.name) == "synthetic"
+    _same_city(load_city(drained.name), drained)
+    for table in ("demand_rate", "forecast_rate"):
+        before, after = getattr(city, table), getattr(drained, table)
+        np.testing.assert_allclose(after.sum(axis=2), before.sum(axis=2), rtol=1e-9)  # every step's requests out of every origin
+        to_sink = lambda r: r[..., 4] / np.maximum(r.sum(axis=2), 1e-12)  # noqa: E731  (S, N) share of an origin's requests bound for region 4
+        bound = to_sink(before) > 0  # origins with trips to region 4 (none from region 4 itself)
+        assert bound.sum() > bound.size / 2 and (to_sink(after)[bound] > to_sink(before)[bound]).all()
+        np.testing.assert_array_equal(to_sink(after)[~bound], 0.0)
+        others = np.delete(np.arange(city.n_regions), 4)
+        scale = np.where(before[..., others] > 0, after[..., others] / np.where(before[..., others] > 0, before[..., others], 1), np.nan)
+        np.testing.assert_allclose(np.nanmax(scale, -1), np.nanmin(scale, -1), rtol=1e-9)  # an origin's other destinations in proportion
+    for table in ("price", "trip_time", "reb_time"):
+        np.testing.assert_array_equal(getattr(drained, table), getattr(city, table))
+    imbalances = [in_out_imbalance(sink(city, 4, m)) for m in (1.0, 2.0, 5.0)]
+    assert imbalances == sorted(imbalances) and imbalances[2] > imbalances[0] + 0.1
+    assert imbalances[0] == pytest.approx(in_out_imbalance(city)) and 0 <= imbalances[0] < 1
+    assert meta.sink_name("porto", 4, 3.0) == "porto~sink4x3" and meta.SINK == "~sink"
 
 
 def test_parallel_env_on_an_event_draws_the_surge_in_its_window_but_does_not_forecast_it():

@@ -96,7 +96,19 @@ from marl_amod.models.recurrent import RecurrentGNN
 from marl_amod.scenario import City, load_city
 from marl_amod.scenario.registry import load_spec
 from marl_amod.scenario.types import step_rows
-from marl_amod.scenario.variants import EVENT, HOTSPOT, SKEW, base_city, event_name, event_task, hotspot, hotspot_name, skew_name  # noqa: F401 (meta.<name>)
+from marl_amod.scenario.variants import (  # noqa: F401 (meta.<name>)
+    EVENT,
+    HOTSPOT,
+    SINK,
+    SKEW,
+    base_city,
+    event_name,
+    event_task,
+    hotspot,
+    hotspot_name,
+    sink_name,
+    skew_name,
+)
 from marl_amod.system import FleetSystem
 
 TRAIN_CITIES = (
@@ -336,6 +348,28 @@ def _hotspot_draws(name: str, city: City, rng: np.random.Generator, lo: float, h
             continue
         used.add(region)
         yield hotspot_name(name, region, multiplier)
+
+
+def sink_tasks(cities: list[str], variants: int, multipliers: tuple[float, float], seed: int) -> list[str]:
+    """``variants`` sink variants of each city (:func:`~marl_amod.scenario.variants.sink`): the
+    region drawn by its share of the day's requests *in* (busy destinations become sinks more
+    often), the multiplier log-uniform in ``multipliers`` (one decimal); a function of the seed, so
+    a resumed run names the same tasks."""
+    lo, hi = map(float, multipliers)
+    if variants and not (np.isfinite(hi) and 0.05 <= lo <= hi):
+        raise ConfigError(f"sink_multipliers {list(multipliers)}: a range [low, high] with 0.05 <= low <= high (one decimal is kept)")
+    names: list[str] = []
+    for i, name in enumerate(cities if variants else []):
+        city = load_city(name)
+        into = np.asarray(city.forecast_rate)[: city.horizon].sum(axis=(0, 1))
+        rng = np.random.default_rng([seed, i, 8087])
+        draws = (sink_name(name, int(rng.choice(city.n_regions, p=into / into.sum())), round(float(np.exp(rng.uniform(np.log(lo), np.log(hi)))), 1))
+                 for _ in itertools.count())  # fmt: skip
+        if (mine := first_distinct(draws, variants)) is None:
+            raise ConfigError(f"{variants} distinct sink variants of {name} not found in sink_multipliers {list(multipliers)} "
+                              "(one decimal) x its busy destinations: ask for fewer, or widen the range")  # fmt: skip
+        names += mine
+    return names
 
 
 def skew_tasks(cities: list[str], variants: int, gammas: tuple[float, float], seed: int) -> list[str]:

@@ -435,7 +435,7 @@ class Args(meta.Args):
     """a city's variants on different regions (:func:`~marl_amod.algos.meta.hotspot_tasks`): with
     two or more, the hotspot moves instead of the same region at another multiplier"""
     hotspot_share: float | None = Field(None, gt=0, lt=1)
-    """the share of an update's draws that go to the variants, hotspot and skew together (the rest
+    """the share of an update's draws that go to the variants, hotspot, skew and sink together (the rest
     to the cities; uniform within each). None: every task as often, so with one variant a city is
     drawn half as often as without, and with two a third (a cost the held-out city without a dominant hotspot showed)"""
     skew_variants: int = Field(0, ge=0)
@@ -448,6 +448,17 @@ class Args(meta.Args):
     """the range (log-uniform, one decimal) of the skew variants' gamma (> 1: more skewed)"""
     skew_episodes: int = Field(32, ge=1)
     """MPC-Forecast demonstration episodes per skew variant"""
+    sink_variants: int = Field(0, ge=0)
+    """per training city, this many :func:`~marl_amod.scenario.variants.sink` variants as more tasks
+    (every origin's requests to one busy destination x ``sink_multipliers``, the other destinations
+    fewer, forecast included; :func:`~marl_amod.algos.meta.sink_tasks`), demonstrated by MPC-F
+    (``sink_episodes`` each) and driven in the DAgger rounds like the cities; drawn with the hotspot
+    and skew variants (``hotspot_share``). Brooklyn's trips in and out of its regions differ by half
+    of all trips, every training city's by at most a quarter (:func:`~marl_amod.scenario.variants.in_out_imbalance`)"""
+    sink_multipliers: tuple[float, float] = (4.0, 8.0)
+    """the range (log-uniform, one decimal) of the sink variants' multipliers"""
+    sink_episodes: int = Field(32, ge=1)
+    """MPC-Forecast demonstration episodes per sink variant"""
     event_tasks: int = Field(0, ge=0)
     """per training city, this many :func:`~marl_amod.algos.meta.event_task` tasks (one fixed
     special event of the Brooklyn kind each, not in the forecast: :func:`~marl_amod.algos.meta.event_tasks`),
@@ -491,8 +502,8 @@ class Args(meta.Args):
         if (self.event_share is None) != (not self.event_tasks):
             raise ValueError(f"event_tasks {self.event_tasks} with event_share {self.event_share}: event tasks need the share of "
                              "the draws that goes to them, and a share needs event tasks")  # fmt: skip
-        if self.hotspot_share is not None and not (self.hotspot_variants or self.skew_variants):
-            raise ValueError(f"hotspot_share {self.hotspot_share} without hotspot_variants or skew_variants: there are no variants to draw")
+        if self.hotspot_share is not None and not (self.hotspot_variants or self.skew_variants or self.sink_variants):
+            raise ValueError(f"hotspot_share {self.hotspot_share} without hotspot_variants, skew_variants or sink_variants: there are no variants to draw")
         if self.shortfall_weight and self.imitation != "l1":
             raise ValueError(f"shortfall_weight {self.shortfall_weight} with imitation {self.imitation!r}: only l1 prices a "
                              "vehicle short apart (set imitation: l1, or shortfall_weight: 0)")  # fmt: skip
@@ -549,8 +560,8 @@ def draw_trials(demos: CityDemos, args: meta.Args, rng: np.random.Generator) -> 
 
 
 def tasks(args: Args) -> tuple[list[str], list[str]]:
-    """(the training cities, their hotspot then skew variants): the tasks an update draws from."""
-    return list(args.cities), hotspot_names(args) + skew_names(args)
+    """(the training cities, their hotspot, skew then sink variants): the tasks an update draws from."""
+    return list(args.cities), hotspot_names(args) + skew_names(args) + sink_names(args)
 
 
 def hotspot_names(args: Args) -> list[str]:
@@ -561,6 +572,11 @@ def hotspot_names(args: Args) -> list[str]:
 def skew_names(args: Args) -> list[str]:
     """The training cities' skew variants (none unless ``skew_variants``)."""
     return meta.skew_tasks(args.cities, args.skew_variants, args.skew_gammas, args.seed)
+
+
+def sink_names(args: Args) -> list[str]:
+    """The training cities' sink variants (none unless ``sink_variants``)."""
+    return meta.sink_tasks(args.cities, args.sink_variants, args.sink_multipliers, args.seed)
 
 
 def event_names(args: Args) -> list[str]:
@@ -615,10 +631,11 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     # every task and validation city built before any collection: a bad name or setting fails now, not after the demonstrations
     cities = {name: meta.task_city(name) for name in dict.fromkeys([*plain, *variants, *events, *args.val_cities])}
     walls = collect_demos(args.demos, plain, args.demo_episodes, args.seed, args.lookahead)
-    n_hot = args.hotspot_variants * len(plain)  # hotspot_tasks names exactly that many per city, or refuses
-    hot, skewed = variants[:n_hot], variants[n_hot:]
+    n_hot, n_skew = args.hotspot_variants * len(plain), args.skew_variants * len(plain)  # each *_tasks names exactly that many per city, or refuses
+    hot, skewed, sinks = variants[:n_hot], variants[n_hot : n_hot + n_skew], variants[n_hot + n_skew :]
     walls |= collect_demos(args.demos, hot, args.hotspot_episodes, args.seed, args.lookahead)
     walls |= collect_demos(args.demos, skewed, args.skew_episodes, args.seed, args.lookahead)
+    walls |= collect_demos(args.demos, sinks, args.sink_episodes, args.seed, args.lookahead)
     walls |= collect_demos(args.demos, events, args.event_episodes, args.seed, args.lookahead)
     data = load_all(args, cities, [*plain, *variants, *events])
     names = list(data)
@@ -632,7 +649,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         if st.get("tasks", names) != names:  # its updates and DAgger rounds are of those tasks (older states: not recorded)
             raise DataError(f"{resume} trained on the tasks {st['tasks']}; this config names {names}: resume with the run's "
                             "cities, seed, hotspot and skew settings (hotspot_variants, hotspot_multipliers, hotspot_distinct_regions, "
-                            "skew_variants, skew_gammas) and event settings (event_tasks, event_multipliers)")  # fmt: skip
+                            "skew_variants, skew_gammas, sink_variants, sink_multipliers) and event settings (event_tasks, event_multipliers)")  # fmt: skip
         for key, drawn in (("hotspot_share", "variants"), ("event_share", "event tasks")):  # older states: every task as often
             if st.get(key) != getattr(args, key):
                 raise DataError(f"{resume} drew its {drawn} with {key} {st.get(key)}; this config sets "
@@ -679,6 +696,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         extra["demonstrations"] |= {"hotspot_variants": hot, "episodes_per_variant": args.hotspot_episodes}
     if skewed:
         extra["demonstrations"] |= {"skew_variants": skewed, "skew_gammas": list(args.skew_gammas), "episodes_per_skew_variant": args.skew_episodes}
+    if sinks:
+        extra["demonstrations"] |= {"sink_variants": sinks, "sink_multipliers": list(args.sink_multipliers), "episodes_per_sink_variant": args.sink_episodes}
     if variants and args.hotspot_share is not None:
         extra["demonstrations"] |= {"variants_share_of_draws": args.hotspot_share}
     if events:

@@ -1,8 +1,9 @@
 """Scenario variants by name: a scenario with one change to its demand, rebuilt from the name alone.
 
-Three forms, appended to any scenario (a bundled name or a YAML path)::
+Four forms, appended to any scenario (a bundled name or a YAML path)::
 
     <scenario>~hot<region>x<multiplier>                        a hotspot (:func:`hotspot`)
+    <scenario>~sink<region>x<multiplier>                       a sink of the trips (:func:`sink`)
     <scenario>~skew<gamma>                                     a more (or less) skewed demand (:func:`skew`)
     <scenario>~ev<r>+<r>x<m>@<start>-<end>[dr<r>+<r>x<m>]      a special event (:func:`event_task`)
 
@@ -10,6 +11,8 @@ Three forms, appended to any scenario (a bundled name or a YAML path)::
 and the forecast (another city, which the features show); ``porto~ev3+7x4@5-12dr0+1x0.5`` is Porto
 whose requests out of regions 3 and 7 are x4 over control steps [5, 12) while those out of 0 and 1
 are x0.5, in the draw only (a shock the forecast does not know, as a scenario's ``events``);
+``porto~sink4x3`` is Porto with every origin's requests *to* region 4 x3 against its other
+destinations, in the draw and the forecast (the fleet drains into region 4);
 ``porto~skew1.6`` is Porto with every region's requests out x (its share / the average share) ^ 0.6,
 in the draw and the forecast (big regions bigger, small ones smaller; gamma 1 is the city itself).
 
@@ -17,7 +20,7 @@ Why names: the meta study's tasks, their demonstrations, DAgger rounds and polic
 name, and :func:`~marl_amod.scenario.registry.load_city` (hence the envs and every CLI command)
 resolves it: the base scenario with its keyword overrides first, then the variant. Variants stack,
 left to right (``porto~hot1x3~ev2x4@0-6`` is the event on the hotspot variant). The numbers in a
-name are exact (:func:`hotspot_name`, :func:`skew_name`, :func:`event_name`), so the name rebuilds the city bit for bit.
+name are exact (:func:`hotspot_name`, :func:`sink_name`, :func:`skew_name`, :func:`event_name`), so the name rebuilds the city bit for bit.
 """
 
 from __future__ import annotations
@@ -35,10 +38,12 @@ from marl_amod.scenario.events import DemandEvent, apply_events
 from marl_amod.scenario.types import City
 
 HOTSPOT = "~hot"  # "<scenario>~hot<region>x<multiplier>": the scenario with that hotspot
+SINK = "~sink"  # "<scenario>~sink<region>x<multiplier>": the scenario with the trips into that region x the multiplier
 SKEW = "~skew"  # "<scenario>~skew<gamma>": the scenario with its origin shares raised to that power
 EVENT = "~ev"  # "<scenario>~ev<r>+<r>x<m>@<start>-<end>[dr<r>+<r>x<m>]": the scenario with that event
 FORMS = (
     f"<scenario>{HOTSPOT}<region>x<multiplier> (a hotspot, e.g. porto{HOTSPOT}1x2.5), "
+    f"<scenario>{SINK}<region>x<multiplier> (a sink, e.g. porto{SINK}4x3), "
     f"<scenario>{SKEW}<gamma> (a demand shape, e.g. porto{SKEW}1.6) or "
     f"<scenario>{EVENT}<r>+<r>x<m>@<start>-<end>[dr<r>+<r>x<m>] (an event, e.g. porto{EVENT}3+7x4@5-12dr0+1x0.5)"
 )
@@ -51,7 +56,7 @@ _EVENT_RE = re.compile(rf"(?P<up>{_REGIONS})x(?P<m>{_NUMBER})@(?P<s>\d+)-(?P<e>\
 
 
 # --------------------------------------------------------------------------------------------
-# The three variants
+# The four variants
 # --------------------------------------------------------------------------------------------
 def hotspot(city: City, region: int, multiplier: float) -> City:
     """``city`` with the requests out of ``region`` x ``multiplier`` against the rest, every step's
@@ -84,6 +89,39 @@ def skew(city: City, gamma: float) -> City:
     share = out / max(float(out.mean()), 1e-12)
     factor = np.where(share > 0, share, 1.0) ** (gamma - 1.0)  # a region without requests stays without them
     return _reweighted(city, factor, skew_name(city.name, gamma), {"skew": {"gamma": gamma}})
+
+
+def sink(city: City, region: int, multiplier: float) -> City:
+    """``city`` with every origin's requests *to* ``region`` x ``multiplier`` against its other
+    destinations, each origin's requests of every step kept (the same requests, other
+    destinations), in the draw *and* the forecast. Fares and trip times stay those of each origin
+    and destination. Why: in Brooklyn the trips in and out of a region differ by half of all trips
+    (half the L1 distance between the regions' shares of requests out and in: 0.49, region 6 draws
+    38% of the arrivals and 20% of the departures), in every training city by at most 0.26 (Porto),
+    so no training city shows the fleet draining into one region and MPC-F's moves back against
+    that drain; a sink raises it (docs/meta/log.md, "Where the held-out gap is now")."""
+    if not 0 <= region < city.n_regions or not np.isfinite(multiplier) or multiplier <= 0:
+        raise ConfigError(f"sink of {city.name}: region {region} (0..{city.n_regions - 1}) and multiplier {multiplier} (> 0)")
+    factor = np.ones(city.n_regions)
+    factor[region] = multiplier
+
+    def redirected(rate: np.ndarray) -> np.ndarray:
+        rate = np.asarray(rate)
+        new = rate * factor[None, None, :]  # (S, N, N): destinations on axis 2
+        total, now = rate.sum(axis=2, keepdims=True), new.sum(axis=2, keepdims=True)
+        return new * np.where(now > 0, total / np.maximum(now, 1e-12), 1.0)
+
+    return replace(city, name=sink_name(city.name, region, multiplier), demand_rate=redirected(city.demand_rate),
+                   forecast_rate=redirected(city.forecast_rate), meta={**city.meta, "sink": {"region": region, "multiplier": multiplier}})  # fmt: skip
+
+
+def in_out_imbalance(city: City) -> float:
+    """Half the L1 distance between the regions' shares of the episode's expected requests out and
+    in: the share of all trips that must come back by rebalancing for the fleet to keep its shape
+    (0: every region receives what it sends). Brooklyn 0.49, the meta study's training cities 0.09-0.26."""
+    rate = np.asarray(city.forecast_rate)[: city.horizon]
+    out, into = rate.sum(axis=(0, 2)), rate.sum(axis=(0, 1))
+    return float(np.abs(out - into).sum() / 2 / max(float(out.sum()), 1e-12))
 
 
 def _reweighted(city: City, factor: np.ndarray, name: str, meta: dict) -> City:
@@ -125,6 +163,11 @@ def hotspot_name(city: str, region: int, multiplier: float) -> str:
     return f"{city}{HOTSPOT}{region}x{_number(multiplier)}"
 
 
+def sink_name(city: str, region: int, multiplier: float) -> str:
+    """``<city>~sink<region>x<multiplier>``, the multiplier exactly and short: the name :func:`parse` rebuilds :func:`sink` from."""
+    return f"{city}{SINK}{region}x{_number(multiplier)}"
+
+
 def skew_name(city: str, gamma: float) -> str:
     """``<city>~skew<gamma>``, gamma exactly and short (2, not 2.0): the name :func:`parse` rebuilds :func:`skew` from."""
     return f"{city}{SKEW}{_number(gamma)}"
@@ -161,12 +204,14 @@ def base_city(name: str) -> str:
 def parse(name: str) -> tuple[str, Callable[[City], City] | None]:
     """``(base, change)``: the scenario a name's last variant applies to and the variant as a
     function of that city (None for a plain scenario). Checked before any city is built, so a
-    malformed name is a one-line ConfigError naming the three forms, data or not."""
+    malformed name is a one-line ConfigError naming the four forms, data or not."""
     base, variant = split(name)
     if variant is None:
         return name, None
     if variant.startswith(HOTSPOT) and (m := _HOTSPOT_RE.fullmatch(variant.removeprefix(HOTSPOT))):
         return base, partial(hotspot, region=int(m["region"]), multiplier=float(m["m"]))
+    if variant.startswith(SINK) and (m := _HOTSPOT_RE.fullmatch(variant.removeprefix(SINK))):
+        return base, partial(sink, region=int(m["region"]), multiplier=float(m["m"]))
     if variant.startswith(SKEW) and (m := _SKEW_RE.fullmatch(variant.removeprefix(SKEW))):
         return base, partial(skew, gamma=float(m["g"]))
     if variant.startswith(EVENT) and (m := _EVENT_RE.fullmatch(variant.removeprefix(EVENT))):
