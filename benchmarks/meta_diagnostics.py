@@ -333,7 +333,7 @@ def compare(files: list[str]) -> None:
     if any(list(r["tasks"]) != names or (r["episodes"], r["seed"], r.get("k", 3)) != (recs[0]["episodes"], recs[0]["seed"], recs[0].get("k", 3))
            for r in recs):  # fmt: skip
         raise SystemExit("compare: the files hold other tasks, episodes, seeds or adaptation episodes (k)")
-    hot, skewed, events = ([n for n in names if kind in n] for kind in (meta.HOTSPOT, meta.SKEW, meta.EVENT))
+    hot, skewed, sinks, events = ([n for n in names if kind in n] for kind in (meta.HOTSPOT, meta.SKEW, meta.SINK, meta.EVENT))
 
     def per_episode(r: dict[str, Any], group: list[str], what: str) -> np.ndarray:
         """(tasks, episodes): the gap to MPC-F in % (``gap``) or the profit (``profit``)."""
@@ -341,7 +341,7 @@ def compare(files: list[str]) -> None:
         m = np.array([r["tasks"][n]["mpc-forecast"] for n in group], dtype=np.float64)
         return 100 * (1 - p / m) if what == "gap" else p
 
-    for group, what, unit in ((hot, "gap", "% gap to MPC-F"), (skewed, "gap", "% gap to MPC-F"), (events, "profit", " profit")):
+    for group, what, unit in ((hot, "gap", "% gap to MPC-F"), (skewed, "gap", "% gap to MPC-F"), (sinks, "gap", "% gap to MPC-F"), (events, "profit", " profit")):
         if not group:
             continue
         vals = [per_episode(r, group, what) for r in recs]

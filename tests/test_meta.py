@@ -525,11 +525,13 @@ def test_compare_reads_the_standard_error_of_its_mean_over_the_episodes(tmp_path
     meta_diagnostics.compare([str(f) for f in files])
     out = capsys.readouterr().out
     assert "+250.000 profit" in out and "by episode 0.000" in out and "+24.98% of the first's mean" in out  # 250 / 1,001 (the non-inferiority rule reads it)
-    for i, gap in enumerate((10.0, 5.0)):  # skew variants: their own group, read as the gap to MPC-F
-        tasks = {"porto~skew2.7": {"policy": [100.0 - gap] * 3, "mpc-forecast": [100.0] * 3}}
+    for i, gap in enumerate((10.0, 5.0)):  # skew and sink variants: groups of their own, read as the gap to MPC-F
+        tasks = {"porto~skew2.7": {"policy": [100.0 - gap] * 3, "mpc-forecast": [100.0] * 3},
+                 "porto~sink2x6": {"policy": [100.0 - 2 * gap] * 3, "mpc-forecast": [100.0] * 3}}  # fmt: skip
         files[i].write_text(json.dumps({"policy": str(i), "seed": 1000, "episodes": 3, "tasks": tasks}))
     meta_diagnostics.compare([str(f) for f in files])
-    assert "-5.000% gap to MPC-F" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "-5.000% gap to MPC-F" in out and "-10.000% gap to MPC-F" in out and "over 1 tasks x 3 episodes: 20.000" in out
 
 
 def test_the_tasks_diagnostic_adapts_over_the_k_it_is_given(tmp_path, monkeypatch):
