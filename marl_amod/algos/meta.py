@@ -42,6 +42,11 @@ average share) ^ (gamma - 1), forecast included, so big regions grow and small o
 held-out cities' demand is more skewed than the training cities', not only at one region);
 ``skew_variants`` of :mod:`.meta_imitation` adds them (:func:`skew_tasks`).
 
+Sink variants (:func:`~marl_amod.scenario.variants.sink`, ``<city>~sink<r>x<m>``). A training city
+with every origin's trips into one region x m, forecast included: the fleet drains into it, as
+Brooklyn's does into its region 6 (trips in and out differ by half of all trips there, by at most
+a quarter in a training city); ``sink_variants`` adds them (:func:`sink_tasks`).
+
 Event tasks (:func:`event_task`, ``<city>~ev...``). A training city with one fixed special event
 of the Brooklyn kind (requests out of a few regions surge over a window, the busiest regions'
 drop), in the draw and *not* in the forecast: every episode of the task carries the same event,
