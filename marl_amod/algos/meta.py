@@ -79,6 +79,7 @@ import itertools
 import weakref
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any, Literal
 
@@ -333,7 +334,9 @@ def hotspot_tasks(cities: list[str], variants: int, multipliers: tuple[float, fl
         raise ConfigError(f"hotspot_multipliers {list(multipliers)}: a range [low, high] with 0.05 <= low <= high (one decimal is kept)")
     names: list[str] = []
     for i, name in enumerate(cities if variants else []):
-        draws = _hotspot_draws(name, load_city(name), np.random.default_rng([seed, i, 6029]), lo, hi, distinct_regions)
+        city = load_city(name)
+        out = place_table(city)[:, 2].astype(np.float64)
+        draws = _region_draws(partial(hotspot_name, name), out, np.random.default_rng([seed, i, 6029]), lo, hi, distinct_regions)
         if (mine := first_distinct(draws, variants)) is None:
             raise ConfigError(f"{variants} distinct hotspot variants of {name} not found in hotspot_multipliers {list(multipliers)} "
                               f"(one decimal) x its busy regions{' (each region once: hotspot_distinct_regions)' if distinct_regions else ''}: "
@@ -342,17 +345,20 @@ def hotspot_tasks(cities: list[str], variants: int, multipliers: tuple[float, fl
     return names
 
 
-def _hotspot_draws(name: str, city: City, rng: np.random.Generator, lo: float, hi: float, distinct_regions: bool) -> Iterator[str | None]:
-    out = place_table(city)[:, 2].astype(np.float64)
+def _region_draws(
+    name_of: Callable[[int, float], str], weights: np.ndarray, rng: np.random.Generator, lo: float, hi: float, distinct_regions: bool = False
+) -> Iterator[str | None]:
+    """Endless task names ``name_of(region, multiplier)``: the region drawn by ``weights`` (N,), the
+    multiplier log-uniform in [lo, hi] (one decimal); with ``distinct_regions`` a region drawn again yields None."""
     used: set[int] = set()  # with distinct_regions a region not used yet names a new task, so every yield is kept
     while True:
-        region = int(rng.choice(city.n_regions, p=out / out.sum()))
+        region = int(rng.choice(len(weights), p=weights / weights.sum()))
         multiplier = round(float(np.exp(rng.uniform(np.log(lo), np.log(hi)))), 1)
         if distinct_regions and region in used:
             yield None
             continue
         used.add(region)
-        yield hotspot_name(name, region, multiplier)
+        yield name_of(region, multiplier)
 
 
 def sink_tasks(cities: list[str], variants: int, multipliers: tuple[float, float], seed: int) -> list[str]:
@@ -367,9 +373,7 @@ def sink_tasks(cities: list[str], variants: int, multipliers: tuple[float, float
     for i, name in enumerate(cities if variants else []):
         city = load_city(name)
         into = np.asarray(city.forecast_rate)[: city.horizon].sum(axis=(0, 1))
-        rng = np.random.default_rng([seed, i, 8087])
-        draws = (sink_name(name, int(rng.choice(city.n_regions, p=into / into.sum())), round(float(np.exp(rng.uniform(np.log(lo), np.log(hi)))), 1))
-                 for _ in itertools.count())  # fmt: skip
+        draws = _region_draws(partial(sink_name, name), into, np.random.default_rng([seed, i, 8087]), lo, hi)
         if (mine := first_distinct(draws, variants)) is None:
             raise ConfigError(f"{variants} distinct sink variants of {name} not found in sink_multipliers {list(multipliers)} "
                               "(one decimal) x its busy destinations: ask for fewer, or widen the range")  # fmt: skip

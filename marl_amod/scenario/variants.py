@@ -104,15 +104,7 @@ def sink(city: City, region: int, multiplier: float) -> City:
         raise ConfigError(f"sink of {city.name}: region {region} (0..{city.n_regions - 1}) and multiplier {multiplier} (> 0)")
     factor = np.ones(city.n_regions)
     factor[region] = multiplier
-
-    def redirected(rate: np.ndarray) -> np.ndarray:
-        rate = np.asarray(rate)
-        new = rate * factor[None, None, :]  # (S, N, N): destinations on axis 2
-        total, now = rate.sum(axis=2, keepdims=True), new.sum(axis=2, keepdims=True)
-        return new * np.where(now > 0, total / np.maximum(now, 1e-12), 1.0)
-
-    return replace(city, name=sink_name(city.name, region, multiplier), demand_rate=redirected(city.demand_rate),
-                   forecast_rate=redirected(city.forecast_rate), meta={**city.meta, "sink": {"region": region, "multiplier": multiplier}})  # fmt: skip
+    return _reweighted(city, factor, sink_name(city.name, region, multiplier), {"sink": {"region": region, "multiplier": multiplier}}, DESTINATIONS)
 
 
 def in_out_imbalance(city: City) -> float:
@@ -124,14 +116,23 @@ def in_out_imbalance(city: City) -> float:
     return float(np.abs(out - into).sum() / 2 / max(float(out.sum()), 1e-12))
 
 
-def _reweighted(city: City, factor: np.ndarray, name: str, meta: dict) -> City:
-    """``city`` with the requests out of each region x ``factor`` (N,), every step's total kept, in
-    the draw and the forecast, named ``name``, ``meta`` added to its meta."""
+ORIGINS = 1  # the axis of the rates (S, N, N) that :func:`_reweighted` weighs: requests out of each region,
+DESTINATIONS = 2  # or requests into each region
+
+
+def _reweighted(city: City, factor: np.ndarray, name: str, meta: dict, axis: int = ORIGINS) -> City:
+    """``city`` with the requests out of (``ORIGINS``) or into (``DESTINATIONS``) each region x
+    ``factor`` (N,), in the draw and the forecast, named ``name``, ``meta`` added to its meta. Kept:
+    every step's total (origins), or every step's requests out of each origin (destinations: the
+    same requests, other destinations)."""
+    shape, kept = [1, 1, 1], ((1, 2) if axis == ORIGINS else (2,))
+    shape[axis] = city.n_regions
+    weight = factor.reshape(shape)
 
     def raised(rate: np.ndarray) -> np.ndarray:
-        new = np.asarray(rate) * factor[:, None]  # (S, N, N): origins on axis 1
-        total, now = np.asarray(rate).sum(axis=(1, 2)), new.sum(axis=(1, 2))
-        return new * np.where(now > 0, total / np.maximum(now, 1e-12), 1.0)[:, None, None]
+        new = np.asarray(rate) * weight  # (S, N, N): origins on axis 1, destinations on axis 2
+        total, now = np.asarray(rate).sum(axis=kept, keepdims=True), new.sum(axis=kept, keepdims=True)
+        return new * np.where(now > 0, total / np.maximum(now, 1e-12), 1.0)
 
     return replace(city, name=name, demand_rate=raised(city.demand_rate), forecast_rate=raised(city.forecast_rate), meta={**city.meta, **meta})
 
