@@ -410,7 +410,12 @@ def load_policy(path: str | Path, city: City | str | None = None, selection: Sel
     meta-RL policy (algorithm "meta") runs its adaptation episodes in ``city`` first.
 
     ``selection`` (default: the card's) picks each action among candidates by the file's critic
-    (:mod:`marl_amod.selection`); ``{"candidates": 0, ...}`` turns a card's selection off."""
+    (:mod:`marl_amod.selection`); ``{"candidates": 0, ...}`` turns a card's selection off.
+    An ensemble file (:mod:`marl_amod.ensemble`) gives its members' mean, each member loaded so."""
+    from marl_amod.ensemble import is_ensemble, load_ensemble
+
+    if is_ensemble(path):
+        return load_ensemble(path, lambda member: load_policy(member, city, selection))
     card = _card_of(Path(path), _read_blob(Path(path))["card"])
     if not isinstance(city, City):
         from marl_amod.scenario import load_city

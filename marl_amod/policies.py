@@ -35,6 +35,7 @@ from marl_amod.baselines import (
     RandomPolicy,
 )
 from marl_amod.baselines.observation import ObservationFn
+from marl_amod.ensemble import ENSEMBLE_SUFFIXES
 from marl_amod.errors import ConfigError
 from marl_amod.scenario.types import City
 
@@ -60,8 +61,9 @@ def policy_names() -> list[str]:
 
 
 def make_policy(policy: PolicyLike, city: City | None = None, **options: Any) -> Policy:
-    """A policy from a registered name, a checkpoint path (``.pt``, built for ``city``), a Policy,
-    or a callable on the env's observations; ``options`` go to the policy's factory."""
+    """A policy from a registered name, a checkpoint path (``.pt``, built for ``city``) or an
+    ensemble file of them (``.yaml``), a Policy, or a callable on the env's observations;
+    ``options`` go to the policy's factory."""
     if isinstance(policy, Policy):
         if options:
             raise ConfigError(f"options {sorted(options)} need a policy name or a callable, not a ready policy")
@@ -70,13 +72,13 @@ def make_policy(policy: PolicyLike, city: City | None = None, **options: Any) ->
         name = str(policy)
         if name in POLICIES:
             return _build(name, POLICIES[name], options)
-        if name.endswith(".pt"):
+        if name.endswith((".pt", *ENSEMBLE_SUFFIXES)):
             if options:
                 raise ConfigError(f"a checkpoint takes no options, got {sorted(options)}")
             from marl_amod.checkpoints import load_policy
 
             return load_policy(name, city)
-        raise ConfigError(f"unknown policy {name!r}; known: {', '.join(policy_names())} or a checkpoint .pt path")
+        raise ConfigError(f"unknown policy {name!r}; known: {', '.join(policy_names())}, a checkpoint .pt path or an ensemble .yaml")
     if callable(policy):
         return _build(getattr(policy, "__name__", "callable"), ObservationPolicy, options, policy)
     raise ConfigError(f"a policy must be a name, a checkpoint path or a callable, got {type(policy).__name__}")

@@ -91,6 +91,37 @@ def _card(path: str) -> dict[str, Any]:
     return read_card(path)
 
 
+def _meta_used(cards: list[dict[str, Any]]) -> dict[str, Any]:
+    """What the meta-policies of ``cards`` (one, or an ensemble's members) trained on, summed: the
+    tasks beside the cities, MPC-F demonstrations and DAgger episodes, and RL episodes (none when
+    every member only imitated)."""
+    # (card key, what the table calls them, the card key of their episodes each): the tasks beside the cities
+    kinds = [("hotspot_variants", "hotspot variants", "episodes_per_variant"), ("skew_variants", "skew variants", "episodes_per_skew_variant"),
+             ("sink_variants", "sink variants", "episodes_per_sink_variant"), ("event_tasks", "event tasks", "episodes_per_event_task")]  # fmt: skip
+    source, demonstrations, dagger, rl = "10 training cities", 0, 0, 0
+    for card in cards:
+        warm = card.get("warm_start") or {}
+        demos = warm.get("demonstrations") or card.get("demonstrations")
+        extra = {key: (demos or {}).get(key, []) for key, _, _ in kinds}
+        if card is cards[0]:
+            source += "".join(f" + {len(extra[key])} {label}" for key, label, _ in kinds if extra[key])
+        if demos:  # trained from an imitation of MPC-Forecast on the same cities
+            demonstrations += demos["episodes_per_city"] * len(demos["cities"]) + sum(demos.get(each, 0) * len(extra[key]) for key, _, each in kinds)
+        rounds = [d for d in (card.get("dagger"), warm.get("dagger")) if d]  # its own DAgger rounds and its start's
+        if rounds and demos:  # the policy's own episodes there, labelled by MPC-F (MPC told the event on the event tasks)
+            dagger += sum(d["rounds"] * d["episodes_per_city"] for d in rounds) * (len(demos["cities"]) + sum(map(len, extra.values())))
+        if card["algorithm"] != "meta-bc":  # imitation only: no RL episode
+            rl += card.get("episodes_trained") or 0
+    if len(cards) > 1:
+        source = f"{len(cards)} seeds x ({source})"
+    used: dict[str, Any] = {"source_city": source, "source_episodes": rl or None}
+    if demonstrations:
+        used["demonstrations"] = demonstrations
+    if dagger:
+        used["dagger_episodes"] = dagger
+    return used
+
+
 def run_strategy(
     strategy: str, scenario: str, *, episodes: int = 10, seed: int = 0, policy: str | None = None,
     adapt_episodes: int | None = None, meta_policy: str = META_POLICY,
@@ -127,30 +158,15 @@ def run_strategy(
         used.update(source=policy, source_city=card["scenario"], source_episodes=card.get("episodes_trained"), target_episodes=k,
                     validation_episodes=2 * FINE_TUNE_VALIDATION)
     else:
-        from marl_amod.algos.meta import adapt, load_meta
+        from marl_amod.algos.meta import load_meta, load_policy
+        from marl_amod.ensemble import is_ensemble, read_members
 
         meta_policy = policy or meta_policy
-        model, card = load_meta(meta_policy)
-        k = card["args"]["trial_episodes"] - 1 if adapt_episodes is None else adapt_episodes
-        pol = adapt(model, city, k, card["lookahead"], seed=seed)
-        used.update(source=meta_policy, source_city="10 training cities", source_episodes=card.get("episodes_trained"), target_episodes=k)
-        warm = card.get("warm_start") or {}
-        demos = warm.get("demonstrations") or card.get("demonstrations")
-        # (card key, what the table calls them, the card key of their episodes each): the tasks beside the cities
-        kinds = [("hotspot_variants", "hotspot variants", "episodes_per_variant"), ("skew_variants", "skew variants", "episodes_per_skew_variant"),
-                 ("sink_variants", "sink variants", "episodes_per_sink_variant"), ("event_tasks", "event tasks", "episodes_per_event_task")]  # fmt: skip
-        extra = {key: (demos or {}).get(key, []) for key, _, _ in kinds}
-        for key, label, _ in kinds:
-            if extra[key]:
-                used["source_city"] += f" + {len(extra[key])} {label}"
-        if demos:  # trained from an imitation of MPC-Forecast on the same cities
-            used["demonstrations"] = demos["episodes_per_city"] * len(demos["cities"]) + sum(demos.get(each, 0) * len(extra[key]) for key, _, each in kinds)
-        rounds = [d for d in (card.get("dagger"), warm.get("dagger")) if d]  # its own DAgger rounds and its start's
-        if rounds and demos:  # the policy's own episodes there, labelled by MPC-F (MPC told the event on the event tasks)
-            tasks = len(demos["cities"]) + sum(map(len, extra.values()))
-            used["dagger_episodes"] = sum(d["rounds"] * d["episodes_per_city"] for d in rounds) * tasks
-        if card["algorithm"] == "meta-bc":  # imitation only: no RL episode
-            used["source_episodes"] = None
+        members = read_members(meta_policy) if is_ensemble(meta_policy) else [meta_policy]
+        cards = [load_meta(m)[1] for m in members]
+        k = cards[0]["args"]["trial_episodes"] - 1 if adapt_episodes is None else adapt_episodes
+        pol = load_policy(meta_policy, city, k, seed)
+        used.update(_meta_used(cards), source=meta_policy, target_episodes=k * len(members))  # each member adapts alone
     result = evaluate(pol, city, episodes, seed)
     result["transfer"] = used
     return result

@@ -93,6 +93,7 @@ from marl_amod.algos.rollout import train_seed
 from marl_amod.baselines.base import WeightPolicy
 from marl_amod.batch_system import BatchFleetSystem
 from marl_amod.data import resolve
+from marl_amod.ensemble import PolicyEnsemble, is_ensemble, load_ensemble
 from marl_amod.env.features import state_features
 from marl_amod.errors import ConfigError, DataError
 from marl_amod.models.dense import DenseGraph
@@ -816,6 +817,9 @@ class MetaPolicy(WeightPolicy):
         self._last = booked
         return self.agent.act(system, sample=False)[0][0]
 
+    def executed(self, weights: np.ndarray) -> None:
+        self.agent.prev_action = torch.as_tensor(weights * len(weights), dtype=torch.float32)[None]  # as act() records its own
+
 
 @torch.no_grad()
 def adapt(model: RecurrentGNN, city: City, episodes: int, lookahead: int, seed: int = 0) -> MetaPolicy:
@@ -860,9 +864,12 @@ def load_meta(path: str | Path, like: RecurrentGNN | None = None) -> tuple[Recur
     return model, card
 
 
-def load_policy(path: str | Path, city: City, episodes: int | None = None, seed: int = 0) -> MetaPolicy:
+def load_policy(path: str | Path, city: City, episodes: int | None = None, seed: int = 0) -> MetaPolicy | PolicyEnsemble:
     """A meta-RL policy file adapted to ``city`` (``episodes`` adaptation episodes; default: the
-    trial length it was trained with, minus one), ready for :func:`marl_amod.evaluation.evaluate`."""
+    trial length it was trained with, minus one), ready for :func:`marl_amod.evaluation.evaluate`;
+    an ensemble file (:mod:`marl_amod.ensemble`) of them, each member adapted alone."""
+    if is_ensemble(path):
+        return load_ensemble(path, lambda member: load_policy(member, city, episodes, seed))
     model, card = load_meta(path)
     k = card["args"]["trial_episodes"] - 1 if episodes is None else episodes
     policy = adapt(model, city, k, card["lookahead"], seed=seed)

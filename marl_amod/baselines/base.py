@@ -50,6 +50,10 @@ class WeightPolicy(Policy):
     def target(self, system: FleetSystem) -> np.ndarray:
         return system.targets_from_weights(self.weights(system))
 
+    def executed(self, weights: np.ndarray) -> None:
+        """The weights taken this step in this policy's place (an ensemble's mean): a policy that
+        reads its own last action next step reads these instead; the others ignore them."""
+
 
 class FlowPolicy(Policy):
     """A policy that plans rebalancing moves; the coordinator's min-cost flow then realises them."""

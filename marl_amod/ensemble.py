@@ -1,0 +1,92 @@
+"""Several weight policies acting as one: each step, the mean of their desired distributions.
+
+Why: policies trained by one recipe from different seeds err differently where their training
+never led them (a meta-policy's own states in a city it never saw: docs/meta/log.md, "An ensemble
+of training seeds"); the mean of their distributions cancels the part of the error that differs.
+Nothing is trained: the members are policy files, and the ensemble is a small YAML file beside
+them that loads wherever a checkpoint does (``make_policy``, ``marl-amod evaluate --policy``,
+``marl-amod transfer-table --meta-policy``)::
+
+    # policies/meta_rl_l1_ensemble.yaml
+    members: [meta_rl_l1_cities.pt, seeds/meta_rl_l1_cities_seed1.pt]
+
+Member paths are relative to the file. A member that reads its own last action (a meta-policy)
+is told the ensemble's action instead (:meth:`WeightPolicy.executed`), so its next step sees the
+fleet the ensemble made. Each meta-policy adapts to the city alone, so an ensemble of m of them
+plays m times its K adaptation episodes there.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from marl_amod.baselines.base import WeightPolicy
+from marl_amod.data import read_yaml
+from marl_amod.errors import ConfigError, DataError, pydantic_problems
+from marl_amod.system import FleetSystem
+
+ENSEMBLE_SUFFIXES = (".yaml", ".yml")
+
+
+class EnsembleFile(BaseModel):
+    """What an ensemble file holds: two or more policy files (relative to it)."""
+
+    model_config = ConfigDict(extra="forbid")
+    members: list[str] = Field(min_length=2)
+
+
+def is_ensemble(path: str | Path) -> bool:
+    """Whether ``path`` names an ensemble file rather than a checkpoint."""
+    return Path(path).suffix in ENSEMBLE_SUFFIXES
+
+
+def read_members(path: str | Path) -> list[Path]:
+    """The member checkpoints of the ensemble file ``path``, each checked to be there."""
+    path = Path(path)
+    try:
+        spec = EnsembleFile.model_validate(read_yaml(path, what="ensemble"))
+    except ValidationError as exc:
+        raise ConfigError(f"ensemble {path}: {pydantic_problems(exc)}") from None
+    members = [path.parent / m for m in spec.members]
+    for m in members:
+        if m.suffix != ".pt":
+            raise ConfigError(f"ensemble {path}: member {m} is not a checkpoint (.pt); ensembles do not nest")
+        if not m.is_file():
+            raise ConfigError(f"ensemble {path}: member {m} not found")
+    return members
+
+
+class PolicyEnsemble(WeightPolicy):
+    """The members' weights, each as shares of the idle fleet, averaged."""
+
+    def __init__(self, members: list[WeightPolicy], name: str = "ensemble") -> None:
+        if len(members) < 2:
+            raise ConfigError(f"an ensemble needs two or more members, got {len(members)}")
+        self.members, self.name = members, name
+
+    def reset(self, system: FleetSystem, rng: np.random.Generator) -> None:
+        super().reset(system, rng)
+        for member in self.members:
+            member.reset(system, rng)
+
+    def weights(self, system: FleetSystem) -> np.ndarray:
+        shares = []
+        for member in self.members:
+            w = np.asarray(member.weights(system), dtype=np.float64)
+            if not w.sum() > 0:
+                raise DataError(f"ensemble member {member.name} asked every vehicle to stay (all-zero weights): an ensemble averages distributions")
+            shares.append(w / w.sum())
+        mean = np.mean(shares, axis=0)
+        for member in self.members:
+            member.executed(mean)
+        return mean
+
+
+def load_ensemble(path: str | Path, load_member: Callable[[Path], WeightPolicy]) -> PolicyEnsemble:
+    """The ensemble of ``path``, each member built by ``load_member`` (which says for what city, and
+    how a meta-policy adapts there)."""
+    return PolicyEnsemble([load_member(m) for m in read_members(path)], name=Path(path).stem)

@@ -1,0 +1,101 @@
+"""Policy ensembles: the members' mean, what each member is told it did, the file, and transfer's row."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from marl_amod.algos import meta
+from marl_amod.baselines import EqualDistribution, Proportional
+from marl_amod.ensemble import PolicyEnsemble
+from marl_amod.errors import ConfigError
+from marl_amod.evaluation import evaluate
+from marl_amod.policies import make_policy
+from marl_amod.scenario import grid_city, load_city
+from marl_amod.system import FleetSystem
+from marl_amod.transfer import run_strategy
+
+
+def _meta_file(tmp_path, name: str, seed: int) -> str:
+    """A small meta-policy file for the synthetic city (an untrained model of ``seed``, its card by ``finish``)."""
+    args = meta.Args(scenario="synthetic", hidden=8, trial_episodes=2, final_eval_episodes=1, seed=seed,
+                     run_dir=str(tmp_path / name), policy_out=str(tmp_path / f"{name}.pt"))  # fmt: skip
+    torch.manual_seed(seed)
+    return meta.finish(args, meta.make_model(args), 0.0, 0, None)["policy"]
+
+
+@pytest.fixture(scope="module")
+def members(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("members")
+    return [_meta_file(tmp, f"m{seed}", seed) for seed in (0, 1)]
+
+
+def _write(path, text: str) -> str:
+    path.write_text(text)
+    return str(path)
+
+
+def test_an_ensemble_acts_as_the_mean_of_its_members_shares():
+    city = grid_city(rows=3, cols=3, horizon=6)
+    system = FleetSystem(city)
+    system.reset(np.random.SeedSequence(0))
+    ens = PolicyEnsemble([EqualDistribution(), Proportional()])
+    ens.reset(system, np.random.default_rng(0))
+    shares = [w / w.sum() for w in (EqualDistribution().weights(system), Proportional().weights(system))]
+    np.testing.assert_allclose(ens.weights(system), (shares[0] + shares[1]) / 2, rtol=1e-12)
+    with pytest.raises(ConfigError, match="two or more"):
+        PolicyEnsemble([EqualDistribution()])
+
+
+def test_each_meta_member_reads_the_ensembles_action_as_its_previous_one(members):
+    city = load_city("synthetic")
+    system = FleetSystem(city)
+    system.reset(np.random.SeedSequence(0))
+    ens, alone = (PolicyEnsemble([meta.load_policy(m, city, 1) for m in members]) for _ in range(2))
+    for policy in (ens, alone):
+        policy.reset(system, np.random.default_rng(0))
+    own = [m.weights(system) for m in alone.members]  # each member on its own, on the same state
+    assert not np.allclose(own[0], own[1])  # else this test could not tell the mean from either
+    mean = ens.weights(system)
+    np.testing.assert_allclose(mean, (own[0] + own[1]) / 2, rtol=1e-6)
+    for m in ens.members:  # told the mean, not its own action
+        torch.testing.assert_close(m.agent.prev_action, torch.as_tensor(mean * city.n_regions, dtype=torch.float32)[None])
+
+
+def test_an_ensemble_of_one_policy_twice_plays_as_that_policy(tmp_path, members):
+    """Two copies of one member: the mean is the member's own action, so every step and profit matches."""
+    city = load_city("synthetic")
+    twice = _write(tmp_path / "twice.yaml", f"members: [{members[0]}, {members[0]}]\n")
+    alone = evaluate(meta.load_policy(members[0], city, 1), city, episodes=2, seed=0)["metrics"]["profit"]["mean"]
+    both = evaluate(meta.load_policy(twice, city, 1), city, episodes=2, seed=0)["metrics"]["profit"]["mean"]
+    assert both == pytest.approx(alone, rel=1e-9)
+    other = evaluate(meta.load_policy(members[1], city, 1), city, episodes=2, seed=0)["metrics"]["profit"]["mean"]
+    pair = _write(tmp_path / "pair.yaml", f"members: [{members[0]}, {members[1]}]\n")
+    mixed = evaluate(make_policy(pair, city), city, episodes=2, seed=0)["metrics"]["profit"]["mean"]
+    assert mixed not in (alone, other)  # both members count
+
+
+def test_an_ensemble_file_loads_wherever_a_checkpoint_does_and_says_what_is_wrong(tmp_path, members):
+    (tmp_path / "sub").mkdir()
+    for i, m in enumerate(members):  # member paths are relative to the file
+        (tmp_path / "sub" / f"m{i}.pt").write_bytes(open(m, "rb").read())
+        (tmp_path / "sub" / f"m{i}.json").write_text(open(str(m).removesuffix(".pt") + ".json").read())
+    good = _write(tmp_path / "sub" / "ens.yaml", "members: [m0.pt, m1.pt]\n")
+    policy = make_policy(good, load_city("synthetic"))
+    assert isinstance(policy, PolicyEnsemble) and policy.name == "ens" and len(policy.members) == 2
+    assert np.isfinite(evaluate(good, "synthetic", episodes=1)["metrics"]["profit"]["mean"])
+    for text, match in [("members: [m0.pt]\n", "at least 2"), ("members: [m0.pt, gone.pt]\n", "gone.pt not found"),
+                        ("members: [m0.pt, ens.yaml]\n", "do not nest"), ("members: [m0.pt, m1.pt]\nweights: [1, 2]\n", "weights")]:  # fmt: skip
+        with pytest.raises(ConfigError, match=match):
+            make_policy(_write(tmp_path / "sub" / "bad.yaml", text), load_city("synthetic"))
+    with pytest.raises(ConfigError, match="not found"):
+        make_policy(str(tmp_path / "none.yaml"))
+
+
+def test_the_meta_rl_row_of_an_ensemble_counts_every_members_adaptation_episodes(tmp_path, members):
+    pair = _write(tmp_path / "pair.yaml", f"members: [{members[0]}, {members[1]}]\n")
+    one = run_strategy("meta-rl", "synthetic", episodes=1, policy=members[0], adapt_episodes=2)["transfer"]
+    two = run_strategy("meta-rl", "synthetic", episodes=1, policy=pair, adapt_episodes=2)["transfer"]
+    assert (one["target_episodes"], two["target_episodes"]) == (2, 4)
+    assert two["source_city"] == f"2 seeds x ({one['source_city']})" and two["source"] == pair
