@@ -571,6 +571,19 @@ def transfer(
         console.print(f"wrote {output}")
 
 
+@app.command()
+def ensemble(
+    members: Annotated[list[Path], typer.Argument(help="two or more policy checkpoints (.pt)")],
+    out: Annotated[Path, typer.Option(help="the ensemble file (.yaml); its card goes beside it (.md)")],
+) -> None:
+    """Write an ensemble of policies (their desired distributions averaged) and its card; it then
+    loads wherever a checkpoint does, e.g. ``marl-amod evaluate --policy X.yaml``."""
+    from marl_amod.ensemble import write_ensemble
+
+    path = write_ensemble(out, list(members))
+    console.print(f"wrote {path} ({len(members)} members) and {path.with_suffix('.md')}")
+
+
 @app.command("transfer-table")
 def transfer_table(
     study: Annotated[str, typer.Option(help="intercity (3 held-out cities) or event (Brooklyn special event)")],
@@ -580,7 +593,7 @@ def transfer_table(
     strategy: Annotated[
         list[str] | None, typer.Option(help="rerun only these rows (repeat); the others come from <out>/<study>.json")
     ] = None,
-    meta_policy: Annotated[str | None, typer.Option(help="the meta-policy of the meta-rl row (default: policies/meta_rl_l1_cities.pt)")] = None,
+    meta_policy: Annotated[str | None, typer.Option(help="the meta-policy (.pt) or ensemble (.yaml) of the meta-rl row (default: marl_amod.transfer.META_POLICY)")] = None,
     data_dir: DataDir = None,
 ) -> None:
     """Every transfer strategy on a study's cities: the tables of docs/meta (markdown + JSON)."""

@@ -10,7 +10,8 @@ them that loads wherever a checkpoint does (``make_policy``, ``marl-amod evaluat
     # policies/meta_rl_l1_ensemble.yaml
     members: [meta_rl_l1_cities.pt, seeds/meta_rl_l1_cities_seed1.pt]
 
-Member paths are relative to the file. A member that reads its own last action (a meta-policy)
+``marl-amod ensemble MEMBER.pt MEMBER.pt --out X.yaml`` writes the file and its card (``X.md``:
+each member's card in a row). Member paths are relative to the file. A member that reads its own last action (a meta-policy)
 is told the ensemble's action instead (:meth:`WeightPolicy.executed`), so its next step sees the
 fleet the ensemble made. Each meta-policy adapts to the city alone, so an ensemble of m of them
 plays m times its K adaptation episodes there.
@@ -18,8 +19,10 @@ plays m times its K adaptation episodes there.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -90,3 +93,37 @@ def load_ensemble(path: str | Path, load_member: Callable[[Path], WeightPolicy])
     """The ensemble of ``path``, each member built by ``load_member`` (which says for what city, and
     how a meta-policy adapts there)."""
     return PolicyEnsemble([load_member(m) for m in read_members(path)], name=Path(path).stem)
+
+
+def write_ensemble(out: str | Path, members: list[str | Path]) -> Path:
+    """Write the ensemble file ``out`` (.yaml) of the checkpoints ``members`` (paths relative to it)
+    and its card ``out.md``; each member is read first, so a file that is not a policy fails here."""
+    from marl_amod.checkpoints import read_card
+    from marl_amod.files import atomic_write
+
+    out = Path(out)
+    if out.suffix not in ENSEMBLE_SUFFIXES:
+        raise ConfigError(f"ensemble {out}: name it .yaml")
+    cards = [read_card(m) for m in members]
+    relative = [Path(os.path.relpath(Path(m).resolve(), out.resolve().parent)).as_posix() for m in members]
+    atomic_write(out, "members:\n" + "".join(f"  - {r}\n" for r in relative))
+    read_members(out)  # what loading will check, checked now
+    atomic_write(out.with_suffix(".md"), ensemble_markdown(out, [str(m) for m in members], cards))
+    return out
+
+
+def ensemble_markdown(path: Path, members: list[str], cards: list[dict[str, Any]]) -> str:
+    """The card of an ensemble: its members' cards side by side, training wall time summed."""
+    fields = ("algorithm", "seed", "config", "updates", "training_wall_s", "eval_streams", "profit_mean")
+    lines = [f"# Policy ensemble `{path.stem}`", "", f"The mean of {len(members)} policies' desired distributions (`marl_amod.ensemble`).", "",
+             "| member | " + " | ".join(fields) + " |", "|---" * (len(fields) + 1) + "|"]  # fmt: skip
+    for member, card in zip(members, cards, strict=True):
+        cells = [f"{card[k]:,.2f}" if isinstance(card.get(k), float) else str(card.get(k, "-")) for k in fields]
+        lines.append(f"| {member} | " + " | ".join(cells) + " |")
+    wall = sum(float(card.get("training_wall_s") or 0.0) for card in cards)
+    longest = max(float(c.get("training_wall_s") or 0.0) for c in cards)
+    lines += ["", f"Training: {wall / 60:,.1f} min in all; {longest / 60:,.1f} min for the longest member (the wall time when the members "
+              "train side by side, one core each).", "",
+              f"Make: `marl-amod ensemble {' '.join(members)} --out {path}`", "",
+              f"Evaluate: `marl-amod evaluate --scenario {cards[0]['scenario']} --policy {path} --episodes 10`", ""]  # fmt: skip
+    return "\n".join(lines)

@@ -99,3 +99,21 @@ def test_the_meta_rl_row_of_an_ensemble_counts_every_members_adaptation_episodes
     two = run_strategy("meta-rl", "synthetic", episodes=1, policy=pair, adapt_episodes=2)["transfer"]
     assert (one["target_episodes"], two["target_episodes"]) == (2, 4)
     assert two["source_city"] == f"2 seeds x ({one['source_city']})" and two["source"] == pair
+
+
+def test_the_ensemble_command_writes_a_file_that_loads_and_a_card_of_its_members(tmp_path, members):
+    from typer.testing import CliRunner
+
+    from marl_amod.cli import app
+
+    out = tmp_path / "made" / "pair.yaml"
+    out.parent.mkdir()
+    result = CliRunner().invoke(app, ["ensemble", str(members[0]), str(members[1]), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    loaded = make_policy(str(out), load_city("synthetic"))
+    assert [m.name for m in loaded.members] == ["m0", "m1"]  # relative paths that reach the members
+    card = out.with_suffix(".md").read_text()
+    assert all(f"| {m} | meta | {seed} |" in card for m, seed in zip(members, (0, 1), strict=True))
+    assert "marl-amod evaluate --scenario synthetic --policy" in card
+    bad = CliRunner().invoke(app, ["ensemble", str(members[0]), str(tmp_path / "none.pt"), "--out", str(tmp_path / "x.yaml")])
+    assert bad.exit_code != 0 and not (tmp_path / "x.yaml").exists()
