@@ -576,8 +576,7 @@ def ensemble(
     members: Annotated[list[Path], typer.Argument(help="two or more policy checkpoints (.pt)")],
     out: Annotated[Path, typer.Option(help="the ensemble file (.yaml); its card goes beside it (.md)")],
 ) -> None:
-    """Write an ensemble of policies (their desired distributions averaged) and its card; it then
-    loads wherever a checkpoint does, e.g. ``marl-amod evaluate --policy X.yaml``."""
+    """Write an ensemble of policies (their desired distributions averaged) and its card; it then loads wherever a checkpoint does, e.g. ``marl-amod evaluate --policy X.yaml``."""
     from marl_amod.ensemble import write_ensemble
 
     path = write_ensemble(out, list(members))
