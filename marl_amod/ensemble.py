@@ -11,10 +11,11 @@ them that loads wherever a checkpoint does (``make_policy``, ``marl-amod evaluat
     members: [meta_rl_l1_cities.pt, seeds/meta_rl_l1_cities_seed1.pt]
 
 ``marl-amod ensemble MEMBER.pt MEMBER.pt --out X.yaml`` writes the file and its card (``X.md``:
-each member's card in a row). Member paths are relative to the file. A member that reads its own last action (a meta-policy)
-is told the ensemble's action instead (:meth:`WeightPolicy.executed`), so its next step sees the
-fleet the ensemble made. Each meta-policy adapts to the city alone, so an ensemble of m of them
-plays m times its K adaptation episodes there.
+each member's card in a row). Member paths are relative to the file. A member that reads its own
+last action (a meta-policy) is told the ensemble's action instead
+(:meth:`~marl_amod.baselines.base.WeightPolicy.executed`), so its next step sees the fleet the
+ensemble made. Each meta-policy adapts to the city alone, so an ensemble of m of them plays m
+times its K adaptation episodes there.
 """
 
 from __future__ import annotations
