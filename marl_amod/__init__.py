@@ -21,7 +21,7 @@ __all__ = ["amod_v0", "env", "evaluate", "load_policy", "parallel_env", "vector_
 if TYPE_CHECKING:
     from pathlib import Path
 
-    from marl_amod.checkpoints import ActorPolicy
+    from marl_amod.baselines.base import WeightPolicy
     from marl_amod.env.parallel import AmodParallelEnv
     from marl_amod.env.vector import AmodVectorEnv
     from marl_amod.policies import PolicyLike
@@ -67,8 +67,10 @@ def evaluate(
     return run(policy, scenario, episodes, seed, **options)
 
 
-def load_policy(path: str | Path, scenario: str | City | None = None) -> ActorPolicy:
-    """A trained policy (``.pt``) as a callable on the env's observations (default city: its card's)."""
+def load_policy(path: str | Path, scenario: str | City | None = None) -> WeightPolicy:
+    """A trained policy (``.pt``, or an ensemble ``.yaml`` of them) for the simulator and, unless
+    it is a meta-policy (which reads the simulator), as a callable on the env's observations
+    (default city: its card's)."""
     from marl_amod.checkpoints import load_policy as load
 
     return load(path, scenario)

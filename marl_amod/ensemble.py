@@ -21,7 +21,7 @@ times its K adaptation episodes there.
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -78,16 +78,31 @@ class PolicyEnsemble(WeightPolicy):
             member.reset(system, rng)
 
     def weights(self, system: FleetSystem) -> np.ndarray:
-        shares = []
-        for member in self.members:
-            w = np.asarray(member.weights(system), dtype=np.float64)
-            if not w.sum() > 0:
-                raise DataError(f"ensemble member {member.name} asked every vehicle to stay (all-zero weights): an ensemble averages distributions")
-            shares.append(w / w.sum())
-        mean = np.mean(shares, axis=0)
+        mean = np.mean([_shares(member, member.weights(system)) for member in self.members], axis=0)
         for member in self.members:
             member.executed(mean)
         return mean
+
+
+    def __call__(self, observations: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """The members' actions on the env's observations, each as shares, averaged (members that
+        are callables on observations: the actor policies; a meta-policy reads the simulator)."""
+        if not all(callable(m) for m in self.members):
+            raise ConfigError(f"ensemble {self.name}: every member must act on the env's observations, "
+                              f"and {', '.join(m.name for m in self.members if not callable(m))} reads the simulator: use marl_amod.evaluate")  # fmt: skip
+        actions = [m(observations) for m in self.members]  # type: ignore[operator]
+        agents = list(actions[0])
+        mean = np.mean([_shares(m, np.concatenate([np.ravel(act[a]) for a in agents])) for m, act in zip(self.members, actions, strict=True)], axis=0)
+        mean = mean.astype(np.float32)
+        return {a: mean[i : i + 1] for i, a in enumerate(agents)}
+
+
+def _shares(member: WeightPolicy, weights: np.ndarray) -> np.ndarray:
+    """``weights`` as shares of the idle fleet; all zeros ("stay") has no share to average."""
+    w = np.asarray(weights, dtype=np.float64)
+    if not w.sum() > 0:
+        raise DataError(f"ensemble member {member.name} asked every vehicle to stay (all-zero weights): an ensemble averages distributions")
+    return w / w.sum()
 
 
 def load_ensemble(path: str | Path, load_member: Callable[[Path], WeightPolicy]) -> PolicyEnsemble:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
@@ -117,3 +119,24 @@ def test_the_ensemble_command_writes_a_file_that_loads_and_a_card_of_its_members
     assert "marl-amod evaluate --scenario synthetic --policy" in card
     bad = CliRunner().invoke(app, ["ensemble", str(members[0]), str(tmp_path / "none.pt"), "--out", str(tmp_path / "x.yaml")])
     assert bad.exit_code != 0 and not (tmp_path / "x.yaml").exists()
+
+
+def test_an_ensemble_of_actor_policies_acts_on_the_envs_observations_as_its_members_mean(tmp_path):
+    import marl_amod
+
+    members = ["a2c_gnn_synthetic.pt", "bc_gnn_synthetic_mpc_forecast.pt"]
+    path = _write(tmp_path / "actors.yaml", "members: [" + ", ".join(str(Path("policies", m).resolve()) for m in members) + "]\n")
+    env = marl_amod.parallel_env("synthetic")
+    obs, _ = env.reset(seed=0)
+    ens, alone = marl_amod.load_policy(path, "synthetic"), [marl_amod.load_policy(f"policies/{m}", "synthetic") for m in members]
+    own = [np.concatenate([a(obs)[agent] for agent in env.agents]).astype(np.float64) for a in alone]
+    assert not np.allclose(own[0] / own[0].sum(), own[1] / own[1].sum())
+    got = np.concatenate([ens(obs)[agent] for agent in env.agents])
+    np.testing.assert_allclose(got, (own[0] / own[0].sum() + own[1] / own[1].sum()) / 2, rtol=1e-6)
+    env.step(ens(obs))  # the env takes them as any policy's actions
+
+
+def test_an_ensemble_with_a_meta_member_says_it_cannot_act_on_observations(members):
+    ens = PolicyEnsemble([meta.load_policy(m, load_city("synthetic"), 1) for m in members])
+    with pytest.raises(ConfigError, match="reads the simulator"):
+        ens({})
