@@ -83,7 +83,6 @@ class PolicyEnsemble(WeightPolicy):
             member.executed(mean)
         return mean
 
-
     def __call__(self, observations: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """The members' actions on the env's observations, each as shares, averaged (members that
         are callables on observations: the actor policies; a meta-policy reads the simulator)."""

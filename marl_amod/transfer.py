@@ -98,13 +98,12 @@ def _meta_used(cards: list[dict[str, Any]]) -> dict[str, Any]:
     # (card key, what the table calls them, the card key of their episodes each): the tasks beside the cities
     kinds = [("hotspot_variants", "hotspot variants", "episodes_per_variant"), ("skew_variants", "skew variants", "episodes_per_skew_variant"),
              ("sink_variants", "sink variants", "episodes_per_sink_variant"), ("event_tasks", "event tasks", "episodes_per_event_task")]  # fmt: skip
-    source, demonstrations, dagger, rl = "10 training cities", 0, 0, 0
+    sources, demonstrations, dagger, rl = [], 0, 0, 0
     for card in cards:
         warm = card.get("warm_start") or {}
         demos = warm.get("demonstrations") or card.get("demonstrations")
         extra = {key: (demos or {}).get(key, []) for key, _, _ in kinds}
-        if card is cards[0]:
-            source += "".join(f" + {len(extra[key])} {label}" for key, label, _ in kinds if extra[key])
+        sources.append("10 training cities" + "".join(f" + {len(extra[key])} {label}" for key, label, _ in kinds if extra[key]))
         if demos:  # trained from an imitation of MPC-Forecast on the same cities
             demonstrations += demos["episodes_per_city"] * len(demos["cities"]) + sum(demos.get(each, 0) * len(extra[key]) for key, _, each in kinds)
         rounds = [d for d in (card.get("dagger"), warm.get("dagger")) if d]  # its own DAgger rounds and its start's
@@ -112,8 +111,13 @@ def _meta_used(cards: list[dict[str, Any]]) -> dict[str, Any]:
             dagger += sum(d["rounds"] * d["episodes_per_city"] for d in rounds) * (len(demos["cities"]) + sum(map(len, extra.values())))
         if card["algorithm"] != "meta-bc":  # imitation only: no RL episode
             rl += card.get("episodes_trained") or 0
-    if len(cards) > 1:
-        source = f"{len(cards)} seeds x ({source})"
+    source = sources[0]
+    if len(cards) > 1:  # "seeds" only when the members are one recipe: alike in every argument all their cards hold but the run's own
+        args = [c.get("args") or {} for c in cards]
+        shared = set.intersection(*(set(a) for a in args)) - {"seed", "demos", "run_dir", "policy_out"}
+        recipes = {repr(sorted((k, a[k]) for k in shared)) for a in args}
+        kind = "seeds" if len(recipes) == 1 and len(set(sources)) == 1 else "members"
+        source = f"{len(cards)} {kind} x ({source})" if len(set(sources)) == 1 else f"{len(cards)} {kind}: " + "; ".join(sources)
     used: dict[str, Any] = {"source_city": source, "source_episodes": rl or None}
     if demonstrations:
         used["demonstrations"] = demonstrations
