@@ -20,7 +20,7 @@ from rich.progress import (
 from rich.table import Table
 
 from marl_amod.data import ENV_VAR
-from marl_amod.errors import ConfigError, MarlAmodError
+from marl_amod.errors import ConfigError, DataError, MarlAmodError
 from marl_amod.files import check_destination, save_or_fallback, write_json
 from marl_amod.policies import policy_names
 
@@ -114,7 +114,6 @@ def scenarios(data_dir: DataDir = None) -> None:
     from importlib.util import find_spec
 
     from marl_amod.data import data_dir as data_root
-    from marl_amod.errors import DataError
     from marl_amod.scenario import catalogue
 
     _use_data_dir(data_dir)
@@ -593,23 +592,37 @@ def transfer_table(
         list[str] | None, typer.Option(help="rerun only these rows (repeat); the others come from <out>/<study>.json")
     ] = None,
     meta_policy: Annotated[str | None, typer.Option(help="the meta-policy (.pt) or ensemble (.yaml) of the meta-rl row (default: marl_amod.transfer.META_POLICY)")] = None,
+    redraw: Annotated[bool, typer.Option(help="evaluate nothing: rewrite <study>.md and <study>.png from <out>/<study>.json")] = False,
     data_dir: DataDir = None,
 ) -> None:
-    """Every transfer strategy on a study's cities: the tables of docs/meta (markdown + JSON)."""
+    """Every transfer strategy on a study's cities: the tables of docs/meta (markdown + JSON) and
+    their figure (<study>.png: normalised scores per city and strategy)."""
     from marl_amod.data import read_json
-    from marl_amod.transfer import META_POLICY, STRATEGIES, run_study, study_markdown
+    from marl_amod.plots import score_bars
+    from marl_amod.transfer import META_POLICY, STRATEGIES, run_study, study_markdown, study_scores
 
     _use_data_dir(data_dir)
     out.mkdir(parents=True, exist_ok=True)
-    previous = read_json(out / f"{study}.json") if strategy and (out / f"{study}.json").is_file() else None
-    payload = run_study(study, episodes=episodes, seed=seed, strategies=tuple(strategy or STRATEGIES), previous=previous,
-                        meta_policy=meta_policy or META_POLICY, progress=lambda city, name, p: console.print(f"{city}: {name} {p:,.0f}"))  # fmt: skip
-    command = f"marl-amod transfer-table --study {study} --episodes {episodes} --seed {seed}" + (f" --meta-policy {meta_policy}" if meta_policy else "")
+    saved = out / f"{study}.json"
+    if redraw:
+        if strategy or meta_policy:
+            raise ConfigError("--redraw evaluates nothing: drop --strategy and --meta-policy, or drop --redraw")
+        if not saved.is_file():
+            raise DataError(f"--redraw reads {saved}, which does not exist: run the study first (without --redraw)")
+        payload = read_json(saved)  # older files lack the command; they were made with the default meta-policy
+        command = payload.get("command") or f"marl-amod transfer-table --study {study} --episodes {payload['episodes']} --seed {payload['seed']}"
+    else:
+        previous = read_json(saved) if strategy and saved.is_file() else None
+        payload = run_study(study, episodes=episodes, seed=seed, strategies=tuple(strategy or STRATEGIES), previous=previous,
+                            meta_policy=meta_policy or META_POLICY, progress=lambda city, name, p: console.print(f"{city}: {name} {p:,.0f}"))  # fmt: skip
+        command = f"marl-amod transfer-table --study {study} --episodes {episodes} --seed {seed}" + (f" --meta-policy {meta_policy}" if meta_policy else "")
+        write_json(saved, payload | {"command": command})
     text = f"<!-- {command} -->\n" + study_markdown(payload)
-    write_json(out / f"{study}.json", payload)
     (out / f"{study}.md").write_text(text)
+    title = f"{study}: normalised score over {payload['episodes']} episodes\n(0 = equal distribution, 100 = MPC-Oracle; whisker: episode std)"
+    figure = score_bars(study_scores(payload), out / f"{study}.png", title)
     console.print(text)
-    console.print(f"wrote {out / (study + '.md')} and {out / (study + '.json')}")
+    console.print(f"wrote {out / (study + '.md')}, {figure}" + ("" if redraw else f" and {saved}"))
 
 
 def main() -> None:

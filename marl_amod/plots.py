@@ -1,4 +1,5 @@
-"""Study figures drawn from evaluation results: per-region metrics on the region map.
+"""Study figures drawn from evaluation results: per-region metrics on the region map, and the
+normalised scores of a results table as bars.
 
 ``region_map`` is the paper's map of the average waiting time per region (one panel per policy,
 a shared colour scale), and the same for any per-region metric of
@@ -7,6 +8,10 @@ drawn as the Voronoi cells of ``City.positions``: for regions made by k-means (t
 those cells are exactly the regions, for a grid city they are its squares, and for cities
 placed by multidimensional scaling they are a faithful-enough sketch. matplotlib is imported
 only here, and only when something is drawn.
+
+``score_bars`` draws what a results table says in rows: a method's normalised score (equal
+distribution 0, MPC-Oracle 100, the lines drawn) per target, a bar with the episode std as its
+whisker, one colour per method in every group, so a method's rank reads across targets at a glance.
 """
 
 from __future__ import annotations
@@ -136,4 +141,52 @@ def region_map_figure(
         fig.colorbar(coll, ax=list(axes[r]), fraction=0.025, pad=0.02, label=label)
     if title:
         fig.suptitle(title, fontsize=9)
+    return fig
+
+
+Score = tuple[str, float, float]  # (method, normalised score, its episode std)
+
+
+def score_bars(groups: dict[str, Sequence[Score]], path: str | Path, title: str | None = None) -> Path:
+    """Write :func:`score_bars_figure` to ``path`` atomically (format from the suffix, png by default)."""
+    from marl_amod.files import atomic_write
+
+    path = figure_destination(path)
+    fig = score_bars_figure(groups, title)
+    return atomic_write(path, lambda fh: fig.savefig(fh, format=path.suffix.lstrip(".") or "png"))
+
+
+def score_bars_figure(groups: dict[str, Sequence[Score]], title: str | None = None) -> Any:
+    """Grouped bars of normalised scores: a group per target (a city), a bar per method in the
+    order first met, the episode std as a whisker, dashed lines at 0 (equal distribution) and 100
+    (MPC-Oracle), each bar labelled with its score. A matplotlib Figure on an Agg canvas."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    if not groups or not any(groups.values()):
+        raise ValueError("score_bars needs at least one target with a scored method")
+    methods = list(dict.fromkeys(name for rows in groups.values() for name, _, _ in rows))
+    colours = {m: f"C{i % 10}" for i, m in enumerate(methods)}
+    width = 0.8 / len(methods)
+    fig = Figure(figsize=(max(5.5, 1.6 + 0.45 * len(methods) * len(groups) + 0.5 * len(groups)), 3.6), dpi=120, layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    labelled: set[str] = set()
+    for g, rows in enumerate(groups.values()):
+        for name, value, std in rows:
+            x = g - 0.4 + width * (methods.index(name) + 0.5)
+            ax.bar(x, value, width, yerr=std, color=colours[name], capsize=2, error_kw={"lw": 0.8},
+                   label=None if name in labelled else name)  # fmt: skip
+            labelled.add(name)
+            tip = value + std if value >= 0 else value - std  # the label clears the whisker
+            offset = (0, 2 if value >= 0 else -8)
+            ax.annotate(f"{value:.0f}", (x, tip), xytext=offset, textcoords="offset points", ha="center", size=6)
+    for level, what in ((0.0, "equal distribution"), (100.0, "MPC-Oracle")):
+        ax.axhline(level, color="0.4", lw=0.8, ls="--", zorder=0)
+        ax.text(0.005, level, what, transform=ax.get_yaxis_transform(), va="bottom", fontsize=6, color="0.3")
+    ax.set_xticks(range(len(groups)), list(groups))
+    ax.set_ylabel("normalised score")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 0.9), frameon=False)
+    if title:
+        ax.set_title(title, fontsize=9)
     return fig

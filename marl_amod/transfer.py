@@ -217,6 +217,17 @@ def run_study(study: str, *, episodes: int = 10, seed: int = 0, meta_policy: str
     return out
 
 
+def study_scores(payload: dict[str, Any]) -> dict[str, list[tuple[str, float, float]]]:
+    """Per target, every strategy's (name, normalised score, episode std in score points): what
+    :func:`marl_amod.plots.score_bars` draws. Equal distribution is the figure's 0 line, not a bar."""
+    groups = {}
+    for scenario, rows in payload["targets"].items():
+        ed, oracle = (rows[k]["metrics"]["profit"]["mean"] for k in ("equal-distribution", "mpc-oracle"))
+        groups[scenario] = [(name, rec["normalised_score"], 100.0 * rec["metrics"]["profit"]["std"] / (oracle - ed))
+                            for name, rec in rows.items() if name != "equal-distribution"]  # fmt: skip
+    return groups
+
+
 def study_markdown(payload: dict[str, Any]) -> str:
     """The study as markdown tables: profit (k$) mean ± std, normalised score, served, rebalancing
     cost, and the episodes each strategy used in the target and before."""

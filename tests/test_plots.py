@@ -1,4 +1,5 @@
-"""Study figures: region cells and the per-region map of evaluations (wait time, service rate)."""
+"""Study figures: region cells, the per-region map of evaluations (wait time, service rate), and
+normalised-score bars of the transfer tables."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from matplotlib.path import Path as MplPath
 from typer.testing import CliRunner
 
 from marl_amod.cli import app
+from marl_amod.errors import ConfigError, DataError
 from marl_amod.evaluation import evaluate
 from marl_amod.plots import region_cells, region_map, region_map_figure
 from marl_amod.scenario import grid_city
@@ -67,3 +69,60 @@ def test_cli_wait_map_writes_the_figure_and_the_results(tmp_path):
     data = json.loads(out.with_suffix(".json").read_text())
     assert data["max_wait"] == 3 and [r["policy"] for r in data["results"]] == ["no-rebalancing", "equal-distribution"]
     assert max(data["results"][1]["per_region"]["wait_time"]) > 0  # requests waited
+
+
+def test_score_bars_draw_one_bar_per_method_and_target_in_one_colour_per_method():
+    from marl_amod.plots import score_bars_figure
+
+    groups = {"city a": [("x", 10.0, 2.0), ("y", 50.0, 1.0), ("z", 100.0, 3.0)], "city b": [("x", -20.0, 4.0), ("z", 100.0, 1.0)]}
+    ax = score_bars_figure(groups, "t").axes[0]
+    bars = ax.patches
+    assert [b.get_height() for b in bars] == [10.0, 50.0, 100.0, -20.0, 100.0]
+    colour = lambda i: bars[i].get_facecolor()  # noqa: E731
+    assert colour(0) == colour(3) and colour(2) == colour(4) and len({colour(i) for i in range(3)}) == 3
+    assert bars[3].get_x() < 1.0 < bars[4].get_x()  # city b's bars sit in the second group
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["x", "y", "z"]  # each method named once
+    assert sorted(line.get_ydata()[0] for line in ax.lines if line.get_linestyle() == "--") == [0.0, 100.0]
+    with pytest.raises(ValueError, match="at least one"):
+        score_bars_figure({"city a": []})
+
+
+def _study(scores: dict[str, float]) -> dict:
+    rows = {}
+    for name, profit in scores.items():
+        metrics = {"profit": {"mean": profit, "std": 5.0}, "served_demand": {"mean": 1.0}, "rebalancing_cost": {"mean": 2.0}}
+        rows[name] = {"metrics": metrics, "normalised_score": profit - 100.0}
+    return {"study": "event", "episodes": 2, "seed": 0, "targets": {"nyc_brooklyn_event": rows}}
+
+
+def test_cli_transfer_table_redraw_rewrites_markdown_and_figure_from_the_json_alone(tmp_path):
+    from marl_amod.transfer import study_markdown, study_scores
+
+    payload = _study({"equal-distribution": 100.0, "meta-rl": 160.0, "mpc-oracle": 200.0})
+    assert study_scores(payload) == {"nyc_brooklyn_event": [("meta-rl", 60.0, 5.0), ("mpc-oracle", 100.0, 5.0)]}
+    runner = CliRunner()
+    missing = runner.invoke(app, ["transfer-table", "--study", "event", "--out", str(tmp_path), "--redraw"])
+    assert isinstance(missing.exception, DataError) and "does not exist" in str(missing.exception)
+    (tmp_path / "event.json").write_text(json.dumps(payload))
+    both = runner.invoke(app, ["transfer-table", "--study", "event", "--out", str(tmp_path), "--redraw", "--strategy", "meta-rl"])
+    assert isinstance(both.exception, ConfigError) and "evaluates nothing" in str(both.exception)
+    result = runner.invoke(app, ["transfer-table", "--study", "event", "--out", str(tmp_path), "--redraw"])
+    assert result.exit_code == 0, result.output
+    header = "<!-- marl-amod transfer-table --study event --episodes 2 --seed 0 -->\n"
+    assert (tmp_path / "event.md").read_text() == header + study_markdown(payload)
+    assert (tmp_path / "event.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("study", ["intercity", "event"])
+def test_committed_transfer_tables_are_their_json_rendered(study):
+    """docs/meta's tables are generated, never edited by hand: the markdown is its JSON rendered
+    (after the header naming the command that made it)."""
+    from pathlib import Path
+
+    from marl_amod.transfer import study_markdown
+
+    folder = Path(__file__).resolve().parent.parent / "docs" / "meta"
+    payload = json.loads((folder / f"{study}.json").read_text())
+    header, body = (folder / f"{study}.md").read_text().split("\n", 1)
+    assert header.startswith(f"<!-- marl-amod transfer-table --study {study} ") and body == study_markdown(payload)
+    assert (folder / f"{study}.png").is_file()
