@@ -9,7 +9,7 @@ online SAC (``policies/sac_gnn_<city>_fast.json``, 29 min on the batched path), 
 (``policies/<algo>_<actor>_<city>_<dataset>.json``, actor ``gnn`` or ``mlp``: the file names the actor the card
 records). Every cell is profit (mean +- std over the 10
 evaluation episodes of ``marl-amod evaluate --seed 0``) and the normalised score (0 = equal
-distribution, 100 = MPC-Oracle). Writes ``docs/offline/table.md`` and ``table.json``.
+distribution, 100 = MPC-Oracle). Writes ``docs/offline/table.md``, ``table.json`` and ``table.png`` (the first table as bars).
 
 Training seeds: where ``docs/offline/seeds.json`` (``benchmarks/offline_seeds.py``) holds two or
 more seeds of a cell's config, a second table gives their mean +- std over training seeds (each
@@ -150,6 +150,30 @@ def seeds_markdown(table: dict) -> str:
     return "\n".join(lines) + "\n" if len(lines) > 4 else ""
 
 
+def groups(table: dict) -> dict[str, list[tuple[str, float, float]]]:
+    """The first table's cells for :func:`marl_amod.plots.score_bars`: per dataset, the behaviour
+    policy and BC / IQL / CQL in normalised score with the episode std in score points; SAC
+    online, which reads no dataset, is left out."""
+    refs = table["reference_scores"]
+    span = refs["mpc-oracle"]["mean"] - refs["equal-distribution"]["mean"]
+    return {
+        r["dataset"].upper().replace("_", "-"): [
+            (name, r[key]["normalised"], 100.0 * r[key]["std"] / span)
+            for key, name in (("behaviour", "behaviour policy"), *((a, a.upper()) for a in ALGOS))
+            if key in r
+        ]
+        for r in table["rows"]
+    }
+
+
+def figure(table: dict, path: Path) -> Path:
+    """The first table as bars (:func:`groups`)."""
+    from marl_amod.plots import score_bars
+
+    title = f"Offline RL on {table['scenario']}: normalised score over 10 episodes\n(0 = equal distribution, 100 = MPC-Oracle; whisker: episode std)"
+    return score_bars(groups(table), path, title)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="nyc_brooklyn")
@@ -168,6 +192,7 @@ def main() -> None:
     md += f"\n{extra}" if extra else ""
     (args.out / "table.md").write_text(md)
     print(md)
+    print(f"wrote {args.out / 'table.md'}, {args.out / 'table.json'} and {figure(table, args.out / 'table.png')}")
 
 
 if __name__ == "__main__":

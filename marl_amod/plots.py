@@ -180,7 +180,7 @@ def score_bars_figure(groups: dict[str, Sequence[Score]], title: str | None = No
             labelled.add(name)
             tip = value + std if value >= 0 else value - std  # the label clears the whisker
             offset = (0, 2 if value >= 0 else -8)
-            ax.annotate(f"{value:.0f}", (x, tip), xytext=offset, textcoords="offset points", ha="center", size=6)
+            ax.annotate(f"{round(value)}", (x, tip), xytext=offset, textcoords="offset points", ha="center", size=6)
     for level, what in ((0.0, "equal distribution"), (100.0, "MPC-Oracle")):
         ax.axhline(level, color="0.4", lw=0.8, ls="--", zorder=0)
         ax.text(0.005, level, what, transform=ax.get_yaxis_transform(), va="bottom", fontsize=6, color="0.3")

@@ -557,3 +557,22 @@ def test_an_online_run_refuses_standardise_inputs_with_nothing_to_fit_them_from(
         args_for("a2c", online)
     assert args_for("a2c", {**online, "init_actor": str(tmp_path / "bc.pt")}).standardise_inputs
     assert args_for("bc", _args(tmp_path, tiny, actor="mlp", standardise_inputs=True)).standardise_inputs
+
+
+def test_the_docs_page_holds_the_tables_as_generated_and_the_figure_draws_every_cell(tmp_path):
+    """docs/offline/table.md is offline_table.py's rendering of table.json, index.md holds it
+    verbatim (a regenerated table not pasted there fails), and the figure has a bar per cell."""
+    import offline_table
+
+    folder = Path(__file__).resolve().parent.parent / "docs" / "offline"
+    table = json.loads((folder / "table.json").read_text())
+    md = offline_table.markdown(table)
+    md += f"\n{extra}" if (extra := offline_table.seeds_markdown(table)) else ""
+    assert (folder / "table.md").read_text() == md
+    assert md.strip() in (folder / "index.md").read_text()
+    from marl_amod.plots import score_bars_figure
+
+    cells = sum(key in r for r in table["rows"] for key in ("behaviour", *offline_table.ALGOS))
+    ax = score_bars_figure(offline_table.groups(table)).axes[0]
+    assert len(ax.patches) == cells and [t.get_text() for t in ax.get_xticklabels()][0] == table["rows"][0]["dataset"].upper()
+    assert offline_table.figure(table, tmp_path / "t.png").read_bytes()[:4] == b"\x89PNG"
