@@ -1,6 +1,6 @@
 """The results tables of README.md and docs/results.md, generated from committed JSON.
 
-    python benchmarks/results_tables.py                 # rewrite the tables from docs/results/*.json
+    python benchmarks/results_tables.py                 # rewrite the tables (and docs/results/<table>.png) from docs/results/*.json
     python benchmarks/results_tables.py --check         # exit 1 if a committed table is stale
     python benchmarks/results_tables.py --add eval.json # merge `marl-amod evaluate --output` records
 
@@ -12,7 +12,8 @@ results in the evaluation JSON schema (``policy``, ``metrics: {name: {mean, std}
     <!-- results:summary nyc_brooklyn -->  ...  <!-- /results -->   (README.md: profit and score)
 
 is rewritten from it. The normalised score puts equal distribution at 0 and MPC-Oracle at 100
-(D4RL style): 100 * (profit - ED) / (MPC-Oracle - ED).
+(D4RL style): 100 * (profit - ED) / (MPC-Oracle - ED). Each table with both anchors is also drawn,
+its policies ranked by that score (``docs/results/<table>.png``, shown in docs/results.md).
 """
 
 from __future__ import annotations
@@ -93,6 +94,21 @@ def table_markdown(table: dict[str, Any], full: bool) -> str:
     return "\n".join(lines) + "\n"
 
 
+def figure(name: str, table: dict[str, Any], folder: Path = RESULTS) -> Path | None:
+    """``<folder>/<name>.png``: the table's policies ranked by normalised score (None without both
+    anchors). Written with the tables, not checked by ``--check`` (image bytes vary with matplotlib)."""
+    from marl_amod.plots import score_ranking
+
+    if score(0.0, table) is None:
+        return None
+    anchors = {r["policy"]: r["metrics"]["profit"]["mean"] for r in table["results"]}
+    span = anchors[CEILING] - anchors[FLOOR]
+    rows = [(r["policy"], score(r["metrics"]["profit"]["mean"], table), 100.0 * r["metrics"]["profit"].get("std", 0.0) / span,
+             r.get("kind") or "baseline") for r in table["results"]]  # fmt: skip
+    episodes = f", {table['episodes']} episodes" if table.get("episodes") else ""
+    return score_ranking(rows, folder / f"{name}.png", f"{table.get('title', name)}{episodes}")
+
+
 def _served(metrics: dict[str, Any]) -> str:
     served = _mean_std({"mean": metrics["served_demand"]["mean"]}) if "served_demand" in metrics else "–"
     return f"{served} / {metrics['demand']['mean']:,.0f}" if "demand" in metrics else served
@@ -158,6 +174,9 @@ def main(argv: list[str] | None = None) -> int:
             stale.append(doc.name)
             if not args.check:
                 doc.write_text(new)
+    if not args.check:
+        drawn = [path.name for name, table in tables.items() if "results" in table and (path := figure(name, table))]
+        print(f"figures: {', '.join(drawn)}")
     if args.check and stale:
         print(f"stale results tables in {', '.join(stale)}: run python benchmarks/results_tables.py", file=sys.stderr)
         return 1

@@ -9,7 +9,8 @@ those cells are exactly the regions, for a grid city they are its squares, and f
 placed by multidimensional scaling they are a faithful-enough sketch. matplotlib is imported
 only here, and only when something is drawn.
 
-``score_bars`` draws what a results table says in rows: a method's normalised score (equal
+``score_ranking`` draws one results table (one city, many policies) as horizontal bars from best
+to worst, baselines and trained policies in two colours. ``score_bars`` draws what a study's table says in rows: a method's normalised score (equal
 distribution 0, MPC-Oracle 100, the lines drawn) per target, a bar with the episode std as its
 whisker, one colour per method in every group, so a method's rank reads across targets at a glance.
 """
@@ -168,7 +169,8 @@ def score_bars_figure(groups: dict[str, Sequence[Score]], title: str | None = No
     methods = list(dict.fromkeys(name for rows in groups.values() for name, _, _ in rows))
     colours = {m: f"C{i % 10}" for i, m in enumerate(methods)}
     width = 0.8 / len(methods)
-    fig = Figure(figsize=(max(5.5, 1.6 + 0.45 * len(methods) * len(groups) + 0.5 * len(groups)), 3.6), dpi=120, layout="constrained")
+    size = (max(5.5, 1.6 + 0.45 * len(methods) * len(groups) + 0.5 * len(groups)), 3.6)
+    fig = Figure(figsize=size, dpi=120, layout="constrained")
     FigureCanvasAgg(fig)
     ax = fig.subplots()
     labelled: set[str] = set()
@@ -189,4 +191,48 @@ def score_bars_figure(groups: dict[str, Sequence[Score]], title: str | None = No
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 0.9), frameon=False)
     if title:
         ax.set_title(title, fontsize=9)
+    return fig
+
+
+def score_ranking(rows: Sequence[tuple[str, float, float, str]], path: str | Path, title: str | None = None) -> Path:
+    """Write :func:`score_ranking_figure` to ``path`` atomically (format from the suffix, png by default)."""
+    from marl_amod.files import atomic_write
+
+    path = figure_destination(path)
+    fig = score_ranking_figure(rows, title)
+    return atomic_write(path, lambda fh: fig.savefig(fh, format=path.suffix.lstrip(".") or "png"))
+
+
+def score_ranking_figure(rows: Sequence[tuple[str, float, float, str]], title: str | None = None) -> Any:
+    """Policies of one table, (label, normalised score, episode std in score points, kind), as
+    horizontal bars from the best at the top to the worst, coloured by kind (e.g. baseline,
+    trained), with the episode std as a whisker and dashed lines at 0 and 100. A matplotlib
+    Figure on an Agg canvas."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    if not rows:
+        raise ValueError("score_ranking needs at least one scored policy")
+    ranked = sorted(rows, key=lambda r: r[1])  # barh draws the first at the bottom
+    kinds = list(dict.fromkeys(r[3] for r in rows))
+    colours = {k: f"C{i % 10}" for i, k in enumerate(kinds)}
+    fig = Figure(figsize=(7.5, 0.8 + 0.28 * len(rows)), dpi=120, layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    labelled: set[str] = set()
+    for y, (_, value, std, kind) in enumerate(ranked):
+        legend = None if kind in labelled else kind
+        ax.barh(y, value, xerr=std, color=colours[kind], capsize=2, error_kw={"lw": 0.8}, label=legend)
+        labelled.add(kind)
+        tip = value + std if value >= 0 else value - std  # the label clears the whisker
+        ax.annotate(f"{round(value)}", (tip, y), xytext=(3 if value >= 0 else -3, 0), textcoords="offset points",
+                    ha="left" if value >= 0 else "right", va="center", size=6)  # fmt: skip
+    for level, what in ((0.0, "equal distribution"), (100.0, "MPC-Oracle")):
+        ax.axvline(level, color="0.4", lw=0.8, ls="--", zorder=0)
+        ax.text(level, 1.0, what, transform=ax.get_xaxis_transform(), ha="center", va="bottom", size=6, color="0.3")
+    ax.set_yticks(range(len(ranked)), [r[0] for r in ranked], fontsize=7)
+    ax.set_xlabel("normalised score (0 = equal distribution, 100 = MPC-Oracle; whisker: episode std)", fontsize=8)
+    ax.legend(fontsize=7, loc="lower right")
+    if title:
+        ax.set_title(title, fontsize=9, pad=12)
     return fig

@@ -92,6 +92,23 @@ def test_results_generator_scores_and_merges(tmp_path: Path) -> None:
     assert "| 75 |" in table and "**30 ± 1**" in table
     with pytest.raises(KeyError, match="nowhere"):
         results_tables.render("<!-- results:full nowhere -->\n<!-- /results -->", {})
+    path = results_tables.figure("x", results_tables.load(tmp_path)["x"], tmp_path)
+    assert path == tmp_path / "x.png" and path.read_bytes()[:4] == b"\x89PNG"
+    assert results_tables.figure("y", {"results": doc["results"][2:]}, tmp_path) is None  # no anchors, no scores
+
+
+def test_the_ranking_figure_puts_the_best_on_top_and_colours_by_kind() -> None:
+    from marl_amod.plots import score_ranking_figure
+
+    rows = [("ed", 0.0, 5.0, "baseline"), ("mine", 75.0, 10.0, "trained"), ("oracle", 100.0, 5.0, "baseline"), ("none", -40.0, 5.0, "baseline")]
+    ax = score_ranking_figure(rows, "x").axes[0]
+    assert [t.get_text() for t in ax.get_yticklabels()] == ["none", "ed", "mine", "oracle"]  # bottom to top
+    assert [b.get_width() for b in ax.patches] == [-40.0, 0.0, 75.0, 100.0]
+    colours = [b.get_facecolor() for b in ax.patches]
+    assert colours[0] == colours[1] == colours[3] != colours[2]
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == ["baseline", "trained"]
+    with pytest.raises(ValueError, match="at least one"):
+        score_ranking_figure([])
 
 
 def test_the_env_page_and_docstring_name_every_info_key() -> None:
