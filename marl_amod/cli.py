@@ -585,7 +585,7 @@ def ensemble(
 @app.command("transfer-table")
 def transfer_table(
     study: Annotated[str, typer.Option(help="intercity (3 held-out cities) or event (Brooklyn special event)")],
-    out: Annotated[Path, typer.Option(help="folder for <study>.md and <study>.json")] = Path("docs/meta"),
+    out: Annotated[Path, typer.Option(help="folder for <study>.md, <study>.json and <study>.png")] = Path("docs/meta"),
     episodes: Episodes = 10,
     seed: EvalSeed = 0,
     strategy: Annotated[
@@ -595,8 +595,7 @@ def transfer_table(
     redraw: Annotated[bool, typer.Option(help="evaluate nothing: rewrite <study>.md and <study>.png from <out>/<study>.json")] = False,
     data_dir: DataDir = None,
 ) -> None:
-    """Every transfer strategy on a study's cities: the tables of docs/meta (markdown + JSON) and
-    their figure (<study>.png: normalised scores per city and strategy)."""
+    """Every transfer strategy on a study's cities: the tables of docs/meta (markdown, JSON) and their figure (<study>.png)."""
     from marl_amod.data import read_json
     from marl_amod.plots import score_bars
     from marl_amod.transfer import META_POLICY, STRATEGIES, run_study, study_markdown, study_scores

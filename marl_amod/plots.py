@@ -75,10 +75,14 @@ def region_map(
     title: str | None = None,
 ) -> Path:
     """Write :func:`region_map_figure` to ``path`` atomically (format from the suffix, png by default)."""
+    path = figure_destination(path)  # a bad name fails before the drawing
+    return save_figure(region_map_figure(results, city, rows, title), path)
+
+
+def save_figure(fig: Any, path: Path) -> Path:
+    """``fig`` written to ``path`` atomically, in the format its suffix names (none: png)."""
     from marl_amod.files import atomic_write
 
-    path = figure_destination(path)
-    fig = region_map_figure(results, city, rows, title)
     return atomic_write(path, lambda fh: fig.savefig(fh, format=path.suffix.lstrip(".") or "png"))
 
 
@@ -150,11 +154,8 @@ Score = tuple[str, float, float]  # (method, normalised score, its episode std)
 
 def score_bars(groups: dict[str, Sequence[Score]], path: str | Path, title: str | None = None) -> Path:
     """Write :func:`score_bars_figure` to ``path`` atomically (format from the suffix, png by default)."""
-    from marl_amod.files import atomic_write
-
-    path = figure_destination(path)
-    fig = score_bars_figure(groups, title)
-    return atomic_write(path, lambda fh: fig.savefig(fh, format=path.suffix.lstrip(".") or "png"))
+    path = figure_destination(path)  # a bad name fails before the drawing
+    return save_figure(score_bars_figure(groups, title), path)
 
 
 def score_bars_figure(groups: dict[str, Sequence[Score]], title: str | None = None) -> Any:
@@ -196,11 +197,8 @@ def score_bars_figure(groups: dict[str, Sequence[Score]], title: str | None = No
 
 def score_ranking(rows: Sequence[tuple[str, float, float, str]], path: str | Path, title: str | None = None) -> Path:
     """Write :func:`score_ranking_figure` to ``path`` atomically (format from the suffix, png by default)."""
-    from marl_amod.files import atomic_write
-
-    path = figure_destination(path)
-    fig = score_ranking_figure(rows, title)
-    return atomic_write(path, lambda fh: fig.savefig(fh, format=path.suffix.lstrip(".") or "png"))
+    path = figure_destination(path)  # a bad name fails before the drawing
+    return save_figure(score_ranking_figure(rows, title), path)
 
 
 def score_ranking_figure(rows: Sequence[tuple[str, float, float, str]], title: str | None = None) -> Any:
