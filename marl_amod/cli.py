@@ -619,7 +619,8 @@ def transfer_table(
     text = f"<!-- {command} -->\n" + study_markdown(payload)
     (out / f"{study}.md").write_text(text)
     title = f"{study}: normalised score over {payload['episodes']} episodes\n(0 = equal distribution, 100 = MPC-Oracle; whisker: episode std)"
-    figure = score_bars(study_scores(payload), out / f"{study}.png", title)
+    scores = study_scores(payload)
+    figure = score_bars(scores, out / f"{study}.png", title) if scores else "no figure (no MPC-Oracle row to score by)"
     console.print(text)
     console.print(f"wrote {out / (study + '.md')}, {figure}" + ("" if redraw else f" and {saved}"))
 

@@ -10,9 +10,10 @@ placed by multidimensional scaling they are a faithful-enough sketch. matplotlib
 only here, and only when something is drawn.
 
 ``score_ranking`` draws one results table (one city, many policies) as horizontal bars from best
-to worst, baselines and trained policies in two colours. ``score_bars`` draws what a study's table says in rows: a method's normalised score (equal
-distribution 0, MPC-Oracle 100, the lines drawn) per target, a bar with the episode std as its
-whisker, one colour per method in every group, so a method's rank reads across targets at a glance.
+to worst, baselines and trained policies in two colours. ``score_bars`` draws a study's table (a
+few methods on a few targets): a method's normalised score (equal distribution 0, MPC-Oracle
+100, the lines drawn) per target, a bar with the episode std as its whisker, one colour per
+method in every group, so a method's rank reads across targets at a glance.
 """
 
 from __future__ import annotations

@@ -219,9 +219,12 @@ def run_study(study: str, *, episodes: int = 10, seed: int = 0, meta_policy: str
 
 def study_scores(payload: dict[str, Any]) -> dict[str, list[tuple[str, float, float]]]:
     """Per target, every strategy's (name, normalised score, episode std in score points): what
-    :func:`marl_amod.plots.score_bars` draws. Equal distribution is the figure's 0 line, not a bar."""
+    :func:`marl_amod.plots.score_bars` draws. Equal distribution is the figure's 0 line, not a bar;
+    a target without both anchors (a partial run: ``--strategy`` on a fresh folder) has no scores."""
     groups = {}
     for scenario, rows in payload["targets"].items():
+        if not {"equal-distribution", "mpc-oracle"} <= set(rows):
+            continue
         ed, oracle = (rows[k]["metrics"]["profit"]["mean"] for k in ("equal-distribution", "mpc-oracle"))
         groups[scenario] = [(name, rec["normalised_score"], 100.0 * rec["metrics"]["profit"]["std"] / (oracle - ed))
                             for name, rec in rows.items() if name != "equal-distribution"]  # fmt: skip
@@ -246,11 +249,12 @@ def study_markdown(payload: dict[str, Any]) -> str:
                 source += f" + {used['demonstrations']:,} MPC-F demos"
             if used.get("dagger_episodes"):
                 source += f" + {used['dagger_episodes']:,} DAgger"
+            score = f"{rec['normalised_score']:.1f}" if "normalised_score" in rec else "-"  # no MPC-Oracle row to scale by
             in_target = f"{used.get('target_episodes', 0) or 0:,}"
             if used.get("validation_episodes"):
                 in_target += f" + {used['validation_episodes']} val."
             lines.append(
-                f"| {name} | {m['profit']['mean'] / 1e3:.1f} ± {m['profit']['std'] / 1e3:.1f} | {rec['normalised_score']:.1f} "
+                f"| {name} | {m['profit']['mean'] / 1e3:.1f} ± {m['profit']['std'] / 1e3:.1f} | {score} "
                 f"| {m['served_demand']['mean']:,.0f} | {m['rebalancing_cost']['mean'] / 1e3:.2f} | {in_target} | {source} |"
             )
         lines.append("")

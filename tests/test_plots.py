@@ -111,6 +111,9 @@ def test_cli_transfer_table_redraw_rewrites_markdown_and_figure_from_the_json_al
     header = "<!-- marl-amod transfer-table --study event --episodes 2 --seed 0 -->\n"
     assert (tmp_path / "event.md").read_text() == header + study_markdown(payload)
     assert (tmp_path / "event.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    partial = _study({"equal-distribution": 100.0, "meta-rl": 160.0})  # --strategy meta-rl on a fresh folder
+    del partial["targets"]["nyc_brooklyn_event"]["meta-rl"]["normalised_score"]
+    assert study_scores(partial) == {} and "| meta-rl | 0.2 ± 0.0 | - |" in study_markdown(partial)
 
 
 @pytest.mark.parametrize("study", ["intercity", "event"])
