@@ -170,8 +170,7 @@ def figure(table: dict, path: Path) -> Path:
     """The first table as bars (:func:`groups`)."""
     from marl_amod.plots import score_bars
 
-    title = f"Offline RL on {table['scenario']}: normalised score over 10 episodes\n(0 = equal distribution, 100 = MPC-Oracle; whisker: episode std)"
-    return score_bars(groups(table), path, title)
+    return score_bars(groups(table), path, f"Offline RL on {table['scenario']}: normalised score over 10 episodes")
 
 
 def main() -> None:
@@ -192,7 +191,8 @@ def main() -> None:
     md += f"\n{extra}" if extra else ""
     (args.out / "table.md").write_text(md)
     print(md)
-    print(f"wrote {args.out / 'table.md'}, {args.out / 'table.json'} and {figure(table, args.out / 'table.png')}")
+    drawn = figure(table, args.out / "table.png")
+    print(f"wrote {args.out / 'table.md'}, {args.out / 'table.json'} and {drawn}")
 
 
 if __name__ == "__main__":

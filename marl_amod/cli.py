@@ -608,17 +608,19 @@ def transfer_table(
             raise ConfigError("--redraw evaluates nothing: drop --strategy and --meta-policy, or drop --redraw")
         if not saved.is_file():
             raise DataError(f"--redraw reads {saved}, which does not exist: run the study first (without --redraw)")
-        payload = read_json(saved)  # older files lack the command; they were made with the default meta-policy
-        command = payload.get("command") or f"marl-amod transfer-table --study {study} --episodes {payload['episodes']} --seed {payload['seed']}"
+        payload = read_json(saved)
     else:
         previous = read_json(saved) if strategy and saved.is_file() else None
         payload = run_study(study, episodes=episodes, seed=seed, strategies=tuple(strategy or STRATEGIES), previous=previous,
                             meta_policy=meta_policy or META_POLICY, progress=lambda city, name, p: console.print(f"{city}: {name} {p:,.0f}"))  # fmt: skip
-        command = f"marl-amod transfer-table --study {study} --episodes {episodes} --seed {seed}" + (f" --meta-policy {meta_policy}" if meta_policy else "")
-        write_json(saved, payload | {"command": command})
+        payload["meta_policy"] = meta_policy  # None: the default; kept so that --redraw names the command again
+        write_json(saved, payload)
+    command = f"marl-amod transfer-table --study {study} --episodes {payload['episodes']} --seed {payload['seed']}"
+    if payload.get("meta_policy"):  # absent from files of before: those were made with the default
+        command += f" --meta-policy {payload['meta_policy']}"
     text = f"<!-- {command} -->\n" + study_markdown(payload)
     (out / f"{study}.md").write_text(text)
-    title = f"{study}: normalised score over {payload['episodes']} episodes\n(0 = equal distribution, 100 = MPC-Oracle; whisker: episode std)"
+    title = f"{study}: normalised score over {payload['episodes']} episodes"
     scores = study_scores(payload)
     figure = score_bars(scores, out / f"{study}.png", title) if scores else "no figure (no MPC-Oracle row to score by)"
     console.print(text)

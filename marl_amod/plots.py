@@ -151,6 +151,18 @@ def region_map_figure(
 
 
 Score = tuple[str, float, float]  # (method, normalised score, its episode std)
+SCORE_SCALE = "0 = equal distribution, 100 = MPC-Oracle; whisker: episode std"  # what a score axis says
+
+
+def _anchor_lines(ax: Any, vertical: bool) -> None:
+    """Dashed lines, named, at the score's anchors: 0 (equal distribution) and 100 (MPC-Oracle)."""
+    for level, what in ((0.0, "equal distribution"), (100.0, "MPC-Oracle")):
+        if vertical:
+            ax.axvline(level, color="0.4", lw=0.8, ls="--", zorder=0)
+            ax.text(level, 1.0, what, transform=ax.get_xaxis_transform(), ha="center", va="bottom", size=6, color="0.3")
+        else:
+            ax.axhline(level, color="0.4", lw=0.8, ls="--", zorder=0)
+            ax.text(0.005, level, what, transform=ax.get_yaxis_transform(), va="bottom", size=6, color="0.3")
 
 
 def score_bars(groups: dict[str, Sequence[Score]], path: str | Path, title: str | None = None) -> Path:
@@ -185,11 +197,9 @@ def score_bars_figure(groups: dict[str, Sequence[Score]], title: str | None = No
             tip = value + std if value >= 0 else value - std  # the label clears the whisker
             offset = (0, 2 if value >= 0 else -8)
             ax.annotate(f"{round(value)}", (x, tip), xytext=offset, textcoords="offset points", ha="center", size=6)
-    for level, what in ((0.0, "equal distribution"), (100.0, "MPC-Oracle")):
-        ax.axhline(level, color="0.4", lw=0.8, ls="--", zorder=0)
-        ax.text(0.005, level, what, transform=ax.get_yaxis_transform(), va="bottom", fontsize=6, color="0.3")
+    _anchor_lines(ax, vertical=False)
     ax.set_xticks(range(len(groups)), list(groups))
-    ax.set_ylabel("normalised score")
+    ax.set_ylabel(f"normalised score\n({SCORE_SCALE})", fontsize=7)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 0.9), frameon=False)
     if title:
         ax.set_title(title, fontsize=9)
@@ -226,11 +236,9 @@ def score_ranking_figure(rows: Sequence[tuple[str, float, float, str]], title: s
         tip = value + std if value >= 0 else value - std  # the label clears the whisker
         ax.annotate(f"{round(value)}", (tip, y), xytext=(3 if value >= 0 else -3, 0), textcoords="offset points",
                     ha="left" if value >= 0 else "right", va="center", size=6)  # fmt: skip
-    for level, what in ((0.0, "equal distribution"), (100.0, "MPC-Oracle")):
-        ax.axvline(level, color="0.4", lw=0.8, ls="--", zorder=0)
-        ax.text(level, 1.0, what, transform=ax.get_xaxis_transform(), ha="center", va="bottom", size=6, color="0.3")
+    _anchor_lines(ax, vertical=True)
     ax.set_yticks(range(len(ranked)), [r[0] for r in ranked], fontsize=7)
-    ax.set_xlabel("normalised score (0 = equal distribution, 100 = MPC-Oracle; whisker: episode std)", fontsize=8)
+    ax.set_xlabel(f"normalised score ({SCORE_SCALE})", fontsize=8)
     ax.legend(fontsize=7, loc="lower right")
     if title:
         ax.set_title(title, fontsize=9, pad=12)
