@@ -1,19 +1,22 @@
-"""Seconds per meta-imitation update: the update's cities one after another, or padded into one batch.
+"""Seconds per meta-imitation update: the update's cities one after another or padded into one batch, the heads split or not.
 
 An update of ``configs/meta/bc_dagger_all.yaml`` draws ``cities_per_update`` training cities and
 ``num_envs`` trials of ``trial_episodes`` demonstration episodes of each, as the run does (its
 demonstrations, ``runs/meta_demos`` by default, with the structure and place columns), and times
-the loss, its backward pass, the clipping and the Adam step, both ways in one process on the same
-draws, alternating, so the machine's load hits both alike (the ratio is what to read):
+the loss, its backward pass, the clipping and the Adam step, three ways in one process on the same
+draws, alternating, so the machine's load hits all alike (the ratios are what to read):
 
 * ``per city``: :func:`~marl_amod.algos.meta_imitation.cities_losses` with ``padded=False``:
   :func:`~marl_amod.algos.meta_imitation.imitation_losses` once per city, averaged (the path
   before the padded batch; ``pad_cities: false``);
-* ``padded``: ``padded=True``, one padded batch (the default, ``pad_cities: true``).
+* ``padded``: ``padded=True``, one padded batch (the default, ``pad_cities: true``);
+* ``padded, heads on the concatenation``: the same, with the model's heads run on the readout's
+  full output (:func:`~marl_amod.models.recurrent.concatenated_heads`, the fleet summary copied to
+  every region) instead of split (the model's own ``_heads``: the summary's columns once per graph).
 
-It also prints the largest difference of the two losses over the timed updates (float rounding).
+It also prints the largest difference of the losses over the timed updates (float rounding).
 
-    python benchmarks/meta_update.py [--config configs/meta/bc_dagger_all.yaml] [--updates 20] [--hidden 64 128] [--num-envs 16 4]
+    python benchmarks/meta_update.py [--config configs/meta/bc_dagger_l1.yaml] [--updates 20] [--hidden 64 128] [--num-envs 16 4]
 
 Every row of the table is one (hidden units, trials per city) setting; the config's by default.
 """
@@ -34,13 +37,18 @@ from marl_amod.algos import meta  # noqa: E402
 from marl_amod.algos import meta_imitation as mi  # noqa: E402
 from marl_amod.algos.registry import ALGOS  # noqa: E402
 from marl_amod.config import load_config  # noqa: E402
+from marl_amod.models import recurrent  # noqa: E402
 from marl_amod.scenario import load_city  # noqa: E402
 
+SPLIT_HEADS = recurrent._heads
+FORMS = {"per city": (False, SPLIT_HEADS), "padded": (True, SPLIT_HEADS), "padded, heads on the concatenation": (True, recurrent.concatenated_heads)}
 
-def timed_update(padded: bool, model: meta.RecurrentGNN, opt: torch.optim.Optimizer, draws: list, args: mi.Args) -> tuple[float, float]:
-    """(seconds, loss) of one whole update as training does it."""
+
+def timed_update(form: str, model: meta.RecurrentGNN, opt: torch.optim.Optimizer, draws: list, args: mi.Args) -> tuple[float, float]:
+    """(seconds, loss) of one whole update as training does it, in one of the ``FORMS``."""
+    padded, recurrent._heads = FORMS[form]
     start = time.perf_counter()
-    ce, vl = mi.cities_losses(model, draws, args.gamma, padded)
+    ce, vl = mi.cities_losses(model, draws, args.gamma, padded, args.fit)
     loss = ce + args.value_coef * vl
     opt.zero_grad()
     loss.backward()
@@ -62,27 +70,32 @@ def main() -> None:
     data = mi.load_all(args, cities)
     print(f"{opts.config}: {args.cities_per_update} cities x {args.num_envs} trials x {args.trial_episodes} episodes per update, "
           f"regions {sorted(c.n_regions for c in cities.values())}, {torch.get_num_threads()} torch thread")  # fmt: skip
-    print("| hidden | trials per city | per city (s/update) | padded (s/update) | speed-up | max loss difference |")
-    print("|---|---|---|---|---|---|")
+    print("| hidden | trials per city | per city (s/update) | padded (s/update) | padded, heads on the concatenation (s/update) "
+          "| padded vs per city | split heads vs concatenation | max loss difference |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|")
     for hidden, num_envs in itertools.product(opts.hidden or [args.hidden], opts.num_envs or [args.num_envs]):
         run = args.model_copy(update={"hidden": hidden, "num_envs": num_envs})
         torch.manual_seed(0)
         model = meta.make_model(run)
-        opt = torch.optim.Adam(model.parameters(), lr=0.0)  # lr 0: both paths see the same weights every update
+        opt = torch.optim.Adam(model.parameters(), lr=0.0)  # lr 0: every form sees the same weights every update
         rng = np.random.default_rng(0)
-        times: dict[str, list[float]] = {"per city": [], "padded": []}
+        times: dict[str, list[float]] = {form: [] for form in FORMS}
         diff = 0.0
         for i in range(opts.updates + 2):
             draws = []
             for _ in range(run.cities_per_update):
                 demos, graph = data[run.cities[int(rng.integers(len(run.cities)))]]
                 draws.append((demos, mi.draw_trials(demos, run, rng), graph))
-            (t_old, l_old), (t_new, l_new) = (timed_update(padded, model, opt, draws, run) for padded in (False, True))
+            timed = {form: timed_update(form, model, opt, draws, run) for form in FORMS}
             if i >= 2:
-                times["per city"].append(t_old), times["padded"].append(t_new)
-                diff = max(diff, abs(l_old - l_new))
-        old, new = np.median(times["per city"]), np.median(times["padded"])
-        print(f"| {hidden} | {num_envs} | {old:.3f} | {new:.3f} | {old / new:.2f}x | {diff:.1e} |", flush=True)
+                for form, (seconds, _) in timed.items():
+                    times[form].append(seconds)
+                losses = [loss for _, loss in timed.values()]
+                diff = max(diff, max(losses) - min(losses))
+        per_city, padded, concatenated = (np.median(times[form]) for form in FORMS)
+        print(f"| {hidden} | {num_envs} | {per_city:.3f} | {padded:.3f} | {concatenated:.3f} | {per_city / padded:.2f}x "
+              f"| {concatenated / padded:.2f}x | {diff:.1e} |", flush=True)  # fmt: skip
+    recurrent._heads = SPLIT_HEADS
 
 
 if __name__ == "__main__":

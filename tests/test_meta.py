@@ -168,6 +168,34 @@ def test_recurrent_gnn_on_padded_cities_is_each_city_on_its_own(stay_prior, read
         torch.testing.assert_close(alpha[c, :, :n], one), torch.testing.assert_close(v[c], w), torch.testing.assert_close(memory[c, :, :n], m)
 
 
+@pytest.mark.parametrize("readout", ["none", "mean", "mean-max"])
+def test_the_split_heads_are_the_heads_on_the_readouts_output(monkeypatch, readout):
+    """The recurrent GNN runs its heads' first layers split between the regions' columns and the
+    fleet summary's (once per graph): outputs and gradients are those of the heads applied to the
+    readout's full (..., N, 2H + kH) output, on one city and on padded cities."""
+    from marl_amod.models import recurrent
+    from marl_amod.models.dense import DenseGraph, PaddedGraphs
+
+    torch.manual_seed(0)
+    model = RecurrentGNN(n_features=5, hidden=8, stay_prior=True, readout=readout)
+    for p in model.parameters():  # non-zero everywhere, so a column read by the wrong weight shows
+        torch.nn.init.normal_(p, std=0.5)
+    graphs = [DenseGraph(torch.as_tensor(np.array(c.edge_index)), c.n_regions) for c in (grid_city(rows=2, cols=3), grid_city(rows=4, cols=4))]
+    x, a, rr, r, mem = torch.rand(2, 3, 16, 5), torch.rand(2, 3, 16), torch.rand(2, 3, 16), torch.rand(2, 3), torch.rand(2, 3, 16, 8)
+    for graph, args in ((graphs[1], (x[1], a[1], rr[1], r[1], mem[1])), (PaddedGraphs(graphs), (x, a, rr, r, mem))):
+        runs = []
+        for heads in (recurrent._heads, recurrent.concatenated_heads):
+            monkeypatch.setattr(recurrent, "_heads", heads)
+            model.zero_grad()
+            alpha, value, _ = model(*args, graph)
+            (alpha.log1p().sum() + value.sum()).backward()
+            runs.append((alpha, value, [p.grad.clone() for p in model.parameters()]))
+        (alpha, value, grads), (ref_alpha, ref_value, ref_grads) = runs
+        torch.testing.assert_close(alpha, ref_alpha), torch.testing.assert_close(value, ref_value)
+        for g, ref in zip(grads, ref_grads, strict=True):
+            torch.testing.assert_close(g, ref)
+
+
 def test_the_stay_prior_starts_from_the_idle_vehicles_distribution():
     """With a zero actor output the stay-prior policy's mean is the idle share (mixed with the floor):
     played on a city, it asks for (nearly) what is there; the actor then scales it per region."""

@@ -88,9 +88,13 @@ class FleetReadout(nn.Module):
 
     def forward(self, h: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
         """``mask`` (..., N) bool (cities padded to one size): the pools read the real regions only."""
-        e = self.embed(h)  # (B, N, H)
-        pooled = [self._pool(e, p, mask) for p in self.pools]  # (B, 1, H) each
-        return torch.cat([h, *(p.expand_as(e) for p in pooled)], dim=-1)
+        pooled = self.summary(h, mask)  # (..., 1, kH)
+        return torch.cat([h, pooled.expand(*h.shape[:-1], pooled.shape[-1])], dim=-1)
+
+    def summary(self, h: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
+        """(..., N, C) -> (..., 1, kH): the pools alone, once per graph (what ``forward`` appends to every node)."""
+        e = self.embed(h)  # (..., N, H)
+        return torch.cat([self._pool(e, p, mask) for p in self.pools], dim=-1)
 
     @staticmethod
     def _pool(e: torch.Tensor, kind: str, mask: torch.Tensor | None) -> torch.Tensor:
