@@ -26,6 +26,7 @@ import numpy as np
 
 from marl_amod.datasets import normalised_score
 from marl_amod.errors import ConfigError
+from marl_amod.metrics import score_points
 
 ROOT = Path(__file__).resolve().parent.parent
 DATASETS = ["inf", "dtv", "prop", "mpc_forecast", "prop_noise"]
@@ -154,11 +155,10 @@ def groups(table: dict) -> dict[str, list[tuple[str, float, float]]]:
     """The first table's cells for :func:`marl_amod.plots.score_bars`: per dataset, the behaviour
     policy and BC / IQL / CQL in normalised score with the episode std in score points; SAC
     online, which reads no dataset, is left out."""
-    refs = table["reference_scores"]
-    span = refs["mpc-oracle"]["mean"] - refs["equal-distribution"]["mean"]
+    ed, oracle = (table["reference_scores"][k]["mean"] for k in ("equal-distribution", "mpc-oracle"))
     return {
         r["dataset"].upper().replace("_", "-"): [
-            (name, r[key]["normalised"], 100.0 * r[key]["std"] / span)
+            (name, r[key]["normalised"], score_points(r[key]["std"], ed, oracle))
             for key, name in (("behaviour", "behaviour policy"), *((a, a.upper()) for a in ALGOS))
             if key in r
         ]

@@ -25,6 +25,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from marl_amod.metrics import normalised_score, score_points
+
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "docs" / "results"
 DOCUMENTS = (ROOT / "README.md", ROOT / "docs" / "results.md")
@@ -42,7 +44,7 @@ def score(profit: float, table: dict[str, Any]) -> float | None:
     anchors = {r["policy"]: r["metrics"]["profit"]["mean"] for r in table["results"]}
     if FLOOR not in anchors or CEILING not in anchors or anchors[CEILING] == anchors[FLOOR]:
         return None
-    return 100.0 * (profit - anchors[FLOOR]) / (anchors[CEILING] - anchors[FLOOR])
+    return normalised_score(profit, anchors[FLOOR], anchors[CEILING])
 
 
 def _mean_std(metric: dict[str, float] | None, digits: int = 0, percent: bool = False) -> str:
@@ -102,8 +104,7 @@ def figure(name: str, table: dict[str, Any], folder: Path = RESULTS) -> Path | N
     if score(0.0, table) is None:
         return None
     anchors = {r["policy"]: r["metrics"]["profit"]["mean"] for r in table["results"]}
-    span = anchors[CEILING] - anchors[FLOOR]
-    rows = [(r["policy"], score(r["metrics"]["profit"]["mean"], table), 100.0 * r["metrics"]["profit"].get("std", 0.0) / span,
+    rows = [(r["policy"], score(r["metrics"]["profit"]["mean"], table), score_points(r["metrics"]["profit"].get("std", 0.0), anchors[FLOOR], anchors[CEILING]),
              r.get("kind") or "baseline") for r in table["results"]]  # fmt: skip
     episodes = f", {table['episodes']} episodes" if table.get("episodes") else ""
     return score_ranking(rows, folder / f"{name}.png", f"{table.get('title', name)}{episodes}")

@@ -61,6 +61,7 @@ from typing import Any
 
 import numpy as np
 
+from marl_amod import metrics
 from marl_amod.baselines.base import Policy, WeightPolicy
 from marl_amod.errors import ConfigError, DataError
 from marl_amod.files import atomic_write, check_destination, file_sha256, write_json
@@ -471,8 +472,7 @@ def reference_scores(city: City, episodes: int, seed: int, cache: dict | None = 
 
 def normalised_score(profit: float, references: dict[str, dict[str, float]]) -> float:
     """D4RL-style: 0 = equal distribution, 100 = MPC-Oracle (same evaluation seeds)."""
-    low, high = references["equal-distribution"]["mean"], references["mpc-oracle"]["mean"]
-    return 100.0 * (profit - low) / (high - low)
+    return metrics.normalised_score(profit, references["equal-distribution"]["mean"], references["mpc-oracle"]["mean"])
 
 
 def write_card(

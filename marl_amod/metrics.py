@@ -37,6 +37,17 @@ DISPLAY_NAMES: dict[str, str] = {
 }
 
 
+def normalised_score(profit: float, ed: float, oracle: float) -> float:
+    """100 (P - P_ED) / (P_oracle - P_ED): equal distribution 0, MPC-Oracle 100 (D4RL's
+    normalisation, on the same evaluation episodes); nan when the two anchors coincide."""
+    return 100.0 * (profit - ed) / (oracle - ed) if oracle != ed else float("nan")
+
+
+def score_points(spread: float, ed: float, oracle: float) -> float:
+    """A profit spread (an episode std) in points of :func:`normalised_score`."""
+    return 100.0 * spread / (oracle - ed) if oracle != ed else float("nan")
+
+
 def gini(values: np.ndarray | list[float], axis: int = -1) -> np.ndarray | float:
     """Gini coefficient of non-negative values along ``axis`` (0: all equal; one-hot: (n - 1) / n).
 

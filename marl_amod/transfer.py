@@ -25,6 +25,7 @@ from typing import Any, Literal
 
 from marl_amod.errors import ConfigError
 from marl_amod.evaluation import evaluate
+from marl_amod.metrics import normalised_score, score_points
 from marl_amod.scenario import load_city
 
 Strategy = Literal["zero-shot", "fine-tune", "meta-rl", "single-city", "mpc-forecast", "mpc-oracle"]
@@ -179,11 +180,6 @@ def run_strategy(
 # --------------------------------------------------------------------------------------------
 # The tables
 # --------------------------------------------------------------------------------------------
-def normalised(profit: float, ed: float, oracle: float) -> float:
-    """100 (P - P_ED) / (P_oracle - P_ED): equal distribution 0, MPC-Oracle 100."""
-    return 100.0 * (profit - ed) / (oracle - ed) if oracle != ed else float("nan")
-
-
 def run_study(study: str, *, episodes: int = 10, seed: int = 0, meta_policy: str = META_POLICY, strategies: tuple[str, ...] = STRATEGIES,
               previous: dict[str, Any] | None = None, progress: Any = None) -> dict[str, Any]:  # fmt: skip
     """Every strategy (and equal distribution, the 0 of the score) on every target of ``study``.
@@ -212,7 +208,7 @@ def run_study(study: str, *, episodes: int = 10, seed: int = 0, meta_policy: str
         if "mpc-oracle" in rows:
             ed, oracle = (rows[k]["metrics"]["profit"]["mean"] for k in ("equal-distribution", "mpc-oracle"))
             for rec in rows.values():
-                rec["normalised_score"] = normalised(rec["metrics"]["profit"]["mean"], ed, oracle)
+                rec["normalised_score"] = normalised_score(rec["metrics"]["profit"]["mean"], ed, oracle)
         out["targets"][scenario] = rows
     return out
 
@@ -226,7 +222,7 @@ def study_scores(payload: dict[str, Any]) -> dict[str, list[tuple[str, float, fl
         if not {"equal-distribution", "mpc-oracle"} <= set(rows):
             continue
         ed, oracle = (rows[k]["metrics"]["profit"]["mean"] for k in ("equal-distribution", "mpc-oracle"))
-        groups[scenario] = [(name, rec["normalised_score"], 100.0 * rec["metrics"]["profit"]["std"] / (oracle - ed))
+        groups[scenario] = [(name, rec["normalised_score"], score_points(rec["metrics"]["profit"]["std"], ed, oracle))
                             for name, rec in rows.items() if name != "equal-distribution"]  # fmt: skip
     return groups
 

@@ -12,10 +12,11 @@ from marl_amod.algos import meta
 from marl_amod.algos.registry import ALGOS
 from marl_amod.errors import ConfigError
 from marl_amod.evaluation import evaluate
+from marl_amod.metrics import normalised_score
 from marl_amod.models.recurrent import RecurrentGNN
 from marl_amod.scenario import grid_city, load_city
 from marl_amod.system import FleetSystem
-from marl_amod.transfer import STRATEGIES, normalised, run_strategy
+from marl_amod.transfer import STRATEGIES, run_strategy
 
 
 def _city_yaml(tmp_path, name, **keys):
@@ -444,7 +445,7 @@ def test_a_scenario_built_on_a_held_out_citys_data_is_held_out_too(task):
 
 
 def test_transfer_strategies_and_the_normalised_score(tmp_path):
-    assert normalised(150.0, 100.0, 200.0) == 50.0 and normalised(100.0, 100.0, 200.0) == 0.0
+    assert normalised_score(150.0, 100.0, 200.0) == 50.0 and normalised_score(100.0, 100.0, 200.0) == 0.0
     with pytest.raises(ConfigError, match="unknown strategy"):
         run_strategy("wishful", "synthetic")
     with pytest.raises(ConfigError, match="needs --policy"):
