@@ -471,7 +471,8 @@ def reference_scores(city: City, episodes: int, seed: int, cache: dict | None = 
 
 
 def normalised_score(profit: float, references: dict[str, dict[str, float]]) -> float:
-    """D4RL-style: 0 = equal distribution, 100 = MPC-Oracle (same evaluation seeds)."""
+    """D4RL-style: 0 = equal distribution, 100 = MPC-Oracle (same evaluation seeds): :func:`marl_amod.metrics.normalised_score`
+    with a dataset card's ``reference_scores``."""
     return metrics.normalised_score(profit, references["equal-distribution"]["mean"], references["mpc-oracle"]["mean"])
 
 

@@ -12,7 +12,7 @@ from marl_amod.algos import meta
 from marl_amod.algos.registry import ALGOS
 from marl_amod.errors import ConfigError
 from marl_amod.evaluation import evaluate
-from marl_amod.metrics import normalised_score
+from marl_amod.metrics import normalised_score, score_points
 from marl_amod.models.recurrent import RecurrentGNN
 from marl_amod.scenario import grid_city, load_city
 from marl_amod.system import FleetSystem
@@ -446,6 +446,7 @@ def test_a_scenario_built_on_a_held_out_citys_data_is_held_out_too(task):
 
 def test_transfer_strategies_and_the_normalised_score(tmp_path):
     assert normalised_score(150.0, 100.0, 200.0) == 50.0 and normalised_score(100.0, 100.0, 200.0) == 0.0
+    assert score_points(25.0, 100.0, 200.0) == 25.0 and np.isnan(score_points(25.0, 100.0, 100.0))  # a spread in score points
     with pytest.raises(ConfigError, match="unknown strategy"):
         run_strategy("wishful", "synthetic")
     with pytest.raises(ConfigError, match="needs --policy"):
