@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from rich.console import Console
@@ -376,19 +376,29 @@ def train(
         )
         raise typer.Exit(130) from None
     card = summary["card"]
-    if "dataset" in card:
-        trained = f"{card['updates']} updates on {card['dataset']['transitions']} logged transitions"
-    elif "demonstrations" in card:
-        demos = card["demonstrations"]
-        trained = f"{card['updates']} updates on {demos['episodes_per_city'] * len(demos['cities'])} MPC-Forecast demonstration episodes"
-    else:
-        trained = f"{card['episodes_trained']} episodes"
     console.print(
         f"{card['scenario']}: profit {card['profit_mean']:,.1f} ± {card['profit_std']:,.1f} over {card['eval_episodes']} episodes "
-        f"(seed {card['eval_seed']}), trained {trained} in {card['training_wall_s'] / 60:.1f} min"
+        f"(seed {card['eval_seed']}), trained {trained_on(card)}"
     )
     if "policy" in summary:
         console.print(f"wrote {summary['policy']} (+ .json, .md); logs in {args.run_dir}")
+
+
+def trained_on(card: dict[str, Any]) -> str:
+    """What a policy card says it was trained on and how long, for the line ``train`` ends with: a
+    meta-imitation counts every demonstration (the cities' and each variant kind's) and its DAgger
+    episodes, and names the demonstrations' collection time, which its training time leaves out."""
+    minutes = f"in {card['training_wall_s'] / 60:.1f} min"
+    if "dataset" in card:
+        return f"{card['updates']} updates on {card['dataset']['transitions']} logged transitions {minutes}"
+    if "demonstrations" in card:
+        from marl_amod.transfer import meta_used
+
+        used, demos = meta_used([card]), card["demonstrations"]
+        dagger = f" and {used['dagger_episodes']:,} DAgger episodes" if used.get("dagger_episodes") else ""
+        collected = f" (+ {demos['collection_wall_s'] / 60:.1f} min collecting the demonstrations)" if demos.get("collection_wall_s") else ""
+        return f"{card['updates']:,} updates on {used.get('demonstrations', 0):,} MPC-Forecast demonstration episodes{dagger} {minutes}{collected}"
+    return f"{card['episodes_trained']} episodes {minutes}"
 
 
 @app.command()

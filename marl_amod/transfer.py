@@ -92,7 +92,7 @@ def _card(path: str) -> dict[str, Any]:
     return read_card(path)
 
 
-def _meta_used(cards: list[dict[str, Any]]) -> dict[str, Any]:
+def meta_used(cards: list[dict[str, Any]]) -> dict[str, Any]:
     """What the meta-policies of ``cards`` (one, or an ensemble's members) trained on, summed: the
     tasks beside the cities, MPC-F demonstrations and DAgger episodes, and RL episodes (none when
     every member only imitated)."""
@@ -171,7 +171,7 @@ def run_strategy(
         cards = [load_meta(m)[1] for m in members]
         k = cards[0]["args"]["trial_episodes"] - 1 if adapt_episodes is None else adapt_episodes
         pol = load_policy(meta_policy, city, k, seed)
-        used.update(_meta_used(cards), source=meta_policy, target_episodes=k * len(members))  # each member adapts alone
+        used.update(meta_used(cards), source=meta_policy, target_episodes=k * len(members))  # each member adapts alone
     result = evaluate(pol, city, episodes, seed)
     result["transfer"] = used
     return result

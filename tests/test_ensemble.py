@@ -143,18 +143,18 @@ def test_an_ensemble_with_a_meta_member_says_it_cannot_act_on_observations(membe
 
 
 def test_the_meta_rl_row_says_seeds_only_for_members_of_one_recipe():
-    from marl_amod.transfer import _meta_used
+    from marl_amod.transfer import meta_used
 
     def card(seed, **args):
         hot = ["porto~hot1x2"] * 10 * args.get("hotspot_variants", 1)
         demos = {"cities": ["porto"] * 10, "episodes_per_city": 64, "hotspot_variants": hot, "episodes_per_variant": 32}
         return {"algorithm": "meta-bc", "args": {"seed": seed, "run_dir": f"r{seed}", "lr": 1e-3, **args}, "demonstrations": demos}
 
-    assert _meta_used([card(0)])["source_city"] == "10 training cities + 10 hotspot variants"
-    assert _meta_used([card(0), card(1)]) == {"source_city": "2 seeds x (10 training cities + 10 hotspot variants)", "source_episodes": None,
+    assert meta_used([card(0)])["source_city"] == "10 training cities + 10 hotspot variants"
+    assert meta_used([card(0), card(1)]) == {"source_city": "2 seeds x (10 training cities + 10 hotspot variants)", "source_episodes": None,
                                               "demonstrations": 2 * 960}  # fmt: skip
-    assert _meta_used([card(0), card(0, lr=1e-4)])["source_city"].startswith("2 members x (")
-    assert _meta_used([card(0), card(0, hotspot_variants=0)])["source_city"] == "2 members: 10 training cities + 10 hotspot variants; 10 training cities"
+    assert meta_used([card(0), card(0, lr=1e-4)])["source_city"].startswith("2 members x (")
+    assert meta_used([card(0), card(0, hotspot_variants=0)])["source_city"] == "2 members: 10 training cities + 10 hotspot variants; 10 training cities"
     older = card(1)
     del older["args"]["lr"]  # a card written before an argument existed is not another recipe for it
-    assert _meta_used([card(0), older])["source_city"].startswith("2 seeds x (")
+    assert meta_used([card(0), older])["source_city"].startswith("2 seeds x (")
