@@ -27,7 +27,8 @@ around the forecast, one copy of the LP per draw, a single y[0] shared by all co
 decision taken before the demand is seen), the mean profit as objective (:func:`solve_scenarios`).
 
 Two solver paths build the same LP: ``"scipy"`` assembles the sparse matrix from index arrays
-and calls ``linprog(method="highs")``; ``"cvxpy"`` builds a DPP-parameterised problem once per
+and solves it with HiGHS's dual simplex as ``linprog(method="highs-ds")`` would, vertex for vertex,
+without linprog's wrapping (:mod:`marl_amod.baselines.highs`); ``"cvxpy"`` builds a DPP-parameterised problem once per
 policy (demand, margins, idle, arrivals and the time-varying trip-time arrival masks are
 parameters) and re-solves it with HiGHS.
 """
@@ -41,6 +42,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from marl_amod.baselines.base import FlowPolicy
+from marl_amod.baselines.highs import solve_equality_lp
 from marl_amod.errors import ConfigError, SolverError
 from marl_amod.scenario.types import City, step_rows
 from marl_amod.system import FleetSystem
@@ -138,20 +140,10 @@ def lp_matrices(data: PlanData) -> tuple[np.ndarray, sp.csr_matrix, np.ndarray, 
     return cost, a, b.reshape(-1), ub
 
 
-def _linprog(cost: np.ndarray, a: sp.csr_matrix, b: np.ndarray, ub: np.ndarray, what: str) -> tuple[np.ndarray, float]:
-    """min cost @ z s.t. a z = b, 0 <= z <= ub through scipy's HiGHS (dual simplex: a vertex)."""
-    from scipy.optimize import linprog
-
-    res = linprog(cost, A_eq=a, b_eq=b, bounds=np.column_stack([np.zeros_like(ub), ub]), method="highs-ds")
-    if res.status != 0 or res.x is None:
-        raise SolverError(f"{what} (scipy/HiGHS) failed: status {res.status}: {res.message}")
-    return res.x, float(res.fun)
-
-
 def solve_scipy(data: PlanData) -> FlowPlan:
     """The LP through scipy's HiGHS interface (dual simplex: a vertex, hence integral for integral data)."""
     h, n = data.demand.shape[0], data.idle.shape[0]
-    z, fun = _linprog(*lp_matrices(data), "MPC LP")
+    z, fun = solve_equality_lp(*lp_matrices(data), "MPC LP")
     z = z.reshape(2, h, n, n)
     return FlowPlan(x=z[0], y=z[1], objective=-fun)
 
@@ -193,7 +185,7 @@ def solve_scenarios(scenarios: list[PlanData]) -> FlowPlan:
     a_all = sp.csr_matrix(
         (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(s_count * h * n, cost.size)
     )
-    z, fun = _linprog(cost, a_all, np.concatenate(rhs), ub, "scenario MPC LP")
+    z, fun = solve_equality_lp(cost, a_all, np.concatenate(rhs), ub, "scenario MPC LP")
     per = z[local_to_global].reshape(s_count, 2, h, n, n).mean(axis=0)  # y[0] identical in every copy
     return FlowPlan(x=per[0], y=per[1], objective=-fun)
 

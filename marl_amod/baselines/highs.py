@@ -1,0 +1,92 @@
+"""min c @ z s.t. A z = b, 0 <= z <= ub: the LP that scipy's ``linprog(method="highs-ds")`` solves,
+handed to HiGHS without linprog's wrapping.
+
+Why a module of its own: MPC solves one such LP per control step, and in the meta-imitation
+recipe (demonstrations and DAgger labels) those LPs are about a third of the wall time. scipy's
+``linprog`` spends some 40% of each call outside HiGHS, most of it in a per-column Python loop that
+builds bound marginals MPC never reads. :func:`solve_equality_lp` passes the same model, with the
+options ``linprog`` sets for ``highs-ds``, to the HiGHS build scipy bundles
+(``scipy.optimize._highspy``, scipy >= 1.15). Same build, same model, same options: HiGHS takes
+the same pivots and returns the same vertex. That matters because these LPs are degenerate: another
+HiGHS build (``highspy`` 1.16) or a trimmed model lands on other optimal vertices, and every MPC
+row of every table would move. ``tests/test_highs.py`` checks the two paths agree bit for bit.
+Where scipy has no bundled core (older scipy), ``linprog`` does the solve.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from marl_amod.errors import SolverError
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
+
+try:  # a private module: used only when it has every name this file reads
+    import scipy.optimize._highspy._core as _core
+
+    for _name in ("HighsLp", "_Highs", "HighsOptions", "MatrixFormat", "HighsModelStatus", "kHighsInf"):
+        getattr(_core, _name)
+except (ImportError, AttributeError):  # pragma: no cover - the lower-bound stage runs this path
+    _core = None
+
+HAS_BUNDLED_HIGHS = _core is not None
+
+# what scipy's _linprog_highs sets for method="highs-ds" (every option it leaves at None is HiGHS's default)
+LINPROG_HIGHS_DS_OPTIONS = {
+    "presolve": "on",
+    "solver": "simplex",
+    "simplex_strategy": 1,  # kSimplexStrategyDual
+    "highs_debug_level": 0,
+    "output_flag": False,
+    "log_to_console": False,
+}
+
+
+def solve_equality_lp(
+    cost: np.ndarray, a: sp.spmatrix | sp.sparray, b: np.ndarray, ub: np.ndarray, what: str, *, direct: bool = True
+) -> tuple[np.ndarray, float]:
+    """(z, c @ z) at the vertex HiGHS's dual simplex finds; raises :class:`SolverError` naming ``what``.
+
+    ``direct=False`` forces scipy's ``linprog`` (the reference the direct path is tested against).
+    """
+    if direct and HAS_BUNDLED_HIGHS:
+        return _solve_bundled(cost, a, b, ub, what)
+    from scipy.optimize import linprog
+
+    res = linprog(cost, A_eq=a, b_eq=b, bounds=np.column_stack([np.zeros_like(ub), ub]), method="highs-ds")
+    if res.status != 0 or res.x is None:
+        raise SolverError(f"{what} (scipy/HiGHS) failed: status {res.status}: {res.message}")
+    return res.x, float(res.fun)
+
+
+def _solve_bundled(cost: np.ndarray, a, b: np.ndarray, ub: np.ndarray, what: str) -> tuple[np.ndarray, float]:
+    """The model and options exactly as scipy's ``_linprog_highs`` builds them for ``highs-ds``."""
+    import scipy.sparse as sp
+
+    a = sp.csc_array(a)
+    n_col, n_row = cost.size, b.size
+    inf = _core.kHighsInf
+    lp = _core.HighsLp()
+    lp.num_col_, lp.num_row_ = n_col, n_row
+    lp.a_matrix_.num_col_, lp.a_matrix_.num_row_ = n_col, n_row
+    lp.a_matrix_.format_ = _core.MatrixFormat.kColwise
+    lp.a_matrix_.start_, lp.a_matrix_.index_, lp.a_matrix_.value_ = a.indptr, a.indices, a.data
+    lp.col_cost_ = cost
+    lp.col_lower_ = np.zeros(n_col)
+    lp.col_upper_ = np.minimum(ub, inf)  # HiGHS's infinity, as linprog maps np.inf
+    rhs = np.clip(b, -inf, inf)
+    lp.row_lower_, lp.row_upper_ = rhs, rhs
+    options = _core.HighsOptions()
+    for key, value in LINPROG_HIGHS_DS_OPTIONS.items():
+        setattr(options, key, value)
+    highs = _core._Highs()
+    highs.passOptions(options)
+    highs.passModel(lp)
+    highs.run()
+    status = highs.getModelStatus()
+    if status != _core.HighsModelStatus.kOptimal:
+        raise SolverError(f"{what} (HiGHS) failed: {highs.modelStatusToString(status)}")
+    return np.array(highs.getSolution().col_value), float(highs.getInfo().objective_function_value)

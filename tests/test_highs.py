@@ -1,0 +1,76 @@
+"""The direct HiGHS path returns linprog's vertex, bit for bit, on the LPs MPC really solves.
+
+These LPs are degenerate (many optimal vertices), so agreement in objective is not enough: MPC
+would act differently at another vertex and every MPC row of every table would move.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from marl_amod.baselines import highs
+from marl_amod.baselines.highs import solve_equality_lp
+from marl_amod.baselines.mpc import MPCForecast, lp_matrices
+from marl_amod.errors import SolverError
+from marl_amod.evaluation import episode_seeds
+from marl_amod.scenario import load_city
+from marl_amod.system import FleetSystem
+from tests.conftest import needs_data
+
+bundled = pytest.mark.skipif(not highs.HAS_BUNDLED_HIGHS, reason="this scipy bundles no HiGHS core (scipy < 1.15)")
+
+
+def _mpc_forecast_lps(city_name: str, steps: int, seed: int = 5) -> list[tuple]:
+    """The LPs of the first ``steps`` control steps of one MPC-Forecast episode."""
+    city = load_city(city_name)
+    system = FleetSystem(city)
+    demand_seed, rng = episode_seeds(seed, 0)
+    system.reset(demand_seed)
+    policy = MPCForecast()
+    policy.reset(system, rng)
+    lps = []
+    for _ in range(steps):
+        lps.append(lp_matrices(policy.problem(system)))
+        system.step(policy.target(system))
+    return lps
+
+
+def _assert_same_vertices(lps: list[tuple]) -> None:
+    for k, lp in enumerate(lps):
+        z_direct, fun_direct = solve_equality_lp(*lp, "test LP")
+        z_linprog, fun_linprog = solve_equality_lp(*lp, "test LP", direct=False)
+        assert np.array_equal(z_direct, z_linprog), f"LP {k}: another vertex"
+        assert fun_direct == fun_linprog
+
+
+@bundled
+def test_direct_highs_finds_linprogs_vertex_on_the_synthetic_city():
+    _assert_same_vertices(_mpc_forecast_lps("synthetic", steps=8))
+
+
+@bundled
+@needs_data
+@pytest.mark.parametrize("city", ["chicago", "porto"])
+def test_direct_highs_finds_linprogs_vertex_on_real_cities(city):
+    """Chicago and Porto are where a trimmed model (zero-bound columns dropped) changed vertices."""
+    _assert_same_vertices(_mpc_forecast_lps(city, steps=10))
+
+
+@bundled
+@pytest.mark.parametrize(("key", "value"), [("presolve", "off"), ("simplex_strategy", 4)])
+def test_the_vertex_depends_on_the_options_so_agreement_is_not_free(monkeypatch, key, value):
+    """With presolve off, or the primal simplex, HiGHS ends at other vertices of these LPs."""
+    lps = _mpc_forecast_lps("synthetic", steps=4)
+    reference = [solve_equality_lp(*lp, "test LP", direct=False)[0] for lp in lps]
+    monkeypatch.setitem(highs.LINPROG_HIGHS_DS_OPTIONS, key, value)
+    moved = [not np.array_equal(solve_equality_lp(*lp, "test LP")[0], z) for lp, z in zip(lps, reference, strict=True)]
+    assert any(moved)
+
+
+@pytest.mark.parametrize("direct", [True, False])
+def test_an_infeasible_lp_raises_a_solver_error_naming_it(direct):
+    a = sp.csr_matrix(np.array([[1.0, 1.0]]))
+    with pytest.raises(SolverError, match="my LP"):
+        solve_equality_lp(np.ones(2), a, np.array([5.0]), np.array([1.0, 1.0]), "my LP", direct=direct)
