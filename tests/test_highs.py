@@ -74,3 +74,19 @@ def test_an_infeasible_lp_raises_a_solver_error_naming_it(direct):
     a = sp.csr_matrix(np.array([[1.0, 1.0]]))
     with pytest.raises(SolverError, match="my LP"):
         solve_equality_lp(np.ones(2), a, np.array([5.0]), np.array([1.0, 1.0]), "my LP", direct=direct)
+
+
+@bundled
+def test_a_core_that_changed_its_calls_falls_back_to_linprog_with_a_warning(monkeypatch):
+    """The core is private: if a scipy release changes it, MPC warns once and keeps linprog's vertex."""
+    lp = _mpc_forecast_lps("synthetic", steps=1)[0]
+    reference, _ = solve_equality_lp(*lp, "test LP", direct=False)
+
+    def changed(*args, **kwargs):
+        raise TypeError("passModel(): incompatible function arguments")
+
+    monkeypatch.setattr(highs, "_solve_bundled", changed)
+    monkeypatch.setattr(highs, "HAS_BUNDLED_HIGHS", True)
+    with pytest.warns(UserWarning, match="linprog"):
+        z, _ = solve_equality_lp(*lp, "test LP")
+    assert np.array_equal(z, reference) and not highs.HAS_BUNDLED_HIGHS

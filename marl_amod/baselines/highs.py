@@ -15,6 +15,7 @@ Where scipy has no bundled core (older scipy), ``linprog`` does the solve.
 
 from __future__ import annotations
 
+import warnings
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -27,7 +28,7 @@ if TYPE_CHECKING:
 try:  # a private module: used only when it has every name this file reads
     import scipy.optimize._highspy._core as _core
 
-    for _name in ("HighsLp", "_Highs", "HighsOptions", "MatrixFormat", "HighsModelStatus", "kHighsInf"):
+    for _name in ("_Highs", "HighsOptions", "HighsModelStatus", "HighsStatus", "kHighsInf"):
         getattr(_core, _name)
 except (ImportError, AttributeError):  # pragma: no cover - the lower-bound stage runs this path
     _core = None
@@ -43,6 +44,7 @@ LINPROG_HIGHS_DS_OPTIONS = {
     "output_flag": False,
     "log_to_console": False,
 }
+_COLWISE, _MINIMIZE = 1, 1  # HiGHS's MatrixFormat.kColwise and ObjSense.kMinimize
 
 
 def solve_equality_lp(
@@ -52,8 +54,13 @@ def solve_equality_lp(
 
     ``direct=False`` forces scipy's ``linprog`` (the reference the direct path is tested against).
     """
+    global HAS_BUNDLED_HIGHS
     if direct and HAS_BUNDLED_HIGHS:
-        return _solve_bundled(cost, a, b, ub, what)
+        try:
+            return _solve_bundled(cost, a, b, ub, what)
+        except (TypeError, AttributeError) as exc:  # a scipy whose private core changed its calls
+            HAS_BUNDLED_HIGHS = False
+            warnings.warn(f"scipy's bundled HiGHS core took no model ({exc}); MPC solves through linprog (slower, same vertex)", stacklevel=2)
     from scipy.optimize import linprog
 
     res = linprog(cost, A_eq=a, b_eq=b, bounds=np.column_stack([np.zeros_like(ub), ub]), method="highs-ds")
@@ -63,28 +70,27 @@ def solve_equality_lp(
 
 
 def _solve_bundled(cost: np.ndarray, a, b: np.ndarray, ub: np.ndarray, what: str) -> tuple[np.ndarray, float]:
-    """The model and options exactly as scipy's ``_linprog_highs`` builds them for ``highs-ds``."""
+    """The model and options as scipy's ``_linprog_highs`` builds them for ``highs-ds``, passed as
+    arrays (HiGHS's array overload of ``passModel``: no element-by-element copy into a ``HighsLp``)."""
     import scipy.sparse as sp
 
     a = sp.csc_array(a)
     n_col, n_row = cost.size, b.size
     inf = _core.kHighsInf
-    lp = _core.HighsLp()
-    lp.num_col_, lp.num_row_ = n_col, n_row
-    lp.a_matrix_.num_col_, lp.a_matrix_.num_row_ = n_col, n_row
-    lp.a_matrix_.format_ = _core.MatrixFormat.kColwise
-    lp.a_matrix_.start_, lp.a_matrix_.index_, lp.a_matrix_.value_ = a.indptr, a.indices, a.data
-    lp.col_cost_ = cost
-    lp.col_lower_ = np.zeros(n_col)
-    lp.col_upper_ = np.minimum(ub, inf)  # HiGHS's infinity, as linprog maps np.inf
-    rhs = np.clip(b, -inf, inf)
-    lp.row_lower_, lp.row_upper_ = rhs, rhs
+    rhs = np.clip(np.asarray(b, dtype=np.float64), -inf, inf)  # HiGHS's infinity, as linprog maps np.inf
+    highs = _core._Highs()
     options = _core.HighsOptions()
     for key, value in LINPROG_HIGHS_DS_OPTIONS.items():
         setattr(options, key, value)
-    highs = _core._Highs()
     highs.passOptions(options)
-    highs.passModel(lp)
+    passed = highs.passModel(
+        n_col, n_row, a.nnz, _COLWISE, _MINIMIZE, 0.0,
+        np.asarray(cost, dtype=np.float64), np.zeros(n_col), np.minimum(np.asarray(ub, dtype=np.float64), inf), rhs, rhs,
+        a.indptr.astype(np.int32), a.indices.astype(np.int32), a.data.astype(np.float64),
+        np.zeros(n_col, dtype=np.int32),  # every column continuous (an empty array is read as n_col entries)
+    )  # fmt: skip
+    if passed == _core.HighsStatus.kError:
+        raise SolverError(f"{what}: HiGHS refused the model ({n_row} rows, {n_col} columns)")
     highs.run()
     status = highs.getModelStatus()
     if status != _core.HighsModelStatus.kOptimal:
