@@ -1,12 +1,21 @@
-"""MPC's LP: scipy's linprog against the direct call to scipy's bundled HiGHS core (same vertex?).
+"""MPC's LP per control step: scipy's linprog, the direct call to scipy's bundled HiGHS, and cvxpy.
 
-Records the LPs of MPC-Forecast episodes (the meta-imitation recipe's demonstrations and DAgger
-labels are one such LP per step), then solves each with both paths of
-:func:`marl_amod.baselines.highs.solve_equality_lp`, alternating the order per LP so neither path
-gets the warmer cache. Prints per city the median milliseconds of each path, their ratio, and on
-how many LPs the two returned the same vertex bit for bit (any other count is a bug: MPC would act
-differently). Run:  python benchmarks/mpc_lp.py [--cities chicago porto ...] [--episodes 2]
-(about a minute; needs MARL_AMOD_DATA for the real cities).
+Records the plans of MPC-Forecast episodes (what MPC solves at each step; the meta-imitation
+recipe's demonstrations and DAgger labels are one such LP per step), then solves each one with
+
+* ``linprog``: the sparse LP (:func:`~marl_amod.baselines.mpc.lp_matrices`) through
+  ``scipy.optimize.linprog(method="highs-ds")``, what MPC called until the direct path;
+* ``direct``: the same LP through :func:`marl_amod.baselines.highs.solve_equality_lp` (MPC's
+  ``scipy`` backend now);
+* ``cvxpy``: the DPP-parameterised problem (``backend="cvxpy"``; its compile, at the first solve,
+  left out),
+
+in turn, the order rotating from one LP to the next so no path always finds the warmer cache.
+Prints per city the median milliseconds per step of each (the LP's construction included), the
+speed-ups over linprog, and on how many LPs ``direct`` returned linprog's vertex bit for bit (any
+other count is a bug: MPC would act differently). Run on one idle core:
+    python benchmarks/mpc_lp.py [--cities nyc_brooklyn shenzhen_downtown_west] [--episodes 2] [--no-cvxpy]
+(a minute or two; the real cities need MARL_AMOD_DATA).
 """
 
 from __future__ import annotations
@@ -19,58 +28,80 @@ for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
 import argparse  # noqa: E402
 import statistics  # noqa: E402
 import time  # noqa: E402
+from collections.abc import Callable  # noqa: E402
 
 import numpy as np  # noqa: E402
 
 from marl_amod.baselines.highs import HAS_BUNDLED_HIGHS, solve_equality_lp  # noqa: E402
-from marl_amod.baselines.mpc import MPCForecast, lp_matrices  # noqa: E402
+from marl_amod.baselines.mpc import DEFAULT_HORIZON, CvxpyMPC, MPCForecast, PlanData, lp_matrices  # noqa: E402
 from marl_amod.evaluation import episode_seeds  # noqa: E402
-from marl_amod.scenario import load_city  # noqa: E402
+from marl_amod.scenario import City, load_city  # noqa: E402
 from marl_amod.system import FleetSystem  # noqa: E402
 
 
-def episode_lps(city_name: str, episodes: int, seed: int) -> list[tuple]:
-    """Every LP MPC-Forecast solves in ``episodes`` episodes of the city, as it plays them."""
-    city = load_city(city_name)
-    system, policy = FleetSystem(city), MPCForecast()
-    lps = []
+def episode_plans(city: City, episodes: int, seed: int, horizon: int) -> list[PlanData]:
+    """What MPC-Forecast solves at every step of ``episodes`` episodes, as it plays them."""
+    system, policy = FleetSystem(city), MPCForecast(horizon=horizon)
+    plans = []
     for e in range(episodes):
         demand_seed, rng = episode_seeds(seed, e)
         system.reset(demand_seed)
         policy.reset(system, rng)
         while not system.done:
-            lps.append(lp_matrices(policy.problem(system)))
+            plans.append(policy.problem(system))
             system.step(policy.target(system))
-    return lps
+    return plans
 
 
-def timed(lp: tuple, direct: bool) -> tuple[float, np.ndarray]:
-    start = time.perf_counter()
-    z, _ = solve_equality_lp(*lp, "benchmark LP", direct=direct)
-    return time.perf_counter() - start, z
+def solvers(city: City, horizon: int, cvxpy: bool) -> dict[str, Callable[[PlanData], np.ndarray | None]]:
+    """Each path as plan -> its flows (None where the vertex is not compared)."""
+    paths: dict[str, Callable[[PlanData], np.ndarray | None]] = {
+        "linprog": lambda plan: solve_equality_lp(*lp_matrices(plan), "benchmark LP", direct=False)[0],
+        "direct": lambda plan: solve_equality_lp(*lp_matrices(plan), "benchmark LP")[0],
+    }
+    if cvxpy:
+        problem = CvxpyMPC(city, horizon)
+
+        def with_cvxpy(plan: PlanData) -> None:
+            problem.solve(plan)  # another modelling layer: its vertex is not compared
+
+        paths["cvxpy"] = with_cvxpy
+    return paths
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--cities", nargs="+", default=["chicago", "nyc_man_south", "porto", "shenzhen_baoan", "synthetic"])
+    p.add_argument("--cities", nargs="+", default=["nyc_brooklyn", "shenzhen_downtown_west", "chicago", "porto", "synthetic"])
     p.add_argument("--episodes", type=int, default=2)
     p.add_argument("--seed", type=int, default=5)
+    p.add_argument("--horizon", type=int, default=DEFAULT_HORIZON)
+    p.add_argument("--no-cvxpy", dest="cvxpy", action="store_false", help="leave the cvxpy path out")
     opts = p.parse_args()
     if not HAS_BUNDLED_HIGHS:
         raise SystemExit("this scipy bundles no HiGHS core (scipy < 1.15): MPC uses linprog, nothing to compare")
-    print("| city | LPs | columns | linprog (ms) | direct (ms) | linprog / direct | same vertex |")
-    print("|---|---|---|---|---|---|---|")
+    names = ["linprog", "direct"] + (["cvxpy"] if opts.cvxpy else [])
+    print(f"MPC-Forecast, horizon {opts.horizon}, {opts.episodes} episodes per city; median ms per step, the LP's construction included")
+    print("| city | regions | LPs | " + " | ".join(names) + " | linprog / direct |" + (" linprog / cvxpy |" if opts.cvxpy else "") + " same vertex |")
+    print("|---|---|---|" + "---|" * len(names) + "---|" + ("---|" if opts.cvxpy else "") + "---|")
     for name in opts.cities:
-        lps = episode_lps(name, opts.episodes, opts.seed)
-        slow, fast, same = [], [], 0
-        for k, lp in enumerate(lps):
-            order = (False, True) if k % 2 == 0 else (True, False)
-            results = {direct: timed(lp, direct) for direct in order}
-            slow.append(results[False][0])
-            fast.append(results[True][0])
-            same += np.array_equal(results[False][1], results[True][1])
-        s, f = statistics.median(slow) * 1e3, statistics.median(fast) * 1e3
-        print(f"| {name} | {len(lps)} | {lps[0][0].size:,} | {s:.1f} | {f:.1f} | {s / f:.2f} | {same}/{len(lps)} |")
+        city = load_city(name)
+        plans = episode_plans(city, opts.episodes, opts.seed, opts.horizon)
+        paths = solvers(city, opts.horizon, opts.cvxpy)
+        if opts.cvxpy:
+            paths["cvxpy"](plans[0])  # the DPP compile happens at the first solve
+        times: dict[str, list[float]] = {path: [] for path in names}
+        same = 0
+        for k, plan in enumerate(plans):
+            flows = {}
+            for path in names[k % len(names) :] + names[: k % len(names)]:
+                start = time.perf_counter()
+                flows[path] = paths[path](plan)
+                times[path].append(time.perf_counter() - start)
+            same += np.array_equal(flows["linprog"], flows["direct"])
+        ms = {path: statistics.median(t) * 1e3 for path, t in times.items()}
+        cells = " | ".join(f"{ms[path]:.1f}" for path in names)
+        ratios = f" {ms['linprog'] / ms['direct']:.2f}x |" + (f" {ms['linprog'] / ms['cvxpy']:.2f}x |" if opts.cvxpy else "")
+        print(f"| {name} | {city.n_regions} | {len(plans)} | {cells} |{ratios} {same}/{len(plans)} |", flush=True)
 
 
 if __name__ == "__main__":

@@ -65,7 +65,7 @@ def _policy(r: dict[str, Any], full: bool) -> str:
 
 
 def table_markdown(table: dict[str, Any], full: bool) -> str:
-    """One city's table; columns nobody reported are left out; the best mean profit in bold."""
+    """One city's table; columns nobody reported (and waits that are zero in every row) are left out; the best mean profit in bold."""
     rows = table["results"]
     best = max(r["metrics"]["profit"]["mean"] for r in rows)
     columns: list[tuple[str, str, Any]] = [
@@ -79,7 +79,7 @@ def table_markdown(table: dict[str, Any], full: bool) -> str:
             columns.append(("served" + (" / demand" if has("demand") else ""), "---:", lambda r: _served(r["metrics"])))
         if has("rebalancing_cost"):
             columns.append(("rebalancing cost", "---:", lambda r: _mean_std(r["metrics"].get("rebalancing_cost"))))
-        if has("wait_time"):
+        if any(r["metrics"].get("wait_time", {}).get("mean") for r in rows):  # zero everywhere: the model has no waiting
             columns.append(("wait (min)", "---:", lambda r: _mean_std(r["metrics"].get("wait_time"), 2)))
         if has("utilization"):
             columns.append(("utilisation", "---:", lambda r: _mean_std(r["metrics"].get("utilization"), percent=True)))
