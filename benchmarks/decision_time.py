@@ -247,6 +247,9 @@ def page(payload: dict) -> str:
     g400 = max((r for r in rows if r["method"] == "graph-rl" and r["total"] < 0.05), key=lambda r: r["regions"])
     last_oracle = max((r for r in rows if r["method"] == "mpc-oracle" and "total" in r), key=lambda r: r["regions"])
 
+    heaviest_key = max(("features", "rebalance"), key=lambda key: big[key])
+    heaviest = {"features": "building the node features", "rebalance": "the coordinator's min-cost flow"}[heaviest_key]
+
     def steps(method: str) -> str:
         return "/".join(str(r["steps"]) for r in rows if r["method"] == method and "steps" in r)
     text = f"""# Compute scaling: one rebalancing decision, 16 to {sizes[-1]:,} regions
@@ -281,10 +284,8 @@ Skipped: {"; ".join(skips) if skips else "nothing"}.
 Graph-RL stays in milliseconds up to {g400["regions"]:,} regions ({1e3 * g400["total"]:,.1f} ms) and takes {big["total"]:,.1f} s at {big["regions"]:,}, while MPC's
 LP grows with its H N^2 variables: MPC-Oracle needs {last_oracle["total"]:,.0f} s per decision at {last_oracle["regions"]:,} regions. On
 small cities the GNN forward pass (about a millisecond, mostly fixed overhead) is most of
-Graph-RL's time; it grows only to {1e3 * big["forward"]:,.1f} ms at {big["regions"]:,} regions. There the time goes to the node
-features, which gather the (T, N, N) demand and fare tables of the look-ahead at every step (a
-per-city table of expected request value per region and step would remove that), and to the
-min-cost flow.
+Graph-RL's time; it grows only to {1e3 * big["forward"]:,.1f} ms at {big["regions"]:,} regions. There {heaviest} takes most of it
+({1e3 * big[heaviest_key]:,.1f} of {1e3 * big["total"]:,.1f} ms).
 
 Regenerate (the timed decisions alone take {timed / 60:,.0f} CPU minutes; this run took {payload["wall_s"] / 60:,.0f} minutes of
 wall time on the shared machine). It writes this page, `decision_time.json` and the figure;
