@@ -78,7 +78,7 @@ def main() -> None:
     p.add_argument("--no-cvxpy", dest="cvxpy", action="store_false", help="leave the cvxpy path out")
     opts = p.parse_args()
     if not HAS_BUNDLED_HIGHS:
-        raise SystemExit("this scipy bundles no HiGHS core (scipy < 1.15): MPC uses linprog, nothing to compare")
+        raise SystemExit("this scipy bundles no HiGHS core: MPC uses linprog, nothing to compare")
     names = ["linprog", "direct"] + (["cvxpy"] if opts.cvxpy else [])
     print(f"MPC-Forecast, horizon {opts.horizon}, {opts.episodes} episodes per city; median ms per step, the LP's construction included")
     print("| city | regions | LPs | " + " | ".join(names) + " | linprog / direct |" + (" linprog / cvxpy |" if opts.cvxpy else "") + " same vertex |")

@@ -19,7 +19,7 @@ from marl_amod.scenario import load_city
 from marl_amod.system import FleetSystem
 from tests.conftest import needs_data
 
-bundled = pytest.mark.skipif(not highs.HAS_BUNDLED_HIGHS, reason="this scipy bundles no HiGHS core (scipy < 1.15)")
+bundled = pytest.mark.skipif(not highs.HAS_BUNDLED_HIGHS, reason="this scipy bundles no HiGHS core: MPC uses linprog")
 
 
 def _mpc_forecast_lps(city_name: str, steps: int, seed: int = 5) -> list[tuple]:

@@ -6,11 +6,11 @@ recipe (demonstrations and DAgger labels) those LPs are about a third of the wal
 ``linprog`` spends some 40% of each call outside HiGHS, most of it in a per-column Python loop that
 builds bound marginals MPC never reads. :func:`solve_equality_lp` passes the same model, with the
 options ``linprog`` sets for ``highs-ds``, to the HiGHS build scipy bundles
-(``scipy.optimize._highspy``, scipy >= 1.15). Same build, same model, same options: HiGHS takes
+(``scipy.optimize._highspy``, in recent scipy: 1.17 here). Same build, same model, same options: HiGHS takes
 the same pivots and returns the same vertex. That matters because these LPs are degenerate: another
 HiGHS build (``highspy`` 1.16) or a trimmed model lands on other optimal vertices, and every MPC
 row of every table would move. ``tests/test_highs.py`` checks the two paths agree bit for bit.
-Where scipy has no bundled core (older scipy), ``linprog`` does the solve.
+Where scipy has no such core (older releases), ``linprog`` does the solve.
 """
 
 from __future__ import annotations
@@ -87,7 +87,7 @@ def _solve_bundled(cost: np.ndarray, a, b: np.ndarray, ub: np.ndarray, what: str
         n_col, n_row, a.nnz, _COLWISE, _MINIMIZE, 0.0,
         np.asarray(cost, dtype=np.float64), np.zeros(n_col), np.minimum(np.asarray(ub, dtype=np.float64), inf), rhs, rhs,
         a.indptr.astype(np.int32), a.indices.astype(np.int32), a.data.astype(np.float64),
-        np.zeros(n_col, dtype=np.int32),  # every column continuous (an empty array is read as n_col entries)
+        np.zeros(n_col, dtype=np.int32),  # every column continuous (with an empty array HiGHS refused the model)
     )  # fmt: skip
     if passed == _core.HighsStatus.kError:
         raise SolverError(f"{what}: HiGHS refused the model ({n_row} rows, {n_col} columns)")
