@@ -5,7 +5,7 @@ recipe's demonstrations and DAgger labels are one such LP per step), then solves
 
 * ``linprog``: the sparse LP (:func:`~marl_amod.baselines.mpc.lp_matrices`) through
   ``scipy.optimize.linprog(method="highs-ds")``, what MPC called until the direct path;
-* ``direct``: the same LP through :func:`marl_amod.baselines.highs.solve_equality_lp` (MPC's
+* ``direct``: the same LP through :func:`marl_amod.baselines.highs.solve_lp` (MPC's
   ``scipy`` backend now);
 * ``cvxpy``: the DPP-parameterised problem (``backend="cvxpy"``; its compile, at the first solve,
   left out),
@@ -32,7 +32,7 @@ from collections.abc import Callable  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from marl_amod.baselines.highs import HAS_BUNDLED_HIGHS, solve_equality_lp  # noqa: E402
+from marl_amod.baselines.highs import HAS_BUNDLED_HIGHS, solve_lp  # noqa: E402
 from marl_amod.baselines.mpc import DEFAULT_HORIZON, CvxpyMPC, MPCForecast, PlanData, lp_matrices  # noqa: E402
 from marl_amod.evaluation import episode_seeds  # noqa: E402
 from marl_amod.scenario import City, load_city  # noqa: E402
@@ -53,11 +53,16 @@ def episode_plans(city: City, episodes: int, seed: int, horizon: int) -> list[Pl
     return plans
 
 
+def _solve(plan: PlanData, direct: bool) -> np.ndarray:
+    cost, a, b, ub = lp_matrices(plan)
+    return solve_lp(cost, "benchmark LP", a_eq=a, b_eq=b, ub=ub, direct=direct)[0]
+
+
 def solvers(city: City, horizon: int, cvxpy: bool) -> dict[str, Callable[[PlanData], np.ndarray | None]]:
     """Each path as plan -> its flows (None where the vertex is not compared)."""
     paths: dict[str, Callable[[PlanData], np.ndarray | None]] = {
-        "linprog": lambda plan: solve_equality_lp(*lp_matrices(plan), "benchmark LP", direct=False)[0],
-        "direct": lambda plan: solve_equality_lp(*lp_matrices(plan), "benchmark LP")[0],
+        "linprog": lambda plan: _solve(plan, direct=False),
+        "direct": lambda plan: _solve(plan, direct=True),
     }
     if cvxpy:
         problem = CvxpyMPC(city, horizon)

@@ -21,18 +21,9 @@ from __future__ import annotations
 import numpy as np
 
 from marl_amod.baselines.base import Policy, WeightPolicy
-from marl_amod.errors import SolverError
+from marl_amod.baselines.highs import solve_lp
 from marl_amod.system import FleetSystem
 from marl_amod.validation import as_count, as_real
-
-
-def _linprog(c: np.ndarray, **kwargs) -> np.ndarray:
-    from scipy.optimize import linprog
-
-    res = linprog(c, method="highs-ds", **kwargs)
-    if res.status != 0 or res.x is None:
-        raise SolverError(f"behaviour-policy LP (scipy/HiGHS) failed: status {res.status}: {res.message}")
-    return res.x
 
 
 def _targets_from_moves(idle: np.ndarray, moves: np.ndarray) -> np.ndarray:
@@ -81,7 +72,7 @@ class Informed(Policy):
         a_ub = np.vstack([a_supply, a_cap])
         b_ub = np.concatenate([idle, open_req * self.roh * self.max_reb**2])
         ub = np.where(reach, np.inf, 0.0).ravel()
-        z = _linprog(c, A_ub=a_ub, b_ub=b_ub, bounds=np.column_stack([np.zeros(n * n), ub])).reshape(n, n)
+        z = solve_lp(c, "INF's LP", a_ub=a_ub, b_ub=b_ub, ub=ub)[0].reshape(n, n)
         return _targets_from_moves(idle, z)
 
 
@@ -105,10 +96,10 @@ class DynamicTripVehicle(Policy):
         a_demand[np.tile(np.arange(n), n), cols] = 1.0
         # ties broken toward staying: a tiny cost on every move keeps vehicles home when equal
         c = system.city.reb_time.astype(float).ravel() + 1e-3 * (1 - np.eye(n)).ravel()
-        w = _linprog(
-            c, A_ub=np.vstack([a_supply, a_demand]), b_ub=np.concatenate([idle, requests]),
-            A_eq=np.ones((1, n * n)), b_eq=[matches], bounds=(0, None),
-        ).reshape(n, n)
+        w = solve_lp(
+            c, "DTV's LP", a_ub=np.vstack([a_supply, a_demand]), b_ub=np.concatenate([idle, requests]),
+            a_eq=np.ones((1, n * n)), b_eq=np.array([matches]),
+        )[0].reshape(n, n)
         return _targets_from_moves(idle, w)
 
 

@@ -42,7 +42,7 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 
 from marl_amod.baselines.base import FlowPolicy
-from marl_amod.baselines.highs import solve_equality_lp
+from marl_amod.baselines.highs import solve_lp
 from marl_amod.errors import ConfigError, SolverError
 from marl_amod.scenario.types import City, step_rows
 from marl_amod.system import FleetSystem
@@ -143,7 +143,8 @@ def lp_matrices(data: PlanData) -> tuple[np.ndarray, sp.csr_matrix, np.ndarray, 
 def solve_scipy(data: PlanData) -> FlowPlan:
     """The LP through scipy's HiGHS interface (dual simplex: a vertex, hence integral for integral data)."""
     h, n = data.demand.shape[0], data.idle.shape[0]
-    z, fun = solve_equality_lp(*lp_matrices(data), "MPC LP")
+    cost, a, b, ub = lp_matrices(data)
+    z, fun = solve_lp(cost, "MPC LP", a_eq=a, b_eq=b, ub=ub)
     z = z.reshape(2, h, n, n)
     return FlowPlan(x=z[0], y=z[1], objective=-fun)
 
@@ -185,7 +186,7 @@ def solve_scenarios(scenarios: list[PlanData]) -> FlowPlan:
     a_all = sp.csr_matrix(
         (np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(s_count * h * n, cost.size)
     )
-    z, fun = solve_equality_lp(cost, a_all, np.concatenate(rhs), ub, "scenario MPC LP")
+    z, fun = solve_lp(cost, "scenario MPC LP", a_eq=a_all, b_eq=np.concatenate(rhs), ub=ub)
     per = z[local_to_global].reshape(s_count, 2, h, n, n).mean(axis=0)  # y[0] identical in every copy
     return FlowPlan(x=per[0], y=per[1], objective=-fun)
 
