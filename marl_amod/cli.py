@@ -271,6 +271,36 @@ def merge_datasets(
     console.print(f"card {card_path(path)}" if card else "no card (the pieces have none)")
 
 
+@app.command()
+def mix_datasets(
+    parts: Annotated[list[Path], typer.Argument(help="datasets of one city logged by different behaviours (cards beside them)")],
+    output: Annotated[Path, typer.Option(help="the mixture's dataset file (.npz); its card beside it")] = Path("data.npz"),
+) -> None:
+    """Join collections of different behaviours on one city into one dataset (D4RL's medium-expert kind), e.g. MPC-Forecast's episodes beside its noisy ones.
+
+    The card keeps each part's behaviour score and the references they share. Refuses one behaviour's episode twice, a file given twice, and parts of other cities or logging; to join pieces of one collection use merge-datasets.
+    """  # one line per paragraph: --help prints a docstring's line breaks as they are
+    from marl_amod.datasets import OfflineDataset, card_path, dataset_destination, mix, mix_cards
+    from marl_amod.files import file_sha256
+
+    output = dataset_destination(output)
+    if output.resolve() in {p.resolve() for p in parts}:
+        raise ConfigError(f"--output {output} is one of the parts: write the mixture to a new file")
+    seen: dict[str, Path] = {}
+    for part in parts:
+        if not part.is_file():
+            raise ConfigError(f"no dataset at {part}")
+        first = seen.setdefault(file_sha256(part), part)
+        if first is not part:
+            raise ConfigError(f"{first} and {part} are the same data: each would weigh twice")
+    data = mix([OfflineDataset.load(p) for p in parts], names=[str(p) for p in parts])
+    path = save_or_fallback(output, data.save, what="the dataset")
+    card = mix_cards(path, data, parts)
+    held = ", ".join(f"{meta['episodes']} of {meta['policy']}" for meta in data.meta["parts"])
+    console.print(f"wrote {data.meta['episodes']} episodes ({held}), {len(data)} transitions to {path}")
+    console.print(f"card {card_path(path)}" if card else "no card (the parts have none)")
+
+
 def _collect_one(
     scenario: str, policy: str, episodes: int, seed: int, output: Path, max_wait: int, eval_episodes: int, eval_seed: int,
     cache: dict, noise: float = 0.0, lookahead: int = 6, policy_options: dict | None = None, first_episode: int = 0,

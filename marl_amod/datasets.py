@@ -45,7 +45,8 @@ so a policy trained on a dataset is scored on demand it has not seen. ``meta["st
 the episodes held as ``[seed, first k, count]`` ranges: a collection is one range (``first_episode``
 resumes a seed's streams where an earlier piece stopped), :func:`merge` joins pieces collected in
 parallel or across sessions into one dataset after checking they are the same collection and hold
-no episode twice. Pieces with different seeds never share a stream. The card (same name,
+no episode twice. Pieces with different seeds never share a stream. :func:`mix` joins collections
+of different behaviours on one city (D4RL's medium-expert kind). The card (same name,
 ``.json``) holds the behaviour policy's score and the reference scores ED and MPC-Oracle on the
 evaluation seeds, for normalised scores (:func:`normalised_score`: 0 = ED, 100 = MPC-Oracle).
 """
@@ -292,6 +293,34 @@ def merge(parts: list[OfflineDataset], names: list[str] | None = None) -> Offlin
     return OfflineDataset(**arrays, edge_index=parts[0].edge_index, edge_attr=parts[0].edge_attr, meta=meta)
 
 
+def mix(parts: list[OfflineDataset], names: list[str] | None = None) -> OfflineDataset:
+    """One dataset of collections that different behaviours logged on the same city (D4RL's
+    "medium-expert" kind: a good policy's episodes beside weaker or exploratory ones).
+
+    Unlike :func:`merge`, the parts may hold the same demand streams, acted on differently; what is
+    refused (DataError) is the same behaviour's episode twice (it would weigh double) and parts of
+    other cities or logging (:func:`concatenate`). ``meta["policy"]`` names every behaviour (" & "),
+    ``meta["parts"]`` keeps each part's meta, and no single ``noise`` is left: each part has its own."""
+    if len(parts) < 2:
+        raise DataError(f"a mixture needs at least two datasets, got {len(parts)}: to use one, train on it directly")
+    names = names or [f"part {i}" for i in range(len(parts))]
+    held: dict[tuple[str, int], list[tuple[int, int, str]]] = {}  # (behaviour, seed) -> (first, end, part)
+    for p, name in zip(parts, names, strict=True):
+        behaviour = str(p.meta["policy"])  # its noise too ("mpc-forecast+noise0.005")
+        if p.meta.get("policy_options"):
+            behaviour += json.dumps(p.meta["policy_options"], sort_keys=True)
+        for seed, start, count in streams(p.meta):
+            for a, b, other in held.get((behaviour, seed), []):
+                if start < b and a < start + count:
+                    raise DataError(f"{other} and {name} both hold {p.meta['policy']}'s episodes "
+                                    f"{max(a, start)}..{min(b, start + count) - 1} of seed {seed}: they would weigh twice")  # fmt: skip
+            held.setdefault((behaviour, seed), []).append((start, start + count, name))
+    data = concatenate(parts)
+    data.meta["policy"] = " & ".join(dict.fromkeys(p.meta["policy"] for p in parts))
+    data.meta.pop("noise", None)
+    return data
+
+
 def action_share(actions: np.ndarray) -> np.ndarray:
     """(..., N) env weights -> the distribution the env normalises them to (all zeros: uniform)."""
     actions = np.asarray(actions, dtype=np.float32)
@@ -508,26 +537,56 @@ def _write_card(path: str | Path, data: OfflineDataset, scores: dict[str, Any]) 
     return card
 
 
+def _own_cards(files: list[str | Path]) -> dict[str, dict[str, Any]]:
+    """The cards beside ``files`` (those that have one), each checked to be its file's by sha256."""
+    cards = {str(p): read_card(p) for p in files if card_path(p).is_file()}
+    for name, card in cards.items():  # a card left by what was collected at that path before scores another policy
+        if card.get("sha256") != file_sha256(name):
+            raise DataError(f"{card_path(name)} is not the card of {name} (its sha256 is another file's): delete it, "
+                            "or collect the piece again with --eval-episodes")  # fmt: skip
+    return cards
+
+
+def _agreeing(cards: dict[str, dict[str, Any]], keys: tuple[str, ...], what: str) -> dict[str, Any]:
+    """``keys`` of the first card, after checking every other card has the same values."""
+    (name0, first), *rest = cards.items()
+    for name, card in rest:
+        for key in keys:
+            if not _same(card.get(key), first.get(key)):
+                raise DataError(f"{name0} and {name} were scored differently ({key}): {what}")
+    return {key: first[key] for key in keys}
+
+
 def merge_cards(path: str | Path, data: OfflineDataset, pieces: list[str | Path]) -> dict[str, Any] | None:
     """The card of merged dataset ``path``: its own counts and streams, the pieces' scores.
 
     The behaviour and reference scores are on the evaluation streams, not the data: one piece's
     card is enough (collect the others with ``--eval-episodes 0``), and where several have one
     they must agree, and each must be its piece's by sha256 (checked; nothing is re-evaluated). None, and no card (an earlier one at ``path`` removed), when no piece has one."""
-    cards = {str(p): read_card(p) for p in pieces if card_path(p).is_file()}
+    cards = _own_cards(pieces)
     if not cards:
         card_path(path).unlink(missing_ok=True)  # a card there described the file ``path`` replaced
         return None
-    for name, card in cards.items():  # a card left by what was collected at that path before scores another policy
-        if card.get("sha256") != file_sha256(name):
-            raise DataError(f"{card_path(name)} is not the card of {name} (its sha256 is another file's): delete it, "
-                            "or collect the piece again with --eval-episodes")  # fmt: skip
-    (name0, first), *rest = cards.items()
-    for name, card in rest:
-        for key in SCORES:
-            if not _same(card.get(key), first.get(key)):
-                raise DataError(f"{name0} and {name} were scored differently ({key}): not one collection")
-    return _write_card(path, data, {key: first[key] for key in SCORES})
+    return _write_card(path, data, _agreeing(cards, SCORES, "not one collection"))
+
+
+def mix_cards(path: str | Path, data: OfflineDataset, parts: list[str | Path]) -> dict[str, Any] | None:
+    """The card of mixture ``path`` (:func:`mix`): the reference scores its parts share, and each
+    part's behaviour and score in ``behaviour_scores`` (None for a part without a card). No
+    ``behaviour_score``: no one policy acted, and the parts' episode-weighted mean is no policy's
+    score. Parts with cards must have been scored on the same evaluation streams. None, and no card
+    (an earlier one at ``path`` removed), when no part has one."""
+    cards = _own_cards(parts)
+    if not cards:
+        card_path(path).unlink(missing_ok=True)
+        return None
+    shared = _agreeing(cards, ("evaluation", "reference_scores"), "the mixture's normalised scores need one reference")
+    scores = [
+        {"dataset": Path(name).name, "behaviour": meta["policy"], "episodes": meta["episodes"],
+         "score": cards[str(name)]["behaviour_score"] if str(name) in cards else None}
+        for name, meta in zip(parts, data.meta["parts"], strict=True)
+    ]  # fmt: skip
+    return _write_card(path, data, {**shared, "behaviour_scores": scores})
 
 
 def _same(a: Any, b: Any) -> bool:

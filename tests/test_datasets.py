@@ -313,3 +313,54 @@ def test_merge_says_which_piece_does_not_record_what_the_other_does(tiny_city):
     dagger = collect(tiny_city, prop, episodes=1, seed=3, labeller=make_policy("prop", tiny_city))
     with pytest.raises(DataError, match="not one collection: rollout_policy"):  # a DAgger piece is another collection
         merge([a, dagger])
+
+
+# ------------------------------------------------------------------ mixtures of behaviours
+def test_mix_joins_behaviours_on_shared_streams_and_refuses_one_behaviour_twice(tiny_city, tmp_path):
+    from marl_amod.datasets import mix
+
+    prop, dtv = make_policy("prop", tiny_city), make_policy("dtv", tiny_city)
+    plain, noisy = collect(tiny_city, prop, episodes=2, seed=3), collect(tiny_city, prop, episodes=2, seed=3, noise=0.1)
+    other = collect(tiny_city, dtv, episodes=1, seed=4)
+    mixed = mix([plain, noisy, other])
+    assert len(mixed) == len(plain) + len(noisy) + len(other) and mixed.meta["episodes"] == 5
+    assert mixed.meta["policy"] == "prop & prop+noise0.1 & dtv" and "noise" not in mixed.meta
+    assert [p["noise"] for p in mixed.meta["parts"]] == [0.0, 0.1, 0.0]
+    assert np.array_equal(mixed.episode_ids, np.repeat(np.arange(5), len(other)))
+    assert np.array_equal(mixed.actions[: len(plain)], plain.actions)
+    starts = mixed.states[mixed.step_ids == 0]
+    assert np.array_equal(starts[0], starts[2]) and not np.array_equal(plain.actions, noisy.actions)  # same demand, other acts
+    with pytest.raises(DataError, match=r"a and b both hold prop's episodes 1\.\.1 of seed 3: they would weigh twice"):
+        mix([plain, collect(tiny_city, prop, episodes=2, seed=3, first_episode=1)], names=["a", "b"])
+    with pytest.raises(DataError, match="at least two"):
+        mix([plain])
+    plain.save(tmp_path / "p.npz")
+    wider = OfflineDataset.load(tmp_path / "p.npz")
+    wider.meta["lookahead"] = 3  # logged with other features: refused as by concatenate
+    with pytest.raises(DataError, match="lookahead"):
+        mix([noisy, wider])
+
+
+def test_cli_mixes_behaviours_and_cards_each_one(tmp_path):
+    run = CliRunner().invoke
+    common = ["collect", "--policy", "prop", "--episodes", "1"]
+    parts = (("a", ["--seed", "1", "--eval-episodes", "1"]), ("b", ["--seed", "1", "--noise", "0.1", "--eval-episodes", "1"]),
+             ("c", ["--seed", "2", "--policy", "dtv", "--eval-episodes", "0"]))  # fmt: skip
+    for name, extra in parts:
+        result = run(app, [*common, *extra, "--output", str(tmp_path / f"{name}.npz")])
+        assert result.exit_code == 0, result.output
+    out = tmp_path / "m.npz"
+    result = run(app, ["mix-datasets", *(str(tmp_path / f"{n}.npz") for n in "abc"), "--output", str(out)])
+    assert result.exit_code == 0, result.output
+    assert "3 episodes (1 of prop, 1 of prop+noise0.1, 1 of dtv)" in " ".join(result.output.split())
+    card, a, b = read_card(out), read_card(tmp_path / "a.npz"), read_card(tmp_path / "b.npz")
+    assert "behaviour_score" not in card and card["reference_scores"] == a["reference_scores"]
+    assert [s["behaviour"] for s in card["behaviour_scores"]] == ["prop", "prop+noise0.1", "dtv"]
+    assert [s["score"] for s in card["behaviour_scores"]] == [a["behaviour_score"], b["behaviour_score"], None]
+    assert card["policy"] == "prop & prop+noise0.1 & dtv" and card["episodes"] == 3 == OfflineDataset.load(out).meta["episodes"]
+    again = run(app, ["mix-datasets", str(tmp_path / "a.npz"), str(tmp_path / "a.npz"), "--output", str(tmp_path / "x.npz")])
+    assert again.exit_code != 0 and "are the same data" in str(again.exception)
+    b["reference_scores"]["mpc-oracle"]["mean"] += 1.0  # scored on other evaluation streams
+    (tmp_path / "b.json").write_text(json.dumps(b))
+    again = run(app, ["mix-datasets", str(tmp_path / "a.npz"), str(tmp_path / "b.npz"), "--output", str(tmp_path / "y.npz")])
+    assert again.exit_code != 0 and "scored differently (reference_scores)" in str(again.exception)

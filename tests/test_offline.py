@@ -576,3 +576,23 @@ def test_the_docs_page_holds_the_tables_as_generated_and_the_figure_draws_every_
     ax = score_bars_figure(offline_table.groups(table)).axes[0]
     assert len(ax.patches) == cells and [t.get_text() for t in ax.get_xticklabels()][0] == table["rows"][0]["dataset"].upper()
     assert offline_table.figure(table, tmp_path / "t.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_iql_learns_from_a_mixture_and_its_card_scores_each_behaviour(tmp_path, tiny):
+    """MPC's own episodes beside its noisy ones is the MPC-Forecast row's remaining experiment: a
+    mixture trains like any dataset, and the policy's card keeps each part's behaviour score."""
+    from marl_amod.datasets import collect, mix, mix_cards, write_card
+    from marl_amod.policies import make_policy
+
+    city = load_city(tiny[0])
+    noisy = collect(city, make_policy("prop", city), episodes=2, seed=1, noise=0.05)
+    path = noisy.save(tmp_path / "noisy.npz")
+    write_card(path, noisy, city, make_policy("prop", city), eval_episodes=1, eval_seed=0)
+    mixed = mix([OfflineDataset.load(tiny[1]), noisy])
+    out = mixed.save(tmp_path / "mixed.npz")
+    mix_cards(out, mixed, [tiny[1], path])
+    ALGOS["iql"].train(args_for("iql", _args(tmp_path, (tiny[0], str(out)), critic_hidden=8)))
+    card = json.loads((tmp_path / "p.json").read_text())
+    assert card["dataset"]["policy"] == "prop & prop+noise0.05" and card["dataset"]["episodes"] == 6
+    assert [s["behaviour"] for s in card["dataset"]["behaviour_scores"]] == ["prop", "prop+noise0.05"]
+    assert "behaviour_score" not in card["dataset"] and np.isfinite(O.card_normalised(card))

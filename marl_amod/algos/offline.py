@@ -346,8 +346,9 @@ def _dataset_fields(data: Data, step: int) -> dict[str, Any]:
     """What the policy card says about the data it learned from (and the normalised-score references)."""
     fields: dict[str, Any] = {"updates": step, "dataset": {k: data.meta[k] for k in ("policy", "seed", "episodes", "transitions")}}
     refs = data.card.get("reference_scores")
-    if refs:
-        fields["dataset"].update(behaviour_score=data.card["behaviour_score"], reference_scores=refs)
+    if refs:  # a mixture's card scores each behaviour apart (datasets.mix_cards)
+        key = "behaviour_score" if "behaviour_score" in data.card else "behaviour_scores"
+        fields["dataset"].update({key: data.card[key], "reference_scores": refs})
     return fields
 
 
