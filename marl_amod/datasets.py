@@ -243,7 +243,7 @@ def merge(parts: list[OfflineDataset], names: list[str] | None = None) -> Offlin
     for p, name in zip(parts, names, strict=True):
         if "parts" in p.meta:  # its own record is of several collections, and its streams may repeat
             raise DataError(f"{name} is a concatenation of {len(p.meta['parts'])} datasets (e.g. a DAgger aggregate), not a piece "
-                            "of one collection: merge the pieces it was made of, or join it with datasets.concatenate")  # fmt: skip
+                            "of one collection: merge the pieces it was made of, or join it to others with mix-datasets")  # fmt: skip
     first = parts[0].meta
     for p, name in zip(parts[1:], names[1:], strict=True):
         for key in SAME_COLLECTION:
@@ -311,7 +311,7 @@ def mix(parts: list[OfflineDataset], names: list[str] | None = None) -> OfflineD
             behaviour += json.dumps(p.meta["policy_options"], sort_keys=True)
         for seed, start, count in streams(p.meta):
             for a, b, other in held.get((behaviour, seed), []):
-                if start < b and a < start + count:
+                if other != name and start < b and a < start + count:  # within a part (a DAgger aggregate) streams may recur
                     raise DataError(f"{other} and {name} both hold {p.meta['policy']}'s episodes "
                                     f"{max(a, start)}..{min(b, start + count) - 1} of seed {seed}: they would weigh twice")  # fmt: skip
             held.setdefault((behaviour, seed), []).append((start, start + count, name))

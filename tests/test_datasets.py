@@ -317,7 +317,7 @@ def test_merge_says_which_piece_does_not_record_what_the_other_does(tiny_city):
 
 # ------------------------------------------------------------------ mixtures of behaviours
 def test_mix_joins_behaviours_on_shared_streams_and_refuses_one_behaviour_twice(tiny_city, tmp_path):
-    from marl_amod.datasets import mix
+    from marl_amod.datasets import concatenate, mix
 
     prop, dtv = make_policy("prop", tiny_city), make_policy("dtv", tiny_city)
     plain, noisy = collect(tiny_city, prop, episodes=2, seed=3), collect(tiny_city, prop, episodes=2, seed=3, noise=0.1)
@@ -334,6 +334,8 @@ def test_mix_joins_behaviours_on_shared_streams_and_refuses_one_behaviour_twice(
         mix([plain, collect(tiny_city, prop, episodes=2, seed=3, first_episode=1)], names=["a", "b"])
     with pytest.raises(DataError, match="at least two"):
         mix([plain])
+    aggregate = concatenate([plain, plain])  # a DAgger aggregate may revisit its streams: that is its own record, not a twin
+    assert mix([aggregate, other]).meta["episodes"] == 5
     plain.save(tmp_path / "p.npz")
     wider = OfflineDataset.load(tmp_path / "p.npz")
     wider.meta["lookahead"] = 3  # logged with other features: refused as by concatenate
