@@ -306,19 +306,27 @@ def mix(parts: list[OfflineDataset], names: list[str] | None = None) -> OfflineD
     names = names or [f"part {i}" for i in range(len(parts))]
     held: dict[tuple[str, int], list[tuple[int, int, str]]] = {}  # (behaviour, seed) -> (first, end, part)
     for p, name in zip(parts, names, strict=True):
-        behaviour = str(p.meta["policy"])  # its noise too ("mpc-forecast+noise0.005")
-        if p.meta.get("policy_options"):
-            behaviour += json.dumps(p.meta["policy_options"], sort_keys=True)
-        for seed, start, count in streams(p.meta):
+        for behaviour, policy, seed, start, count in _behaviour_streams(p.meta):
             for a, b, other in held.get((behaviour, seed), []):
                 if other != name and start < b and a < start + count:  # within a part (a DAgger aggregate) streams may recur
-                    raise DataError(f"{other} and {name} both hold {p.meta['policy']}'s episodes "
+                    raise DataError(f"{other} and {name} both hold {policy}'s episodes "
                                     f"{max(a, start)}..{min(b, start + count) - 1} of seed {seed}: they would weigh twice")  # fmt: skip
             held.setdefault((behaviour, seed), []).append((start, start + count, name))
     data = concatenate(parts)
     data.meta["policy"] = " & ".join(dict.fromkeys(p.meta["policy"] for p in parts))
     data.meta.pop("noise", None)
     return data
+
+
+def _behaviour_streams(meta: dict[str, Any]) -> list[tuple[str, str, int, int, int]]:
+    """(behaviour key, policy, seed, first episode, count) of every stream a dataset holds, read
+    through a mixture or aggregate to the collections it was made of (their ``parts``)."""
+    if "parts" in meta:
+        return [row for part in meta["parts"] for row in _behaviour_streams(part)]
+    behaviour = str(meta["policy"])  # its noise too ("mpc-forecast+noise0.005")
+    if meta.get("policy_options"):
+        behaviour += json.dumps(meta["policy_options"], sort_keys=True)
+    return [(behaviour, str(meta["policy"]), seed, start, count) for seed, start, count in streams(meta)]
 
 
 def action_share(actions: np.ndarray) -> np.ndarray:
@@ -583,10 +591,15 @@ def mix_cards(path: str | Path, data: OfflineDataset, parts: list[str | Path]) -
     shared = _agreeing(cards, ("evaluation", "reference_scores"), "the mixture's normalised scores need one reference")
     scores = [
         {"dataset": Path(name).name, "behaviour": meta["policy"], "episodes": meta["episodes"],
-         "score": cards[str(name)]["behaviour_score"] if str(name) in cards else None}
+         "score": _behaviour_score(cards.get(str(name)))}
         for name, meta in zip(parts, data.meta["parts"], strict=True)
     ]  # fmt: skip
     return _write_card(path, data, {**shared, "behaviour_scores": scores})
+
+
+def _behaviour_score(card: dict[str, Any] | None) -> Any:
+    """A part's score on a mixture's card: its behaviour's, or a mixture part's list of them (None without a card)."""
+    return None if card is None else card.get("behaviour_score", card.get("behaviour_scores"))
 
 
 def _same(a: Any, b: Any) -> bool:

@@ -347,7 +347,7 @@ def test_cli_mixes_behaviours_and_cards_each_one(tmp_path):
     run = CliRunner().invoke
     common = ["collect", "--policy", "prop", "--episodes", "1"]
     parts = (("a", ["--seed", "1", "--eval-episodes", "1"]), ("b", ["--seed", "1", "--noise", "0.1", "--eval-episodes", "1"]),
-             ("c", ["--seed", "2", "--policy", "dtv", "--eval-episodes", "0"]))  # fmt: skip
+             ("c", ["--seed", "2", "--policy", "dtv", "--eval-episodes", "0"]), ("d", ["--seed", "3", "--eval-episodes", "0"]))  # fmt: skip
     for name, extra in parts:
         result = run(app, [*common, *extra, "--output", str(tmp_path / f"{name}.npz")])
         assert result.exit_code == 0, result.output
@@ -360,6 +360,11 @@ def test_cli_mixes_behaviours_and_cards_each_one(tmp_path):
     assert [s["behaviour"] for s in card["behaviour_scores"]] == ["prop", "prop+noise0.1", "dtv"]
     assert [s["score"] for s in card["behaviour_scores"]] == [a["behaviour_score"], b["behaviour_score"], None]
     assert card["policy"] == "prop & prop+noise0.1 & dtv" and card["episodes"] == 3 == OfflineDataset.load(out).meta["episodes"]
+    nested = run(app, ["mix-datasets", str(out), str(tmp_path / "b.npz"), "--output", str(tmp_path / "n.npz")])
+    assert nested.exit_code != 0 and "both hold prop+noise0.1's episodes 0..0 of seed 1" in str(nested.exception)
+    result = run(app, ["mix-datasets", str(out), str(tmp_path / "d.npz"), "--output", str(tmp_path / "n.npz")])
+    assert result.exit_code == 0, result.output  # a mixture is a part like any other; its card keeps its parts' scores
+    assert read_card(tmp_path / "n.npz")["behaviour_scores"][0]["score"] == card["behaviour_scores"]
     again = run(app, ["mix-datasets", str(tmp_path / "a.npz"), str(tmp_path / "a.npz"), "--output", str(tmp_path / "x.npz")])
     assert again.exit_code != 0 and "are the same data" in str(again.exception)
     b["reference_scores"]["mpc-oracle"]["mean"] += 1.0  # scored on other evaluation streams
