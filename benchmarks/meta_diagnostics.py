@@ -34,6 +34,11 @@
   with no rebalancing (every region keeps its idle vehicles) at the first step, at the last
   ``--last`` steps, and at both, every other step its own, beside MPC-Forecast's on the same
   episodes (docs/meta/log.md, "Where the held-out gap is now").
+* ``rule``: the selection rule the meta arms are judged by, in one command: the hotspot, skew and
+  sink variants, the training-city events and the shaped set (:data:`RULE_SETS`, 20 validation
+  episodes each) for ``--reference`` (the tables' meta-rl by default) and the candidate ``--policy``,
+  each set's file under ``--rule-dir`` (reused when it holds the same policy), then the five
+  measures paired by episode and the verdict: all five must pass (docs/meta/log.md).
 * ``tasks``: each episode's profit of the policy (K = ``--k``, 3 as deployed) and of MPC-Forecast (not
   told an event task's event) on training-city tasks (hotspot variants ``<city>~hot<r>x<m>``, skew variants ``<city>~skew<gamma>``,
   event tasks ``<city>~ev...``: ``meta.task_city``), validation episodes (seed 1000), written to
@@ -56,6 +61,7 @@
     python benchmarks/meta_diagnostics.py hold --cities nyc_brooklyn,san_francisco --last 3
     python benchmarks/meta_diagnostics.py tasks --cities porto~hot1x2.5,porto~ev7+12x6@6-14dr1+2x0.5 --episodes 20 --out A.json
     python benchmarks/meta_diagnostics.py compare A.json B.json
+    python benchmarks/meta_diagnostics.py rule --policy runs/ens/candidate.yaml [--reference policies/meta_rl_l1_ensemble.yaml]
 """
 
 from __future__ import annotations
@@ -64,6 +70,7 @@ import argparse
 import json
 from collections.abc import Callable, Iterator
 from dataclasses import replace
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -326,6 +333,13 @@ def paired_se(d: np.ndarray) -> tuple[float, float]:
     return float(sem(d, axis=None)), float(sem(d.mean(0)))
 
 
+def per_episode(r: dict[str, Any], group: list[str], what: str) -> np.ndarray:
+    """(tasks, episodes) of a ``tasks`` record: the gap to MPC-F in % (``gap``) or the profit (``profit``)."""
+    p = np.array([r["tasks"][n]["policy"] for n in group], dtype=np.float64)
+    m = np.array([r["tasks"][n]["mpc-forecast"] for n in group], dtype=np.float64)
+    return 100 * (1 - p / m) if what == "gap" else p
+
+
 def compare(files: list[str]) -> None:
     """The rule's numbers of each ``tasks`` file, and the second against the first paired by episode."""
     recs = [json.load(open(f)) for f in files]
@@ -334,13 +348,6 @@ def compare(files: list[str]) -> None:
            for r in recs):  # fmt: skip
         raise SystemExit("compare: the files hold other tasks, episodes, seeds or adaptation episodes (k)")
     hot, skewed, sinks, events = ([n for n in names if kind in n] for kind in (meta.HOTSPOT, meta.SKEW, meta.SINK, meta.EVENT))
-
-    def per_episode(r: dict[str, Any], group: list[str], what: str) -> np.ndarray:
-        """(tasks, episodes): the gap to MPC-F in % (``gap``) or the profit (``profit``)."""
-        p = np.array([r["tasks"][n]["policy"] for n in group], dtype=np.float64)
-        m = np.array([r["tasks"][n]["mpc-forecast"] for n in group], dtype=np.float64)
-        return 100 * (1 - p / m) if what == "gap" else p
-
     for group, what, unit in ((hot, "gap", "% gap to MPC-F"), (skewed, "gap", "% gap to MPC-F"), (sinks, "gap", "% gap to MPC-F"), (events, "profit", " profit")):
         if not group:
             continue
@@ -357,6 +364,67 @@ def compare(files: list[str]) -> None:
         if what == "profit":
             m = np.array([recs[0]["tasks"][n]["mpc-forecast"] for n in group], dtype=np.float64)
             print(f"  MPC-Forecast (not told the events): mean profit {m.mean():.1f}")
+
+
+# The selection rule's task sets (docs/meta/log.md, from "Stronger hotspots for the second member" on): validation
+# cities only, 20 validation episodes each, K = 3. What each measures and how: a gap to MPC-F to lower, or a profit to raise.
+RULE_SETS: dict[str, tuple[str, list[str]]] = {
+    "hotspot variants x2.5": ("gap", [
+        "porto~hot1x2.5", "porto~hot2x2.5", "nyc_man_north~hot5x2.5", "nyc_man_north~hot3x2.5", "shenzhen_north~hot14x2.5",
+        "shenzhen_north~hot8x2.5", "washington_dc~hot0x2.5", "washington_dc~hot4x2.5"]),
+    "skew variants 2.7": ("gap", ["porto~skew2.7", "nyc_man_north~skew2.7", "shenzhen_north~skew2.7", "washington_dc~skew2.7"]),
+    "sink variants x6": ("gap", [
+        "porto~sink2x6", "porto~sink5x6", "nyc_man_north~sink5x6", "nyc_man_north~sink4x6", "shenzhen_north~sink8x6",
+        "shenzhen_north~sink14x6", "washington_dc~sink4x6", "washington_dc~sink7x6"]),
+    "training-city events": ("profit", [
+        "porto~ev7+12x6@6-14dr1+2x0.5", "porto~ev7+12x6@11-19dr1+2x0.5", "nyc_man_north~ev1+2x6@6-14dr3+5x0.5",
+        "nyc_man_north~ev1+2x6@11-19dr3+5x0.5", "shenzhen_north~ev5+15x6@6-14dr8+14x0.5", "shenzhen_north~ev5+15x6@11-19dr8+14x0.5",
+        "washington_dc~ev1+3x6@6-14dr0+4x0.5", "washington_dc~ev1+3x6@11-19dr0+4x0.5"]),
+    "shaped set": ("gap", [  # shaped like the held-out cities: San Francisco's hotspot share, Brooklyn's in-out imbalance
+        "porto~hot1x3.2", "porto~sink2x12", "nyc_man_north~hot5x4.6", "nyc_man_north~sink5x12", "shenzhen_north~hot14x5.7",
+        "shenzhen_north~sink8x12", "washington_dc~hot0x3.3", "washington_dc~sink4x12"]),
+}  # fmt: skip
+
+
+def rule_rows(reference: dict[str, dict[str, Any]], candidate: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """Each rule set's means, the candidate's paired difference and its standard error over the episodes,
+    and whether it passes: a gap to MPC-F below the reference's, or a profit at least the reference's."""
+    rows = []
+    for name, (what, tasks_) in RULE_SETS.items():
+        ref, cand = per_episode(reference[name], tasks_, what), per_episode(candidate[name], tasks_, what)
+        d = cand - ref  # paired: the same task and episode
+        passes = bool(cand.mean() < ref.mean()) if what == "gap" else bool(cand.mean() >= ref.mean())
+        rows.append({"set": name, "what": what, "reference": float(ref.mean()), "candidate": float(cand.mean()),
+                     "diff": float(d.mean()), "se": paired_se(d)[1], "passes": passes})  # fmt: skip
+    return rows
+
+
+def rule(policy: str, reference: str, out_dir: str, episodes: int = 20) -> bool:
+    """The selection rule, one command: every set of :data:`RULE_SETS` for ``reference`` and the candidate
+    ``policy`` on the same validation episodes (each set's ``tasks`` file under ``out_dir``, reused when it
+    holds the same policy; MPC-F run once, for the reference), then a table of the five measures. All five
+    pass: the candidate replaces the reference. Returns the verdict."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    recs: dict[str, dict[str, dict[str, Any]]] = {}
+    for label, pol in (("reference", reference), ("candidate", policy)):
+        for name, (_, names) in RULE_SETS.items():
+            path = out / f"{label}_{name.replace(' ', '_')}.json"
+            held = json.loads(path.read_text()) if path.is_file() else None
+            if not held or (held["policy"], held["episodes"], list(held["tasks"])) != (pol, episodes, names):
+                mpc = out / f"reference_{name.replace(' ', '_')}.json"
+                tasks(pol, names, episodes, str(path), mpc_from=str(mpc) if label == "candidate" else None)
+            recs.setdefault(label, {})[name] = json.loads(path.read_text())
+    rows = rule_rows(recs["reference"], recs["candidate"])
+    print(f"| rule set | {reference} | {policy} | difference (SE by episode) | passes |\n|---|---|---|---|---|")
+    for r in rows:
+        unit = "%" if r["what"] == "gap" else ""
+        fmt = (lambda v: f"{v:.3f}%") if r["what"] == "gap" else (lambda v: f"{v:,.0f}")
+        print(f"| {r['set']} ({'gap to MPC-F' if r['what'] == 'gap' else 'profit'}) | {fmt(r['reference'])} | {fmt(r['candidate'])} "
+              f"| {r['diff']:+.3f}{unit} ({r['se']:.3f}) | {'yes' if r['passes'] else '**no**'} |")  # fmt: skip
+    verdict = all(r["passes"] for r in rows)
+    print(f"verdict: {'the candidate replaces the reference' if verdict else 'no: the reference stays'}")
+    return verdict
 
 
 def where(policy: str, cities: list[str], episodes: int = 10, seed: int = 1000, k: int = 3) -> None:
@@ -443,7 +511,7 @@ def hold(policy: str, cities: list[str], last: int = 3, episodes: int = 10, seed
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hold", "hotspot", "transplant", "tasks", "compare"])
+    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hold", "hotspot", "transplant", "tasks", "compare", "rule"])
     parser.add_argument("files", nargs="*", help="compare: two tasks --out files (the second against the first)")
     parser.add_argument("--policy", default="policies/meta_rl_l1_cities.pt")
     parser.add_argument("--demos", default="runs/meta_demos")
@@ -455,6 +523,9 @@ def main() -> None:
     parser.add_argument("--out", default=None, help="tasks: the JSON of per-episode profits")
     parser.add_argument("--mpc-from", default=None, help="tasks: reuse MPC-F's profits from this earlier --out")
     parser.add_argument("--k", type=int, default=3, help="tasks: the policy's adaptation episodes before each scored one")
+    parser.add_argument("--reference", default="policies/meta_rl_l1_ensemble.yaml", help="rule: the policy the candidate (--policy) must beat")
+    parser.add_argument("--rule-dir", default="runs/rule", help="rule: where each set's tasks files go (reused when they hold the same policy)")
+    parser.add_argument("--rule-episodes", type=int, default=20, help="rule: validation episodes per task")
     parser.add_argument("--last", type=int, default=3, help="hold: the episode's last steps held")
     parser.add_argument("--own", action="store_true", help="hotspot: also on the states the policy reaches itself (8 episodes, labelled by MPC-F)")
     args = parser.parse_args()
@@ -476,6 +547,8 @@ def main() -> None:
         if not args.out:
             parser.error("tasks needs --out")
         tasks(args.policy, args.cities.split(","), args.episodes, args.out, mpc_from=args.mpc_from, k=args.k)
+    elif args.what == "rule":
+        rule(args.policy, args.reference, args.rule_dir, args.rule_episodes)
     elif args.what == "compare":
         if not args.files:
             parser.error("compare needs tasks --out files: A.json B.json")

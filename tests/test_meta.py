@@ -638,3 +638,36 @@ def test_the_hold_diagnostic_holds_only_the_steps_it_names(monkeypatch):
     row = md.hold("unused.pt", ["synthetic"], last=2, episodes=1)["synthetic"]
     assert row["the policy"] == md.episode_profit(ed(), city, 0)
     assert {"first step held", "last 2 steps held", "both held", "MPC-Forecast"} <= set(row)
+
+
+def test_rule_judges_a_candidate_by_all_five_sets_from_the_files_it_finds(tmp_path, capsys):
+    """benchmarks/meta_diagnostics.py rule: each set's gap to MPC-F must fall (the events' profit must
+    not), paired by episode; files already holding the same policy, tasks and episodes are read, not rerun."""
+    import json
+
+    import meta_diagnostics as md
+
+    def write(label: str, policy: str, worse: str | None) -> None:
+        for name, (what, names) in md.RULE_SETS.items():
+            if what == "gap":  # the candidate 1% nearer MPC-F, except on the set it is worse
+                own = 95.0 if label == "reference" else (93.0 if name == worse else 96.0)
+            else:
+                own = 95.0 if label == "reference" else 95.0 + (-1.0 if name == worse else 0.0)  # a tie passes
+            tasks = {n: {"policy": [own + e for e in range(3)], "mpc-forecast": [100.0 + e for e in range(3)]} for n in names}
+            record = {"policy": policy, "seed": 1000, "episodes": 3, "k": 3, "tasks": tasks}
+            (tmp_path / f"{label}_{name.replace(' ', '_')}.json").write_text(json.dumps(record))
+
+    write("reference", "ref.yaml", None)
+    write("candidate", "cand.yaml", None)
+    assert md.rule("cand.yaml", "ref.yaml", str(tmp_path), episodes=3) is True
+    assert "yes" in capsys.readouterr().out
+    for worse in ("skew variants 2.7", "training-city events"):
+        write("candidate", "cand.yaml", worse)
+        assert md.rule("cand.yaml", "ref.yaml", str(tmp_path), episodes=3) is False
+        row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith(f"| {worse}"))
+        assert row.endswith("**no** |")
+    rows = md.rule_rows(*({name: json.loads((tmp_path / f"{label}_{name.replace(' ', '_')}.json").read_text())
+                          for name in md.RULE_SETS} for label in ("reference", "candidate")))  # fmt: skip
+    skew = next(r for r in rows if r["set"] == "skew variants 2.7")
+    assert skew["reference"] == pytest.approx(np.mean([100 * (1 - (95 + e) / (100 + e)) for e in range(3)]))
+    assert skew["diff"] == pytest.approx(np.mean([-100 / (100 + e) for e in range(3)])) and skew["passes"]
