@@ -402,8 +402,9 @@ def rule_rows(reference: dict[str, dict[str, Any]], candidate: dict[str, dict[st
 def rule(policy: str, reference: str, out_dir: str, episodes: int = 20) -> bool:
     """The selection rule, one command: every set of :data:`RULE_SETS` for ``reference`` and the candidate
     ``policy`` on the same validation episodes (each set's ``tasks`` file under ``out_dir``, reused when it
-    holds the same policy; MPC-F run once, for the reference), then a table of the five measures. All five
-    pass: the candidate replaces the reference. Returns the verdict."""
+    holds the same policy path, tasks and episodes: use a fresh ``out_dir`` after retraining a file in place;
+    MPC-F run once, for the reference), then a table of the five measures. All five pass: the candidate
+    replaces the reference. Returns the verdict."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     recs: dict[str, dict[str, dict[str, Any]]] = {}
