@@ -229,6 +229,16 @@ def streams(meta: dict[str, Any]) -> list[list[int]]:
     return [[int(meta["seed"]), int(meta.get("first_episode", 0)), int(meta["episodes"])]]
 
 
+def _overlap(held: list[tuple[int, int, str]], start: int, count: int, name: str) -> tuple[str, int, int] | None:
+    """(other part, first, last episode) shared by episodes [start, start + count) of part ``name``
+    and a range ``held`` by another part, or None. A part's own ranges never clash: a DAgger
+    aggregate may revisit its streams, and a collection's ranges are disjoint anyway."""
+    for a, b, other in held:
+        if other != name and start < b and a < start + count:
+            return other, max(a, start), min(b, start + count) - 1
+    return None
+
+
 def merge(parts: list[OfflineDataset], names: list[str] | None = None) -> OfflineDataset:
     """One dataset of pieces of the same collection (collected in parallel, or resumed later).
 
@@ -258,13 +268,12 @@ def merge(parts: list[OfflineDataset], names: list[str] | None = None) -> Offlin
     held: dict[int, list[tuple[int, int, str]]] = {}  # seed -> (first, end, piece)
     for p, name in zip(parts, names, strict=True):
         for seed, start, count in streams(p.meta):
-            for a, b, other in held.get(seed, []):
-                if start < b and a < start + count:
-                    raise DataError(
-                        f"{other} and {name} both hold episodes {max(a, start)}..{min(b, start + count) - 1} of seed "
-                        f"{seed}: collect pieces with different --seed, or resume one with --first-episode"
-                    )
-            held.setdefault(seed, []).append((start, start + count, name))
+            if clash := _overlap(held.setdefault(seed, []), start, count, name):
+                raise DataError(
+                    f"{clash[0]} and {name} both hold episodes {clash[1]}..{clash[2]} of seed "
+                    f"{seed}: collect pieces with different --seed, or resume one with --first-episode"
+                )
+            held[seed].append((start, start + count, name))
     order = sorted(range(len(parts)), key=lambda i: streams(parts[i].meta))
     parts = [parts[i] for i in order]
     ranges = sorted(r for p in parts for r in streams(p.meta))
@@ -307,11 +316,10 @@ def mix(parts: list[OfflineDataset], names: list[str] | None = None) -> OfflineD
     held: dict[tuple[str, int], list[tuple[int, int, str]]] = {}  # (behaviour, seed) -> (first, end, part)
     for p, name in zip(parts, names, strict=True):
         for behaviour, policy, seed, start, count in _behaviour_streams(p.meta):
-            for a, b, other in held.get((behaviour, seed), []):
-                if other != name and start < b and a < start + count:  # within a part (a DAgger aggregate) streams may recur
-                    raise DataError(f"{other} and {name} both hold {policy}'s episodes "
-                                    f"{max(a, start)}..{min(b, start + count) - 1} of seed {seed}: they would weigh twice")  # fmt: skip
-            held.setdefault((behaviour, seed), []).append((start, start + count, name))
+            if clash := _overlap(held.setdefault((behaviour, seed), []), start, count, name):
+                raise DataError(f"{clash[0]} and {name} both hold {policy}'s episodes {clash[1]}..{clash[2]} of seed {seed}: "
+                                "they would weigh twice")  # fmt: skip
+            held[(behaviour, seed)].append((start, start + count, name))
     data = concatenate(parts)
     data.meta["policy"] = " & ".join(dict.fromkeys(p.meta["policy"] for p in parts))
     data.meta.pop("noise", None)
