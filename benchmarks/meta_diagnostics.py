@@ -386,6 +386,14 @@ RULE_SETS: dict[str, tuple[str, list[str]]] = {
 }  # fmt: skip
 
 
+RULE_SEED, RULE_K = 1000, 3  # the validation streams, and the adaptation episodes as deployed
+
+
+def rule_file(out_dir: str | Path, label: str, name: str) -> Path:
+    """Where ``rule`` keeps the ``tasks`` record of one set for the reference or the candidate."""
+    return Path(out_dir) / f"{label}_{name.replace(' ', '_')}.json"
+
+
 def rule_rows(reference: dict[str, dict[str, Any]], candidate: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
     """Each rule set's means, the candidate's paired difference and its standard error over the episodes,
     and whether it passes: a gap to MPC-F below the reference's, or a profit at least the reference's."""
@@ -405,16 +413,16 @@ def rule(policy: str, reference: str, out_dir: str, episodes: int = 20) -> bool:
     holds the same policy path, tasks and episodes: use a fresh ``out_dir`` after retraining a file in place;
     MPC-F run once, for the reference), then a table of the five measures. All five pass: the candidate
     replaces the reference. Returns the verdict."""
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
     recs: dict[str, dict[str, dict[str, Any]]] = {}
     for label, pol in (("reference", reference), ("candidate", policy)):
         for name, (_, names) in RULE_SETS.items():
-            path = out / f"{label}_{name.replace(' ', '_')}.json"
+            path = rule_file(out_dir, label, name)
             held = json.loads(path.read_text()) if path.is_file() else None
-            if not held or (held["policy"], held["episodes"], list(held["tasks"])) != (pol, episodes, names):
-                mpc = out / f"reference_{name.replace(' ', '_')}.json"
-                tasks(pol, names, episodes, str(path), mpc_from=str(mpc) if label == "candidate" else None)
+            same = (pol, episodes, names, RULE_SEED, RULE_K)
+            if not held or (held["policy"], held["episodes"], list(held["tasks"]), held["seed"], held.get("k", 3)) != same:
+                mpc = str(rule_file(out_dir, "reference", name)) if label == "candidate" else None
+                tasks(pol, names, episodes, str(path), seed=RULE_SEED, mpc_from=mpc, k=RULE_K)
             recs.setdefault(label, {})[name] = json.loads(path.read_text())
     rows = rule_rows(recs["reference"], recs["candidate"])
     print(f"| rule set | {reference} | {policy} | difference (SE by episode) | passes |\n|---|---|---|---|---|")

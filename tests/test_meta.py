@@ -655,7 +655,7 @@ def test_rule_judges_a_candidate_by_all_five_sets_from_the_files_it_finds(tmp_pa
                 own = 95.0 if label == "reference" else 95.0 + (-1.0 if name == worse else 0.0)  # a tie passes
             tasks = {n: {"policy": [own + e for e in range(3)], "mpc-forecast": [100.0 + e for e in range(3)]} for n in names}
             record = {"policy": policy, "seed": 1000, "episodes": 3, "k": 3, "tasks": tasks}
-            (tmp_path / f"{label}_{name.replace(' ', '_')}.json").write_text(json.dumps(record))
+            md.rule_file(tmp_path, label, name).write_text(json.dumps(record))
 
     write("reference", "ref.yaml", None)
     write("candidate", "cand.yaml", None)
@@ -666,8 +666,8 @@ def test_rule_judges_a_candidate_by_all_five_sets_from_the_files_it_finds(tmp_pa
         assert md.rule("cand.yaml", "ref.yaml", str(tmp_path), episodes=3) is False
         row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith(f"| {worse}"))
         assert row.endswith("**no** |")
-    rows = md.rule_rows(*({name: json.loads((tmp_path / f"{label}_{name.replace(' ', '_')}.json").read_text())
-                          for name in md.RULE_SETS} for label in ("reference", "candidate")))  # fmt: skip
+    rows = md.rule_rows(*({name: json.loads(md.rule_file(tmp_path, label, name).read_text()) for name in md.RULE_SETS}
+                          for label in ("reference", "candidate")))  # fmt: skip
     skew = next(r for r in rows if r["set"] == "skew variants 2.7")
     assert skew["reference"] == pytest.approx(np.mean([100 * (1 - (95 + e) / (100 + e)) for e in range(3)]))
     assert skew["diff"] == pytest.approx(np.mean([-100 / (100 + e) for e in range(3)])) and skew["passes"]
