@@ -360,7 +360,7 @@ def datasets(
 def train(
     config: Annotated[Path, typer.Option(help="training config YAML (configs/<algo>/<city>.yaml)")],
     resume: Annotated[Path | None, typer.Option(help="resume from a training state (runs/<run>/state.pt)")] = None,
-    backend: Annotated[str, typer.Option(help="native (A2C/SAC in-process) or rllib (PPO on Ray RLlib)")] = "native",
+    backend: Annotated[str, typer.Option(help="native (every registered algorithm, in-process) or rllib (PPO on Ray RLlib)")] = "native",
     num_env_runners: Annotated[
         int | None, typer.Option(min=0, help="rllib: remote env runners (default: the config's)", show_default=False)
     ] = None,
@@ -369,7 +369,7 @@ def train(
     ] = None,
     data_dir: DataDir = None,
 ) -> None:
-    """Train a policy (A2C or SAC, centralised or decentralised; or PPO on RLlib); logs under runs/, policy + card to policies/."""
+    """Train any registered algorithm (A2C, SAC, BC, IQL, CQL, meta-RL; or PPO on RLlib) from its config; logs under runs/, policy + card to policies/."""
     _use_data_dir(data_dir)
     if backend == "rllib":
         if resume is not None:
