@@ -34,6 +34,10 @@
   with no rebalancing (every region keeps its idle vehicles) at the first step, at the last
   ``--last`` steps, and at both, every other step its own, beside MPC-Forecast's on the same
   episodes (docs/meta/log.md, "Where the held-out gap is now").
+* ``steps``: step by step at a city's busiest region, the share the policy asks for on its own path
+  and on MPC-F's (MPC-F playing) beside MPC-F's, and the requests served there; then the profit the
+  policy gains with MPC-F's targets played in each of ``--windows`` (docs/meta/log.md, "San Francisco,
+  step by step").
 * ``rule``: the selection rule the meta arms are judged by, in one command: the hotspot, skew and
   sink variants, the training-city events and the shaped set (:data:`RULE_SETS`, 20 validation
   episodes each) for ``--reference`` (the tables' meta-rl by default) and the candidate ``--policy``,
@@ -59,6 +63,7 @@
     python benchmarks/meta_diagnostics.py hotspot --cities san_francisco --episodes 0 --own
     python benchmarks/meta_diagnostics.py transplant --cities san_francisco,nyc_brooklyn --episodes 8
     python benchmarks/meta_diagnostics.py hold --cities nyc_brooklyn,san_francisco --last 3
+    python benchmarks/meta_diagnostics.py steps --cities san_francisco --policy policies/meta_rl_l1_ensemble.yaml
     python benchmarks/meta_diagnostics.py tasks --cities porto~hot1x2.5,porto~ev7+12x6@6-14dr1+2x0.5 --episodes 20 --out A.json
     python benchmarks/meta_diagnostics.py compare A.json B.json
     python benchmarks/meta_diagnostics.py rule --policy runs/ens/candidate.yaml [--reference policies/meta_rl_l1_ensemble.yaml]
@@ -104,6 +109,8 @@ def labelled(model: meta.RecurrentGNN, task: City, episodes: int, lookahead: int
     got = mi.collect_city(task, episodes, 99, lookahead, learner=learner, trial_episodes=4, seed_of=seed_of)
     if structure:
         got["x"] = meta.with_structure(got["x"], task, lookahead, place)
+    if model.end_cut:
+        got["x"] = meta.cut_at_end(got["x"], task, lookahead)
     return mi.CityDemos(*(torch.from_numpy(got[k]) for k in ("x", "share", "region_reward", "reward", "action")))
 
 
@@ -114,7 +121,7 @@ def gap(policy: str, demos: str, episodes: int = 8) -> None:
     for name in VAL_CITIES:
         city, graph = load_city(name), meta.city_graph(load_city(name))
         mine = labelled(model, city, episodes, lookahead, fresh(777), learner=model)
-        stored = mi.load_demos(demos, city, lookahead, structure, place)
+        stored = mi.load_demos(demos, city, lookahead, structure, place, model.end_cut)
         theirs = mi.CityDemos(*(v[-episodes:] for v in vars(stored).values()))
         row = [imitation_error(model, d, graph)[0] for d in (theirs, mine)]
         print(f"{name:22s} cross-entropy above the labels' entropy: MPC-F's states {row[0]:.3f}, its own {row[1]:.3f}", flush=True)
@@ -226,7 +233,7 @@ def heldout(policy: str, demos: str, cities: list[str], episodes: int = 8) -> No
     model, card = meta.load_meta(policy)
     lookahead = card["lookahead"]
     structure, place = meta.features_read(model, lookahead)
-    pool = np.concatenate([columns(mi.load_demos(demos, load_city(n), lookahead, structure, place)) for n in meta.TRAIN_CITIES])
+    pool = np.concatenate([columns(mi.load_demos(demos, load_city(n), lookahead, structure, place, model.end_cut)) for n in meta.TRAIN_CITIES])
     lo, mid, hi = np.quantile(pool, [0.01, 0.5, 0.99], axis=0)
     ranges = {}
     for name in cities:
@@ -475,20 +482,30 @@ def where(policy: str, cities: list[str], episodes: int = 10, seed: int = 1000, 
         print("  half L1 between the mean shares asked, by step: " + " ".join(f"{v:.2f}" for v in l1), flush=True)
 
 
-class Held:
-    """``pol`` with its rebalancing held (a target of -1: every region keeps its idle vehicles) at the
-    steps ``hold(step)`` picks, step 0 being the episode's first; its memory still sees its own moves."""
+class Override:
+    """``pol`` with another player at the steps ``use(step)`` picks (step 0 the episode's first): ``other``'s
+    targets (e.g. MPC-F's), or with no ``other`` its rebalancing held (a target of -1: every region keeps its
+    idle vehicles). ``pol`` is still asked every step, so its memory sees its own moves; ``asked`` keeps,
+    per step, the idle-fleet shares the policy and ``other`` asked for."""
 
-    def __init__(self, pol: Any, hold: Callable[[int], bool]) -> None:
-        self.pol, self.hold = pol, hold
+    def __init__(self, pol: Any, use: Callable[[int], bool], other: Any = None) -> None:
+        self.pol, self.use, self.other = pol, use, other
+        self.asked: list[tuple[np.ndarray, np.ndarray | None]] = []
 
     def reset(self, system: FleetSystem, rng: np.random.Generator) -> None:
         self.pol.reset(system, rng)
-        self.t0 = system.sim.t
+        if self.other is not None:
+            self.other.reset(system, rng)
+        self.t0, self.asked = system.sim.t, []
 
     def target(self, system: FleetSystem) -> np.ndarray:
+        share = lambda w: (w := np.where(w < 0, system.sim.idle, w).astype(np.float64)) / max(w.sum(), 1.0)  # noqa: E731
         want = np.asarray(self.pol.target(system))
-        return np.full_like(want, -1) if self.hold(system.sim.t - self.t0) else want
+        theirs = None if self.other is None else np.asarray(self.other.target(system))
+        self.asked.append((share(want), None if theirs is None else share(theirs)))
+        if not self.use(system.sim.t - self.t0):
+            return want
+        return np.full_like(want, -1) if theirs is None else theirs
 
 
 def episode_profit(pol: Any, city: City, e: int, seed: int = 1000) -> float:
@@ -508,7 +525,7 @@ def hold(policy: str, cities: list[str], last: int = 3, episodes: int = 10, seed
             "the policy": lambda t: False, "first step held": lambda t: t == 0,
             f"last {last} steps held": lambda t, n=n: t >= n - last, "both held": lambda t, n=n: t == 0 or t >= n - last,
         }
-        row = {label: float(np.mean([episode_profit(Held(meta.load_policy(policy, city, k, seed=seed), h), city, e, seed)
+        row = {label: float(np.mean([episode_profit(Override(meta.load_policy(policy, city, k, seed=seed), h), city, e, seed)
                                      for e in range(episodes)])) for label, h in holds.items()}  # fmt: skip
         row["MPC-Forecast"] = float(np.mean([episode_profit(MPCForecast(), city, e, seed) for e in range(episodes)]))
         print(f"\n{name}: K={k}, {episodes} validation episodes (seed {seed}), mean profit an episode")
@@ -518,9 +535,59 @@ def hold(policy: str, cities: list[str], last: int = 3, episodes: int = 10, seed
     return out
 
 
+def windows_of(text: str) -> dict[str, range]:
+    """``"0-5,6-11,15-18"`` as named step ranges (inclusive ends), for ``steps --windows``."""
+    out = {}
+    for part in text.split(","):
+        a, _, b = part.partition("-")
+        out[f"steps {a}-{b or a}"] = range(int(a), int(b or a) + 1)
+    return out
+
+
+def steps(policy: str, cities: list[str], windows: dict[str, range], region: int | None = None, episodes: int = 10,
+          seed: int = 1000, k: int = 3) -> dict[str, dict[str, Any]]:
+    """Step by step, at a city's busiest region (or ``region``), on validation episodes: the idle-fleet share
+    the policy asks for on its own path and on MPC-F's (MPC-F playing, the policy asked beside it), MPC-F's,
+    and the requests each serves there; then which steps hold the profit gap: the policy with MPC-F's
+    targets played in each window, paired by episode (docs/meta/log.md, "San Francisco, step by step")."""
+    out: dict[str, dict[str, Any]] = {}
+    for name in cities:
+        city = meta.task_city(name)
+        r = int(meta.place_table(city)[:, 2].argmax()) if region is None else region
+        rows: dict[str, list[list[float]]] = {"own path: policy asks": [], "own path: served": [], "MPC-F's path: policy asks": [],
+                                              "MPC-F's path: MPC-F asks": [], "MPC-F's path: served": []}  # fmt: skip
+        base = []  # the policy's own profit, episode by episode
+        for e in range(episodes):
+            for path, other in (("own path", None), ("MPC-F's path", MPCForecast())):
+                pol = Override(meta.load_policy(policy, city, k, seed=seed), lambda t, o=other: o is not None, other)
+                system, played = drive(pol, city, np.random.SeedSequence([seed, e]), np.random.default_rng([seed, e, 1]))
+                rows[f"{path}: served"].append([outcome.dispatch.sum(-1)[r] for _, _, outcome in played])
+                rows[f"{path}: policy asks"].append([mine[r] for mine, _ in pol.asked])
+                if other is None:
+                    base.append(float(system.sim.totals.profit.sum()))
+                else:
+                    rows["MPC-F's path: MPC-F asks"].append([theirs[r] for _, theirs in pol.asked])
+        means = {label: np.mean(v, axis=0) for label, v in rows.items()}
+        print(f"\n{name}: region r{r}, K={k}, {episodes} validation episodes (seed {seed}), mean by step")
+        for label, v in means.items():
+            fmt = "{:5.1f}" if "served" in label else "{:5.2f}"
+            print(f"  {label:28s} " + " ".join(fmt.format(x) for x in v))
+        print(f"  the policy's profit {np.mean(base):10,.0f}")
+        gains = {}
+        for label, window in {"every step": range(city.horizon), **windows}.items():
+            played_ = np.array([episode_profit(Override(meta.load_policy(policy, city, k, seed=seed), lambda t, w=window: t in w, MPCForecast()),
+                                               city, e, seed) for e in range(episodes)])  # fmt: skip
+            d = played_ - np.array(base)
+            se = float(sem(d)) if len(d) > 1 else float("nan")  # one episode: no spread to read
+            gains[label] = (float(d.mean()), se)
+            print(f"  MPC-F's targets at {label:12s} {played_.mean():10,.0f}  ({d.mean():+,.0f}, SE {se:.0f})", flush=True)
+        out[name] = {"region": r, "by_step": {label: v.tolist() for label, v in means.items()}, "policy": float(np.mean(base)), "gains": gains}
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hold", "hotspot", "transplant", "tasks", "compare", "rule"])
+    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hold", "steps", "hotspot", "transplant", "tasks", "compare", "rule"])
     parser.add_argument("files", nargs="*", help="compare: two tasks --out files (the second against the first)")
     parser.add_argument("--policy", default="policies/meta_rl_l1_cities.pt")
     parser.add_argument("--demos", default="runs/meta_demos")
@@ -536,6 +603,8 @@ def main() -> None:
     parser.add_argument("--rule-dir", default="runs/rule", help="rule: where each set's tasks files go (reused when they hold the same policy)")
     parser.add_argument("--rule-episodes", type=int, default=20, help="rule: validation episodes per task")
     parser.add_argument("--last", type=int, default=3, help="hold: the episode's last steps held")
+    parser.add_argument("--windows", default="0-5,6-11,12-14,15-16,17-18", help="steps: the step windows MPC-F plays in (inclusive)")
+    parser.add_argument("--region", type=int, default=None, help="steps: the region followed (default: the city's busiest origin)")
     parser.add_argument("--own", action="store_true", help="hotspot: also on the states the policy reaches itself (8 episodes, labelled by MPC-F)")
     args = parser.parse_args()
     torch.manual_seed(0)  # the policy's sampled adaptation episodes (gap, heldout, hotspot --own): a rerun repeats them
@@ -552,6 +621,8 @@ def main() -> None:
         where(args.policy, args.cities.split(","))
     elif args.what == "hold":
         hold(args.policy, args.cities.split(","), args.last)
+    elif args.what == "steps":
+        steps(args.policy, args.cities.split(","), windows_of(args.windows), args.region)
     elif args.what == "tasks":
         if not args.out:
             parser.error("tasks needs --out")

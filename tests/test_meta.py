@@ -78,6 +78,40 @@ def test_structure_features_tell_where_trips_go_and_what_moves_cost():
     np.testing.assert_allclose(meta.with_structure(base, city, lookahead)[0, 0], live, rtol=1e-6)
 
 
+
+def test_end_cut_shows_only_the_demand_mpc_plans_with_live_and_stored_alike():
+    """With ``end_cut`` the value and inflow columns of steps past the episode's last step are zero
+    (MPC-F's plan has no demand there: plan_data's live steps) and every other column is unchanged;
+    stored task features cut at load equal the live ones at every step."""
+    from marl_amod.baselines.mpc import plan_data
+
+    city, lookahead = load_city("synthetic"), 3
+    scale, t_total = meta.CityScale.of(city), city.horizon
+    system = FleetSystem(city)
+    system.reset(np.random.SeedSequence(4))
+    value, inflow = slice(1 + lookahead, 1 + 2 * lookahead), slice(4 + 2 * lookahead, 4 + 3 * lookahead)
+    seen_cut = 0
+    while not system.done:
+        t = system.sim.t
+        full = meta.task_features(system, scale, lookahead, structure=True)
+        cut = meta.task_features(system, scale, lookahead, structure=True, end_cut=True)
+        live = t + np.arange(1, lookahead + 1) <= t_total - 1  # the look-ahead steps MPC-F gives demand
+        planned = plan_data(city, t, system.sim.idle, system.sim.arrivals, np.ones((lookahead + 1, city.n_regions, city.n_regions)),
+                            lookahead + 1).demand[1:].sum(axis=(1, 2)) > 0  # fmt: skip
+        np.testing.assert_array_equal(live, planned)
+        for cols in (value, inflow):
+            np.testing.assert_array_equal(cut[:, cols][:, ~live], 0.0)
+            np.testing.assert_array_equal(cut[:, cols][:, live], full[:, cols][:, live])
+            assert (full[:, cols][:, ~live] > 0).any() or live.all()  # the city's tables do go on past the episode
+        rest = np.ones(full.shape[1], dtype=bool)
+        rest[value], rest[inflow] = False, False
+        np.testing.assert_array_equal(cut[:, rest], full[:, rest])
+        stored = meta.task_features(system, scale, lookahead)[None, None]  # (E, T, N, F) as a demonstration file keeps it
+        np.testing.assert_allclose(meta.cut_at_end(meta.with_structure(stored, city, lookahead), city, lookahead)[0, 0], cut, rtol=1e-6)
+        seen_cut += int((~live).any())
+        system.step(system.sim.idle.copy())
+    assert seen_cut == lookahead - 1  # the episode's last T - 1 decisions (t + T > horizon - 1) look past its end, none before
+
 def test_place_features_tell_where_a_region_lies_relative_to_its_city():
     """The place columns: mean rebalancing time to and from the other regions over the city's
     mean, the region's shares of the day's requests out and in and of the initial fleet (x N);
@@ -631,13 +665,38 @@ def test_the_hold_diagnostic_holds_only_the_steps_it_names(monkeypatch):
 
     city = md.load_city("synthetic")
     ed = lambda: make_policy("equal-distribution")  # noqa: E731
-    always = md.episode_profit(md.Held(ed(), lambda t: True), city, 0)
+    always = md.episode_profit(md.Override(ed(), lambda t: True), city, 0)
     assert always == md.episode_profit(make_policy("no-rebalancing"), city, 0)
     assert always != md.episode_profit(ed(), city, 0)  # equal distribution does move vehicles here
     monkeypatch.setattr(md.meta, "load_policy", lambda path, task, k, seed: ed())
     row = md.hold("unused.pt", ["synthetic"], last=2, episodes=1)["synthetic"]
     assert row["the policy"] == md.episode_profit(ed(), city, 0)
     assert {"first step held", "last 2 steps held", "both held", "MPC-Forecast"} <= set(row)
+
+
+def test_the_steps_diagnostic_plays_the_other_policy_only_in_its_windows(monkeypatch):
+    """benchmarks/meta_diagnostics.py steps: with the other player at every step the episode is the other's,
+    to the dollar; in a window only, it differs from both; the shares logged on the other's path are both
+    players' asks at the busiest region, and the own path's profit is the policy's."""
+    import meta_diagnostics as md
+
+    from marl_amod.policies import make_policy
+
+    city = md.load_city("synthetic")
+    ed, other = (lambda: make_policy("equal-distribution")), (lambda: make_policy("plus-one"))  # noqa: E731
+    monkeypatch.setattr(md.meta, "load_policy", lambda path, task, k, seed: ed())
+    monkeypatch.setattr(md, "MPCForecast", other)
+    out = md.steps("unused.pt", ["synthetic"], md.windows_of("0-1,3"), episodes=1)["synthetic"]
+    mine, theirs = md.episode_profit(ed(), city, 0), md.episode_profit(other(), city, 0)
+    assert out["policy"] == mine and out["gains"]["every step"][0] == pytest.approx(theirs - mine)
+    assert set(out["gains"]) == {"every step", "steps 0-1", "steps 3-3"}
+    assert theirs - mine != out["gains"]["steps 0-1"][0] != 0
+    by_step = out["by_step"]
+    assert len(by_step["own path: policy asks"]) == city.horizon - 1
+    np.testing.assert_allclose(by_step["own path: policy asks"][0], by_step["MPC-F's path: policy asks"][0])  # the same first state
+    assert by_step["MPC-F's path: MPC-F asks"] != by_step["MPC-F's path: policy asks"]
+    with pytest.raises(ValueError):
+        md.windows_of("0-x")
 
 
 def test_rule_judges_a_candidate_by_all_five_sets_from_the_files_it_finds(tmp_path, capsys):

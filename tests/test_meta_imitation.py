@@ -215,6 +215,27 @@ def test_a_demand_prior_policy_loads_with_its_prior_and_refuses_to_warm_start_an
         args_for("meta-bc", {"scenario": "synthetic", "cities": tasks, "demand_prior": 0.25})
 
 
+
+def test_an_end_cut_policy_trains_on_cut_demonstrations_loads_with_its_cut_and_refuses_to_warm_start_another(tasks, tmp_path):
+    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
+                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=1, eval_every=1,
+                   eval_episodes=1, final_eval_episodes=1, stay_prior=True, end_cut=True, run_dir=str(tmp_path / "run"),
+                   policy_out=str(tmp_path / "p.pt"))  # fmt: skip
+    ALGOS["meta-bc"].train(args)
+    model, card = meta.load_meta(tmp_path / "p.pt")
+    assert model.end_cut and card["args"]["end_cut"]
+    city, lookahead = load_city(tasks[0]), card["lookahead"]
+    cut, raw = mi.load_run_demos(args.demos, city, args).x, mi.load_demos(args.demos, city, lookahead).x  # (E, T, N, F)
+    steps = np.arange(cut.shape[1])[:, None] + np.arange(1, lookahead + 1)  # (T, lookahead): the steps each value column reads
+    past = torch.from_numpy(steps > city.horizon - 1)
+    value = slice(1 + lookahead, 1 + 2 * lookahead)
+    assert past.any() and (~past).any()
+    assert (cut[..., value].transpose(2, 3)[:, past] == 0).all()  # what MPC-F plans without
+    assert (raw[..., value].transpose(2, 3)[:, past] != 0).any()  # the file keeps what the env showed
+    torch.testing.assert_close(cut[..., value].transpose(2, 3)[:, ~past], raw[..., value].transpose(2, 3)[:, ~past])
+    with pytest.raises(DataError, match="end_cut"):
+        meta.load_meta(tmp_path / "p.pt", like=meta.make_model(args.model_copy(update={"end_cut": False})))
+
 @pytest.mark.parametrize(("first", "every", "rounds", "starts"), [(0, 3, 2, [0, 3]), (0, 500, 5, [0, 500, 1000, 1500, 2000]),
                                                                  (4, 3, 3, [4, 7, 10]), (5, 10, 1, [5])])
 def test_dagger_rounds_start_at_the_offset_and_a_resume_reads_back_the_ones_begun(first, every, rounds, starts):

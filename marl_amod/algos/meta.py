@@ -147,12 +147,14 @@ class CityScale:
 
 
 def task_features(
-    system: FleetSystem | BatchFleetSystem, scale: CityScale, lookahead: int, structure: bool = False, place: bool = False
+    system: FleetSystem | BatchFleetSystem, scale: CityScale, lookahead: int, structure: bool = False, place: bool = False,
+    end_cut: bool = False,
 ) -> np.ndarray:
     """(..., N, 2T + 4) float32: the paper's features in per-city units, the step's served and
     unserved requests out of each region (vehicles per region), then t / horizon; with
     ``structure`` the T + 3 columns of :func:`structure_table` after them, and with ``place`` the
-    ``N_PLACE`` of :func:`place_table` after those."""
+    ``N_PLACE`` of :func:`place_table` after those; with ``end_cut`` no demand past the episode's
+    end (:func:`cut_at_end`)."""
     sim = system.sim
     raw = state_features(system.city, sim.t, sim.idle, sim.arrivals, lookahead, scale=1.0).astype(np.float64)  # idle, supply x T, value x T
     raw[..., : 1 + lookahead] /= scale.vehicles
@@ -165,7 +167,26 @@ def task_features(
         cols.append(np.broadcast_to(structure_table(system.city, lookahead)[sim.t], (*sim.idle.shape, lookahead + 3)))
     if place:
         cols.append(np.broadcast_to(place_table(system.city), (*sim.idle.shape, N_PLACE)))
-    return np.concatenate(cols, axis=-1).astype(np.float32)
+    x = np.concatenate(cols, axis=-1).astype(np.float32)
+    return cut_at_end(x, system.city, lookahead) if end_cut else x
+
+
+def cut_at_end(x: np.ndarray, city: City, lookahead: int) -> np.ndarray:
+    """Task features (..., N, F) with the requests expected past the episode's last step set to zero:
+    the value columns and, when present, the structure table's inflow columns.
+
+    Why: MPC-Forecast, the teacher, plans with no demand past the last control step
+    (:func:`~marl_amod.baselines.mpc.plan_data`), while the look-ahead columns read the city's
+    tables, which go on past the episode; a policy imitating it had to learn from the clock alone
+    which columns no longer count. Cut, it sees the demand MPC-F plans with. The step is read back
+    from the t / horizon column, so stored demonstrations are cut at load as well."""
+    t = np.rint(x[..., :1, 3 + 2 * lookahead] * city.horizon)  # (..., 1): the step, one per episode
+    past = t[..., None] + np.arange(1, lookahead + 1) > city.horizon - 1  # (..., 1, T)
+    out = x.copy()
+    out[..., 1 + lookahead : 1 + 2 * lookahead] *= ~past  # value
+    if x.shape[-1] >= n_task_features(lookahead, structure=True):
+        out[..., 4 + 2 * lookahead : 4 + 3 * lookahead] *= ~past  # expected requests into each region
+    return out
 
 
 def demand_columns(lookahead: int) -> tuple[int, int, int]:
@@ -428,7 +449,7 @@ class MetaAgent:
     def act(self, system: FleetSystem | BatchFleetSystem, sample: bool) -> tuple[np.ndarray, torch.Tensor, torch.Tensor, torch.Tensor]:
         """(weights (B, N), log pi (B,), entropy (B,), value (B,)) and the memory moves one step."""
         b, n = self.num_trials, self.city.n_regions
-        x = torch.as_tensor(task_features(system, self.scale, self.lookahead, self.structure, self.place)).reshape(b, n, -1)
+        x = torch.as_tensor(task_features(system, self.scale, self.lookahead, self.structure, self.place, self.model.end_cut)).reshape(b, n, -1)
         alpha, v, self.memory = self.model(x, self.prev_action, self.prev_region_reward, self.prev_reward, self.memory, self.graph)
         dist = dirichlet(alpha)
         if sample:
@@ -516,6 +537,8 @@ class Args(C.RunArgs):
     demand_prior: float = Field(0.0, ge=0, le=0.9)
     """with ``stay_prior``, the share of the prior given to the regions' requests (:func:`demand_columns`):
     a busy region its own demand has emptied keeps weight (:class:`RecurrentGNN`)"""
+    end_cut: bool = False
+    """the task features show no demand past the episode's last step, as MPC-Forecast plans (:func:`cut_at_end`)"""
     episodes: int = Field(20000, ge=1)
     """training episodes in all (updates x cities_per_update x num_envs x trial_episodes)"""
     trial_episodes: int = Field(6, ge=2, le=11)
@@ -569,7 +592,8 @@ class Args(C.RunArgs):
 def make_model(args: Args) -> RecurrentGNN:
     """The run's recurrent GNN (its inputs: the task features and the optional column sets)."""
     n_features = n_task_features(args.lookahead, args.city_features, args.place_features)
-    return RecurrentGNN(n_features, args.hidden, args.conv, args.stay_prior, args.readout, args.demand_prior, demand_columns(args.lookahead))
+    return RecurrentGNN(n_features, args.hidden, args.conv, args.stay_prior, args.readout, args.demand_prior, demand_columns(args.lookahead),
+                        end_cut=args.end_cut)  # fmt: skip
 
 
 def held_out_among(tasks: list[str]) -> list[str]:
@@ -850,16 +874,16 @@ def load_meta(path: str | Path, like: RecurrentGNN | None = None) -> tuple[Recur
 
     args = card["args"]
     model = RecurrentGNN(card["n_features"], card["hidden"], card["conv"], args.get("stay_prior", False), args.get("readout", "none"),
-                         args.get("demand_prior", 0.0), demand_columns(card["lookahead"]))  # fmt: skip
+                         args.get("demand_prior", 0.0), demand_columns(card["lookahead"]), end_cut=args.get("end_cut", False))  # fmt: skip
     try:
         model.load_state_dict(blob["state_dict"])
     except RuntimeError as exc:
         raise DataError(f"{path}: weights do not fit its card: {str(exc).splitlines()[0]}") from None
     theirs, ours = model.state_dict(), (like.state_dict() if like is not None else None)
     if ours is not None and (set(theirs) != set(ours) or any(theirs[k].shape != ours[k].shape for k in ours)
-                             or (model.stay_prior, model.demand_prior) != (like.stay_prior, like.demand_prior)):
+                             or (model.stay_prior, model.demand_prior, model.end_cut) != (like.stay_prior, like.demand_prior, like.end_cut)):
         raise DataError(f"{path} is a recurrent GNN with {card['n_features']} features, hidden {card['hidden']}, {card['conv']}, "
-                        f"readout {model.readout_kind}; this run's differs (set lookahead, hidden, conv, stay_prior, demand_prior and readout to match)")  # fmt: skip
+                        f"readout {model.readout_kind}; this run's differs (set lookahead, hidden, conv, stay_prior, demand_prior, end_cut and readout to match)")  # fmt: skip
     model.eval()
     return model, card
 

@@ -226,10 +226,12 @@ def demo_seeds(folder: str | Path, tasks: Iterable[str]) -> list[int]:
     return sorted(seeds)
 
 
-def load_demos(folder: str | Path, city: City, lookahead: int, structure: bool = False, place: bool = False) -> CityDemos:
+def load_demos(folder: str | Path, city: City, lookahead: int, structure: bool = False, place: bool = False,
+               end_cut: bool = False) -> CityDemos:  # fmt: skip
     """One city's demonstrations, checked against the city and the run's lookahead; ``structure``
     (and ``place``) add the city-structure (and place) columns (:func:`~marl_amod.algos.meta.with_structure`:
-    a function of the city and the step, so the files keep only the task features)."""
+    a function of the city and the step, so the files keep only the task features), and ``end_cut``
+    removes the demand past the episode's end (:func:`~marl_amod.algos.meta.cut_at_end`)."""
     path = demo_path(folder, city.name)
     if not path.is_file():
         raise DataError(f"no demonstrations for {city.name} at {path}")
@@ -238,6 +240,7 @@ def load_demos(folder: str | Path, city: City, lookahead: int, structure: bool =
         raise DataError(f"{path}: demonstrations of another format, lookahead or city (want lookahead {lookahead}, {city.n_regions} regions)")
     action = data["action"] if "action" in data else data["share"]  # files from before DAgger: MPC-F played its label
     x = meta.with_structure(data["x"], city, lookahead, place) if structure else data["x"]
+    x = meta.cut_at_end(x, city, lookahead) if end_cut else x
     return CityDemos(torch.from_numpy(x), *(torch.from_numpy(data[k]) for k in ("share", "region_reward", "reward")), torch.from_numpy(action))
 
 
@@ -533,7 +536,7 @@ def load_all(args: meta.Args, cities: dict[str, City], names: list[str] | None =
 
 def load_run_demos(folder: str | Path, city: City, args: meta.Args) -> CityDemos:
     """One city's episodes in ``folder`` with the columns the run's model reads."""
-    return load_demos(folder, city, args.lookahead, args.city_features, args.place_features)
+    return load_demos(folder, city, args.lookahead, args.city_features, args.place_features, args.end_cut)
 
 
 def joined(a: CityDemos, b: CityDemos) -> CityDemos:

@@ -69,13 +69,14 @@ class RecurrentGNN(nn.Module):
 
     def __init__(
         self, n_features: int, hidden: int = 64, conv: ConvKind = "sage", stay_prior: bool = False, readout: Readout = "none",
-        demand_prior: float = 0.0, demand_columns: tuple[int, ...] = (),
+        demand_prior: float = 0.0, demand_columns: tuple[int, ...] = (), end_cut: bool = False,
     ) -> None:
         super().__init__()
         if demand_prior and (not stay_prior or not demand_columns or demand_prior + STAY_FLOOR > 1 or max(demand_columns) >= n_features):
             raise ValueError(f"demand_prior {demand_prior} needs stay_prior, demand columns among the {n_features} features and a share <= {1 - STAY_FLOOR}")
         self.hidden, self.stay_prior, self.n_features, self.readout_kind = hidden, stay_prior, n_features, readout
         self.demand_prior, self.demand_columns = float(demand_prior), tuple(demand_columns)
+        self.end_cut = end_cut  # what its inputs are, not a weight: the task features cut at the episode's end (meta.cut_at_end)
         self.encode = nn.Sequential(nn.Linear(n_features + N_FEEDBACK, hidden), nn.ReLU())
         self.memory = nn.GRUCell(hidden, hidden)
         self.conv = make_conv(conv, hidden)
