@@ -101,9 +101,37 @@ def _use_data_dir(data_dir: Path | None) -> None:
         os.environ[ENV_VAR] = str(data_dir)
 
 
+class LoggedProgress(Progress):
+    """A progress bar that, off a terminal (output sent to a log file, a background job, CI), also
+    prints a plain line at every tenth of a task: there rich draws the bar only when it ends, so a
+    half-hour collection would say nothing until it is done."""
+
+    def __init__(self, *columns: Any, **kwargs: Any) -> None:
+        super().__init__(*columns, **kwargs)
+        self._tenths: dict[Any, int] = {}
+
+    def update(self, task_id: Any, **kwargs: Any) -> None:  # type: ignore[override]
+        super().update(task_id, **kwargs)
+        self._log(task_id)
+
+    def advance(self, task_id: Any, advance: float = 1) -> None:
+        super().advance(task_id, advance)
+        self._log(task_id)
+
+    def _log(self, task_id: Any) -> None:
+        if self.console.is_terminal:
+            return
+        task = self._tasks[task_id]
+        tenth = int(10 * task.completed / task.total) if task.total else 0
+        if 0 < tenth < 10 and tenth > self._tenths.get(task_id, 0):
+            self._tenths[task_id] = tenth
+            minutes = (task.elapsed or 0.0) / 60
+            self.console.print(f"{task.description}: {task.completed:,.0f}/{task.total:,.0f} ({10 * tenth}%) in {minutes:.1f} min", markup=False)
+
+
 def progress_bar() -> Progress:
-    """The progress bar every long-running command shows."""
-    return Progress(
+    """The progress bar every long-running command shows (with a line a tenth when not on a terminal)."""
+    return LoggedProgress(
         TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=console
     )
 

@@ -294,3 +294,30 @@ def test_the_train_summary_counts_every_demonstration_and_dagger_episode():
                                 "(+ 12.5 min collecting the demonstrations)")  # fmt: skip
     assert trained_on({"updates": 10, "training_wall_s": 60.0, "dataset": {"transitions": 4000}}) == "10 updates on 4000 logged transitions in 1.0 min"
     assert trained_on({"episodes_trained": 512, "training_wall_s": 90.0}) == "512 episodes in 1.5 min"
+
+
+@pytest.mark.parametrize("terminal", [False, True])
+def test_long_commands_log_a_line_a_tenth_when_not_on_a_terminal(terminal):
+    """Off a terminal rich draws the bar only at its end: the progress bar then prints a line at each
+    tenth (once, however it is reached), and on a terminal none (the live bar shows it)."""
+    import io
+
+    from rich.console import Console
+
+    from marl_amod.cli import LoggedProgress
+
+    out = io.StringIO()
+    with LoggedProgress(console=Console(file=out, force_terminal=terminal, width=200)) as bar:
+        steps = bar.add_task("collect", total=20)
+        for _ in range(10):
+            bar.advance(steps)
+        jumps = bar.add_task("train", total=1000)
+        bar.update(jumps, completed=750)  # one jump past several tenths: one line
+        bar.update(jumps, completed=760)
+        bar.update(jumps, completed=1000)  # the end is the bar's own last line
+    lines = [ln for ln in out.getvalue().splitlines() if "%)" in ln]
+    if terminal:
+        assert lines == []
+    else:
+        assert [ln.split(":")[0] for ln in lines] == ["collect"] * 5 + ["train"]
+        assert "10/20 (50%)" in lines[4] and "750/1,000 (70%)" in lines[5]
