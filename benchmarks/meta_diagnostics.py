@@ -63,10 +63,10 @@
     python benchmarks/meta_diagnostics.py hotspot --cities san_francisco --episodes 0 --own
     python benchmarks/meta_diagnostics.py transplant --cities san_francisco,nyc_brooklyn --episodes 8
     python benchmarks/meta_diagnostics.py hold --cities nyc_brooklyn,san_francisco --last 3
-    python benchmarks/meta_diagnostics.py steps --cities san_francisco --policy policies/meta_rl_l1_ensemble.yaml
+    python benchmarks/meta_diagnostics.py steps --cities san_francisco --policy policies/meta_rl_l1_cut_ensemble.yaml
     python benchmarks/meta_diagnostics.py tasks --cities porto~hot1x2.5,porto~ev7+12x6@6-14dr1+2x0.5 --episodes 20 --out A.json
     python benchmarks/meta_diagnostics.py compare A.json B.json
-    python benchmarks/meta_diagnostics.py rule --policy runs/ens/candidate.yaml [--reference policies/meta_rl_l1_ensemble.yaml]
+    python benchmarks/meta_diagnostics.py rule --policy runs/ens/candidate.yaml [--reference policies/meta_rl_l1_cut_ensemble.yaml]
 """
 
 from __future__ import annotations
@@ -89,7 +89,7 @@ from marl_amod.batch_system import BatchFleetSystem
 from marl_amod.evaluation import evaluate
 from marl_amod.scenario import City, load_city
 from marl_amod.system import FleetSystem, StepOutcome
-from marl_amod.transfer import STUDIES, run_strategy
+from marl_amod.transfer import META_POLICY, STUDIES, run_strategy
 
 VAL_CITIES = ("porto", "nyc_man_north", "shenzhen_north", "washington_dc")
 
@@ -599,7 +599,7 @@ def main() -> None:
     parser.add_argument("--out", default=None, help="tasks: the JSON of per-episode profits")
     parser.add_argument("--mpc-from", default=None, help="tasks: reuse MPC-F's profits from this earlier --out")
     parser.add_argument("--k", type=int, default=3, help="tasks: the policy's adaptation episodes before each scored one")
-    parser.add_argument("--reference", default="policies/meta_rl_l1_ensemble.yaml", help="rule: the policy the candidate (--policy) must beat")
+    parser.add_argument("--reference", default=META_POLICY, help="rule: the policy the candidate (--policy) must beat (default: the tables' meta-rl)")
     parser.add_argument("--rule-dir", default="runs/rule", help="rule: where each set's tasks files go (reused when they hold the same policy)")
     parser.add_argument("--rule-episodes", type=int, default=20, help="rule: validation episodes per task")
     parser.add_argument("--last", type=int, default=3, help="hold: the episode's last steps held")
