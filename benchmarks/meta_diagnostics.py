@@ -107,10 +107,7 @@ def labelled(model: meta.RecurrentGNN, task: City, episodes: int, lookahead: int
     4, memory carried)."""
     structure, place = meta.features_read(model, lookahead)
     got = mi.collect_city(task, episodes, 99, lookahead, learner=learner, trial_episodes=4, seed_of=seed_of)
-    if structure:
-        got["x"] = meta.with_structure(got["x"], task, lookahead, place)
-    if model.end_cut:
-        got["x"] = meta.cut_at_end(got["x"], task, lookahead)
+    got["x"] = meta.stored_inputs(got["x"], task, lookahead, structure, place, model.end_cut)
     return mi.CityDemos(*(torch.from_numpy(got[k]) for k in ("x", "share", "region_reward", "reward", "action")))
 
 
@@ -556,16 +553,15 @@ def steps(policy: str, cities: list[str], windows: dict[str, range], region: int
         r = int(meta.place_table(city)[:, 2].argmax()) if region is None else region
         rows: dict[str, list[list[float]]] = {"own path: policy asks": [], "own path: served": [], "MPC-F's path: policy asks": [],
                                               "MPC-F's path: MPC-F asks": [], "MPC-F's path: served": []}  # fmt: skip
-        base = []  # the policy's own profit, episode by episode
+        base, mpc_path = [], []  # the policy's own profit and with MPC-F's targets at every step, episode by episode
         for e in range(episodes):
             for path, other in (("own path", None), ("MPC-F's path", MPCForecast())):
                 pol = Override(meta.load_policy(policy, city, k, seed=seed), lambda t, o=other: o is not None, other)
                 system, played = drive(pol, city, np.random.SeedSequence([seed, e]), np.random.default_rng([seed, e, 1]))
                 rows[f"{path}: served"].append([outcome.dispatch.sum(-1)[r] for _, _, outcome in played])
                 rows[f"{path}: policy asks"].append([mine[r] for mine, _ in pol.asked])
-                if other is None:
-                    base.append(float(system.sim.totals.profit.sum()))
-                else:
+                (base if other is None else mpc_path).append(float(system.sim.totals.profit.sum()))
+                if other is not None:
                     rows["MPC-F's path: MPC-F asks"].append([theirs[r] for _, theirs in pol.asked])
         means = {label: np.mean(v, axis=0) for label, v in rows.items()}
         print(f"\n{name}: region r{r}, K={k}, {episodes} validation episodes (seed {seed}), mean by step")
@@ -574,9 +570,10 @@ def steps(policy: str, cities: list[str], windows: dict[str, range], region: int
             print(f"  {label:28s} " + " ".join(fmt.format(x) for x in v))
         print(f"  the policy's profit {np.mean(base):10,.0f}")
         gains = {}
-        for label, window in {"every step": range(city.horizon), **windows}.items():
-            played_ = np.array([episode_profit(Override(meta.load_policy(policy, city, k, seed=seed), lambda t, w=window: t in w, MPCForecast()),
-                                               city, e, seed) for e in range(episodes)])  # fmt: skip
+        for label, window in {"every step": None, **windows}.items():  # every step: MPC-F's path above, not played again
+            played_ = np.array(mpc_path if window is None else [
+                episode_profit(Override(meta.load_policy(policy, city, k, seed=seed), lambda t, w=window: t in w, MPCForecast()), city, e, seed)
+                for e in range(episodes)])  # fmt: skip
             d = played_ - np.array(base)
             se = float(sem(d)) if len(d) > 1 else float("nan")  # one episode: no spread to read
             gains[label] = (float(d.mean()), se)

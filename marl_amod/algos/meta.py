@@ -279,6 +279,15 @@ def with_structure(x: np.ndarray, city: City, lookahead: int, place: bool = Fals
     return np.concatenate(cols, axis=-1)
 
 
+def stored_inputs(x: np.ndarray, city: City, lookahead: int, structure: bool = False, place: bool = False,
+                  end_cut: bool = False) -> np.ndarray:  # fmt: skip
+    """Stored task features (..., N, 2T + 4), as the files keep them, in the columns a model reads: the
+    structure (and place) columns added (:func:`with_structure`), the demand past the episode's end cut
+    (:func:`cut_at_end`); the same as :func:`task_features` gives live."""
+    x = with_structure(x, city, lookahead, place) if structure else x
+    return cut_at_end(x, city, lookahead) if end_cut else x
+
+
 # --------------------------------------------------------------------------------------------
 # Task variants: random demand shocks the forecast does not know
 # --------------------------------------------------------------------------------------------

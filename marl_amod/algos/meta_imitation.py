@@ -239,8 +239,7 @@ def load_demos(folder: str | Path, city: City, lookahead: int, structure: bool =
     if str(data["format"]) != DEMO_FORMAT or int(data["lookahead"]) != lookahead or data["x"].shape[2] != city.n_regions:
         raise DataError(f"{path}: demonstrations of another format, lookahead or city (want lookahead {lookahead}, {city.n_regions} regions)")
     action = data["action"] if "action" in data else data["share"]  # files from before DAgger: MPC-F played its label
-    x = meta.with_structure(data["x"], city, lookahead, place) if structure else data["x"]
-    x = meta.cut_at_end(x, city, lookahead) if end_cut else x
+    x = meta.stored_inputs(data["x"], city, lookahead, structure, place, end_cut)
     return CityDemos(torch.from_numpy(x), *(torch.from_numpy(data[k]) for k in ("share", "region_reward", "reward")), torch.from_numpy(action))
 
 
