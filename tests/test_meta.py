@@ -699,7 +699,7 @@ def test_the_steps_diagnostic_plays_the_other_policy_only_in_its_windows(monkeyp
         md.windows_of("0-x")
 
 
-def test_rule_judges_a_candidate_by_all_five_sets_from_the_files_it_finds(tmp_path, capsys):
+def test_rule_judges_a_candidate_by_every_set_from_the_files_it_finds(tmp_path, capsys):
     """benchmarks/meta_diagnostics.py rule: each set's gap to MPC-F must fall (the events' profit must
     not), paired by episode; files already holding the same policy, tasks and episodes are read, not rerun."""
     import json
@@ -720,7 +720,7 @@ def test_rule_judges_a_candidate_by_all_five_sets_from_the_files_it_finds(tmp_pa
     write("candidate", "cand.yaml", None)
     assert md.rule("cand.yaml", "ref.yaml", str(tmp_path), episodes=3) is True
     assert "yes" in capsys.readouterr().out
-    for worse in ("skew variants 2.7", "training-city events"):
+    for worse in ("skew variants 2.7", "training-city events", "hotspot events"):
         write("candidate", "cand.yaml", worse)
         assert md.rule("cand.yaml", "ref.yaml", str(tmp_path), episodes=3) is False
         row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith(f"| {worse}"))

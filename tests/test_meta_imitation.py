@@ -407,13 +407,15 @@ def test_without_event_tasks_a_runs_draws_are_draw_tasks_own(tasks, tmp_path, mo
     assert experts and set(experts) == {MPCForecast}
 
 
-def test_shocked_dagger_trials_are_labelled_by_mpc_told_the_shock(tasks):
+@pytest.mark.parametrize("labels", ["told", "forecast"])
+def test_shocked_dagger_trials_are_labelled_by_the_chosen_expert(tasks, labels):
     """A shocked trial draws the shocked demand, its features keep the usual forecast, and its
-    labels are MPC's plan on the shocked expected demand, which MPC-Forecast's plan is not."""
+    labels are MPC's plan on the shocked expected demand (``told``), which MPC-Forecast's plan is
+    not, or MPC-Forecast's (``forecast``), which is not that."""
     city = load_city(tasks[1])
     torch.manual_seed(0)
     model = RecurrentGNN(meta.n_task_features(6), hidden=8, stay_prior=True)
-    got = mi.collect_city(city, episodes=1, seed=2, lookahead=6, learner=model, seed_of=mi.dagger_seed, shock_prob=1.0)
+    got = mi.collect_city(city, episodes=1, seed=2, lookahead=6, learner=model, seed_of=mi.dagger_seed, shock_prob=1.0, shock_labels=labels)
     shocks = np.random.default_rng(mi.dagger_seed(2, 10**6))
     shocks.random()
     shocked = meta.random_shock(city, shocks)  # the trial's shock, drawn as the collection drew it
@@ -426,9 +428,10 @@ def test_shocked_dagger_trials_are_labelled_by_mpc_told_the_shock(tasks):
     for x, share, played in zip(got["x"][0], got["share"][0], got["action"][0], strict=True):
         np.testing.assert_allclose(x, meta.task_features(system, meta.CityScale.of(city), 6), rtol=1e-5)
         want = np.where((w := told.target(system)) < 0, system.sim.idle, w)
-        np.testing.assert_allclose(share, want / want.sum(), rtol=1e-5)
         plain = np.where((w := usual.target(system)) < 0, system.sim.idle, w)
-        differ += int(np.abs(plain - want).sum() > 0)
+        label, other = (want, plain) if labels == "told" else (plain, want)
+        np.testing.assert_allclose(share, label / label.sum(), rtol=1e-5)
+        differ += int(np.abs(other - label).sum() > 0)
         system.step(system.targets_from_weights(played.astype(np.float64)))
     assert differ > 0
 

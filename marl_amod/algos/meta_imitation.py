@@ -46,7 +46,7 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -93,6 +93,9 @@ class CityDemos:
         return int(self.x.shape[0])
 
 
+ShockLabels = Literal["told", "forecast"]  # who labels a shocked DAgger trial: MPC told the shock, or MPC-Forecast
+
+
 class MPCToldTheShock(MPCForecast):
     """MPC-Forecast told a trial's demand shock: it plans on the expected demand *with* the event
     (``demand_rate``), not on the draw (MPC-Oracle) nor the usual forecast. The expert for the
@@ -117,7 +120,7 @@ def expert_for(city: City) -> MPCForecast:
 
 def collect_city(
     city: City, episodes: int, seed: int, lookahead: int, learner: RecurrentGNN | None = None, trial_episodes: int = 1,
-    seed_of: Callable[[int, int], np.random.SeedSequence] = demo_seed, shock_prob: float = 0.0,
+    seed_of: Callable[[int, int], np.random.SeedSequence] = demo_seed, shock_prob: float = 0.0, shock_labels: ShockLabels = "told",
 ) -> dict[str, np.ndarray]:
     """``episodes`` episodes of ``city`` labelled by MPC-Forecast (by MPC told the event on a city
     that carries one: :func:`expert_for`): the arrays of :class:`CityDemos`.
@@ -127,7 +130,8 @@ def collect_city(
     first ones sampled (adaptation), the last deterministic; MPC-F only labels the states it
     reaches. With ``shock_prob`` that share of the trials get a random demand shock
     (:func:`~marl_amod.algos.meta.random_shock`, the same in each of the trial's episodes), which
-    the features do not show and :class:`MPCToldTheShock` labels."""
+    the features do not show and :class:`MPCToldTheShock` labels (``shock_labels="told"``) or
+    MPC-Forecast, which plans as the policy must, not knowing it (``"forecast"``)."""
     scale, n = CityScale.of(city), city.n_regions
     cols: dict[str, list[np.ndarray]] = {"x": [], "share": [], "region_reward": [], "reward": [], "action": []}
     system, policy = FleetSystem(city), expert_for(city)
@@ -137,7 +141,8 @@ def collect_city(
         if learner is not None and e % trial_episodes == 0:  # a new trial: fresh memory, maybe a shock
             shocked = shock_prob > 0 and shocks.random() < shock_prob
             trial_city = meta.random_shock(city, shocks) if shocked else city
-            system, policy = FleetSystem(trial_city), expert_for(trial_city)
+            system = FleetSystem(trial_city)
+            policy = MPCForecast() if shocked and shock_labels == "forecast" else expert_for(trial_city)
             agent = meta.MetaAgent(learner, trial_city, lookahead)
         system.reset(seed_of(seed, e))
         policy.reset(system, np.random.default_rng(seed_of(seed, e)))
@@ -176,6 +181,7 @@ def demo_path(folder: str | Path, city: str) -> Path:
 def collect_demos(
     folder: str | Path, cities: list[str], episodes: int, seed: int, lookahead: int, learner: RecurrentGNN | None = None,
     trial_episodes: int = 1, seed_of: Callable[[int, int], np.random.SeedSequence] = demo_seed, shock_prob: float = 0.0,
+    shock_labels: ShockLabels = "told",
 ) -> dict[str, float]:
     """Write ``folder/<task>.npz`` for each task (a city or a :func:`~marl_amod.algos.meta.task_city`
     variant) not yet there (resumable, split by task; a file there is checked, :func:`check_demo_file`; with
@@ -192,7 +198,7 @@ def collect_demos(
             check_demo_file(path, episodes, lookahead)
         else:
             start = time.perf_counter()
-            arrays = collect_city(city, episodes, seed, lookahead, learner, trial_episodes, seed_of, shock_prob)
+            arrays = collect_city(city, episodes, seed, lookahead, learner, trial_episodes, seed_of, shock_prob, shock_labels)
             wall = time.perf_counter() - start
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_suffix(".tmp.npz")
@@ -424,6 +430,10 @@ class Args(meta.Args):
     dagger_shock_prob: float = Field(0.0, ge=0, le=1)
     """share of the DAgger trials with a random demand shock, labelled by MPC told the shock
     (:class:`MPCToldTheShock`): the policy learns to react to what the forecast misses"""
+    dagger_shock_labels: ShockLabels = "told"
+    """who labels the shocked DAgger trials: MPC told the shock (``told``), or MPC-Forecast (``forecast``),
+    which does not know it either, so its labels are moves the policy can make from what it sees
+    (a label from an expert who knows more asks for the average over what the policy cannot tell apart)"""
     hotspot_variants: int = Field(0, ge=0)
     """per training city, this many :func:`~marl_amod.algos.meta.hotspot` variants as more tasks
     (one busy region's requests x ``hotspot_multipliers``, forecast included), demonstrated by
@@ -549,7 +559,8 @@ def dagger_round(args: Args, model: RecurrentGNN, k: int, data: dict[str, tuple[
     folder = Path(args.run_dir) / "dagger" / f"round{k}"
     with torch.no_grad():
         walls = collect_demos(folder, list(data), args.dagger_episodes, args.seed, args.lookahead, learner=model,
-                              trial_episodes=args.trial_episodes, seed_of=functools.partial(dagger_seed, round=k), shock_prob=args.dagger_shock_prob)  # fmt: skip
+                              trial_episodes=args.trial_episodes, seed_of=functools.partial(dagger_seed, round=k), shock_prob=args.dagger_shock_prob,
+                              shock_labels=args.dagger_shock_labels)  # fmt: skip
     for name in data:
         demos, graph = data[name]
         data[name] = (joined(demos, load_run_demos(folder, cities[name], args)), graph)
@@ -707,5 +718,5 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                                     "event_expert": MPCToldTheShock.name}  # fmt: skip
     if args.dagger_rounds:
         extra["dagger"] = {"rounds": started_rounds(args, step), "episodes_per_city": args.dagger_episodes, "shock_prob": args.dagger_shock_prob,
-                           "collection_wall_s": round(dagger_wall, 1)}  # fmt: skip
+                           "shock_labels": args.dagger_shock_labels, "collection_wall_s": round(dagger_wall, 1)}  # fmt: skip
     return meta.finish(args, model, timer(), 0, config_path, algorithm="meta-bc", extra=extra)
