@@ -428,12 +428,13 @@ class Args(meta.Args):
     dagger_episodes: int = Field(8, ge=1)
     """episodes per training city and DAgger round"""
     dagger_shock_prob: float = Field(0.0, ge=0, le=1)
-    """share of the DAgger trials with a random demand shock, labelled by MPC told the shock
-    (:class:`MPCToldTheShock`): the policy learns to react to what the forecast misses"""
+    """share of the DAgger trials with a random demand shock, labelled as ``dagger_shock_labels`` says:
+    the policy learns to react to what the forecast misses"""
     dagger_shock_labels: ShockLabels = "told"
-    """who labels the shocked DAgger trials: MPC told the shock (``told``), or MPC-Forecast (``forecast``),
-    which does not know it either, so its labels are moves the policy can make from what it sees
-    (a label from an expert who knows more asks for the average over what the policy cannot tell apart)"""
+    """who labels the shocked DAgger trials: MPC told the shock (``told``, :class:`MPCToldTheShock`), or
+    MPC-Forecast (``forecast``), which does not know it either, so its labels are moves the policy can
+    make from what it sees. Measured once, two seeds: ``forecast`` lost on both event sets of the
+    selection rule (docs/meta/log.md, "MPC-Forecast's labels on the shocked DAgger trials")"""
     hotspot_variants: int = Field(0, ge=0)
     """per training city, this many :func:`~marl_amod.algos.meta.hotspot` variants as more tasks
     (one busy region's requests x ``hotspot_multipliers``, forecast included), demonstrated by
