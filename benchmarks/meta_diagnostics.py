@@ -43,6 +43,10 @@
   20 validation episodes each) for ``--reference`` (the tables' meta-rl by default) and the candidate
   ``--policy``, each set's file under ``--rule-dir`` (reused when it holds the same policy), then the
   measures paired by episode and the verdict: every one must pass (docs/meta/log.md).
+* ``misread``: each evented task (``--cities``: event tasks ``<city>~ev...`` or scenarios with
+  ``events:``) scored with the memory adapted on the evented day, on the usual day and not at all:
+  whether the memory misreads the event or drifts with any adaptation (docs/meta/log.md, "What the
+  memory does on the event").
 * ``tasks``: each episode's profit of the policy (K = ``--k``, 3 as deployed) and of MPC-Forecast (not
   told an event task's event) on training-city tasks (hotspot variants ``<city>~hot<r>x<m>``, skew variants ``<city>~skew<gamma>``,
   event tasks ``<city>~ev...``: ``meta.task_city``), validation episodes (seed 1000), written to
@@ -66,6 +70,7 @@
     python benchmarks/meta_diagnostics.py steps --cities san_francisco --policy policies/meta_rl_l1_cut_ensemble.yaml
     python benchmarks/meta_diagnostics.py tasks --cities porto~hot1x2.5,porto~ev7+12x6@6-14dr1+2x0.5 --episodes 20 --out A.json
     python benchmarks/meta_diagnostics.py compare A.json B.json
+    python benchmarks/meta_diagnostics.py misread --cities nyc_brooklyn_event,porto~ev7+12x6@6-14dr1+2x0.5 --episodes 20 --policy policies/meta_rl_l1_cut_ensemble.yaml
     python benchmarks/meta_diagnostics.py rule --policy runs/ens/candidate.yaml [--reference policies/meta_rl_l1_cut_ensemble.yaml]
 """
 
@@ -588,9 +593,34 @@ def steps(policy: str, cities: list[str], windows: dict[str, range], region: int
     return out
 
 
+def usual_day(city: City) -> City:
+    """``city`` without its events: the draw made the forecast (the usual day the features and MPC-F expect)."""
+    return replace(city, name=f"{city.name} (usual day)", demand_rate=city.forecast_rate, meta={k: v for k, v in city.meta.items() if k != "events"})
+
+
+def misread(policy: str, names: list[str], episodes: int = 20, seed: int = 1000, k: int = 3) -> dict[str, dict[str, float]]:
+    """Each evented task's profit with the policy's memory adapted (``k`` episodes, each ensemble member
+    alone) on the task itself (as deployed), on its usual day (:func:`usual_day`), and not at all (K = 0),
+    on the same validation episodes: a memory that misreads the event does better after the usual day;
+    one that drifts with any adaptation does worse after both than with none (docs/meta/log.md, "What the
+    memory does on the event")."""
+    out: dict[str, dict[str, float]] = {}
+    for name in names:
+        task = meta.task_city(name)
+        if not task.meta.get("events"):
+            raise SystemExit(f"misread: {name} has no event (an event task <city>~ev... or a scenario with events:)")
+        rows = {label: [m["profit"] for m in evaluate(meta.load_policy(policy, on, kk, seed=seed), task, episodes, seed)["per_episode"]]
+                for label, on, kk in (("evented", task, k), ("usual day", usual_day(task), k), ("none", task, 0))}  # fmt: skip
+        d = np.array(rows["usual day"]) - np.array(rows["evented"])
+        out[name] = {label: float(np.mean(v)) for label, v in rows.items()}
+        print(f"{name:50s} adapted on the evented day {out[name]['evented']:10,.0f}  the usual day {out[name]['usual day']:10,.0f} "
+              f"({d.mean():+,.0f}, SE {sem(d):.0f})  none {out[name]['none']:10,.0f}", flush=True)  # fmt: skip
+    return out
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hold", "steps", "hotspot", "transplant", "tasks", "compare", "rule"])
+    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hold", "steps", "hotspot", "transplant", "tasks", "compare", "rule", "misread"])
     parser.add_argument("files", nargs="*", help="compare: two tasks --out files (the second against the first)")
     parser.add_argument("--policy", default="policies/meta_rl_l1_cities.pt")
     parser.add_argument("--demos", default="runs/meta_demos")
@@ -632,6 +662,8 @@ def main() -> None:
         tasks(args.policy, args.cities.split(","), args.episodes, args.out, mpc_from=args.mpc_from, k=args.k)
     elif args.what == "rule":
         rule(args.policy, args.reference, args.rule_dir, args.rule_episodes)
+    elif args.what == "misread":
+        misread(args.policy, args.cities.split(","), args.episodes, k=args.k)
     elif args.what == "compare":
         if not args.files:
             parser.error("compare needs tasks --out files: A.json B.json")

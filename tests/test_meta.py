@@ -730,3 +730,18 @@ def test_rule_judges_a_candidate_by_every_set_from_the_files_it_finds(tmp_path, 
     skew = next(r for r in rows if r["set"] == "skew variants 2.7")
     assert skew["reference"] == pytest.approx(np.mean([100 * (1 - (95 + e) / (100 + e)) for e in range(3)]))
     assert skew["diff"] == pytest.approx(np.mean([-100 / (100 + e) for e in range(3)])) and skew["passes"]
+
+
+def test_misread_adapts_on_the_usual_day_without_the_event_and_refuses_a_task_without_one():
+    """benchmarks/meta_diagnostics.py misread: the usual day of an evented task is the task's own
+    variant with the draw back on its forecast (a hotspot stays, the event goes), so the memory adapts
+    on the same city minus the shock; a task without an event has nothing to misread."""
+    import meta_diagnostics as md
+
+    evented, variant = meta.task_city("synthetic~hot1x2~ev3x2@0-5"), meta.task_city("synthetic~hot1x2")
+    usual = md.usual_day(evented)
+    assert evented.meta["events"] and "events" not in usual.meta and usual.meta["hotspot"] == variant.meta["hotspot"]
+    np.testing.assert_array_equal(usual.demand_rate, variant.demand_rate)
+    assert not np.array_equal(evented.demand_rate, variant.demand_rate)
+    with pytest.raises(SystemExit, match="has no event"):
+        md.misread("unused.pt", ["synthetic~hot1x2"], episodes=1)
