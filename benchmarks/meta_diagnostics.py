@@ -45,8 +45,9 @@
   measures paired by episode and the verdict: every one must pass (docs/meta/log.md).
 * ``misread``: each evented task (``--cities``: event tasks ``<city>~ev...`` or scenarios with
   ``events:``) scored with the memory adapted on the evented day, on the usual day and not at all:
-  whether the memory misreads the event or drifts with any adaptation (docs/meta/log.md, "What the
-  memory does on the event").
+  whether the memory misreads the event or drifts with any adaptation; with ``--freeze 6-13`` the
+  memory does not move at those steps while adapting, to find where the misreading is written
+  (docs/meta/log.md, "What the memory does on the event").
 * ``tasks``: each episode's profit of the policy (K = ``--k``, 3 as deployed) and of MPC-Forecast (not
   told an event task's event) on training-city tasks (hotspot variants ``<city>~hot<r>x<m>``, skew variants ``<city>~skew<gamma>``,
   event tasks ``<city>~ev...``: ``meta.task_city``), validation episodes (seed 1000), written to
@@ -77,6 +78,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 from collections.abc import Callable, Iterator
 from dataclasses import replace
@@ -598,18 +600,45 @@ def usual_day(city: City) -> City:
     return replace(city, name=f"{city.name} (usual day)", demand_rate=city.forecast_rate, meta={k: v for k, v in city.meta.items() if k != "events"})
 
 
-def misread(policy: str, names: list[str], episodes: int = 20, seed: int = 1000, k: int = 3) -> dict[str, dict[str, float]]:
+@contextlib.contextmanager
+def memory_frozen(steps: range | None) -> Iterator[None]:
+    """Inside it, a meta agent's memory does not move at the control steps ``steps`` (it acts as usual):
+    which steps of the adaptation episodes write what the memory carries (None: every step moves it)."""
+    act = meta.MetaAgent.act
+
+    def frozen(agent: meta.MetaAgent, system: Any, sample: bool) -> Any:
+        before = agent.memory
+        out = act(agent, system, sample)
+        if system.t in steps:
+            agent.memory = before
+        return out
+
+    if steps is not None:
+        meta.MetaAgent.act = frozen  # type: ignore[method-assign]
+    try:
+        yield
+    finally:
+        meta.MetaAgent.act = act  # type: ignore[method-assign]
+
+
+def misread(policy: str, names: list[str], episodes: int = 20, seed: int = 1000, k: int = 3, freeze: range | None = None) -> dict[str, dict[str, float]]:
     """Each evented task's profit with the policy's memory adapted (``k`` episodes, each ensemble member
     alone) on the task itself (as deployed), on its usual day (:func:`usual_day`), and not at all (K = 0),
     on the same validation episodes: a memory that misreads the event does better after the usual day;
     one that drifts with any adaptation does worse after both than with none (docs/meta/log.md, "What the
-    memory does on the event")."""
+    memory does on the event"). With ``freeze`` the memory does not move at those steps of the adaptation
+    episodes (:func:`memory_frozen`; the scored episodes play as deployed): where the misreading is written."""
     out: dict[str, dict[str, float]] = {}
+
+    def adapted(on: City, kk: int) -> Any:
+        with memory_frozen(freeze):
+            return meta.load_policy(policy, on, kk, seed=seed)
+
     for name in names:
         task = meta.task_city(name)
         if not task.meta.get("events"):
             raise SystemExit(f"misread: {name} has no event (an event task <city>~ev... or a scenario with events:)")
-        rows = {label: [m["profit"] for m in evaluate(meta.load_policy(policy, on, kk, seed=seed), task, episodes, seed)["per_episode"]]
+        rows = {label: [m["profit"] for m in evaluate(adapted(on, kk), task, episodes, seed)["per_episode"]]
                 for label, on, kk in (("evented", task, k), ("usual day", usual_day(task), k), ("none", task, 0))}  # fmt: skip
         d = np.array(rows["usual day"]) - np.array(rows["evented"])
         out[name] = {label: float(np.mean(v)) for label, v in rows.items()}
@@ -639,6 +668,7 @@ def main() -> None:
     parser.add_argument("--windows", default="0-5,6-11,12-14,15-16,17-18", help="steps: the step windows MPC-F plays in (inclusive)")
     parser.add_argument("--region", type=int, default=None, help="steps: the region followed (default: the city's busiest origin)")
     parser.add_argument("--own", action="store_true", help="hotspot: also on the states the policy reaches itself (8 episodes, labelled by MPC-F)")
+    parser.add_argument("--freeze", default=None, help="misread: steps (inclusive, e.g. 6-13) at which the memory does not move while adapting")
     args = parser.parse_args()
     torch.manual_seed(0)  # the policy's sampled adaptation episodes (gap, heldout, hotspot --own): a rerun repeats them
     ks = [int(k) for k in args.ks.split(",")]
@@ -663,7 +693,8 @@ def main() -> None:
     elif args.what == "rule":
         rule(args.policy, args.reference, args.rule_dir, args.rule_episodes)
     elif args.what == "misread":
-        misread(args.policy, args.cities.split(","), args.episodes, k=args.k)
+        freeze = next(iter(windows_of(args.freeze).values())) if args.freeze else None
+        misread(args.policy, args.cities.split(","), args.episodes, k=args.k, freeze=freeze)
     elif args.what == "compare":
         if not args.files:
             parser.error("compare needs tasks --out files: A.json B.json")

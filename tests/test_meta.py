@@ -745,3 +745,22 @@ def test_misread_adapts_on_the_usual_day_without_the_event_and_refuses_a_task_wi
     assert not np.array_equal(evented.demand_rate, variant.demand_rate)
     with pytest.raises(SystemExit, match="has no event"):
         md.misread("unused.pt", ["synthetic~hot1x2"], episodes=1)
+
+
+def test_a_memory_frozen_at_every_step_adapts_to_nothing_and_unfreezes_after():
+    """benchmarks/meta_diagnostics.py misread --freeze: with the memory held at every step of the
+    adaptation episodes the adapted memory is the new trial's; held nowhere, it moves; outside the
+    context the agent is itself again."""
+    import meta_diagnostics as md
+
+    city = load_city("synthetic")
+    torch.manual_seed(0)
+    model = meta.RecurrentGNN(meta.n_task_features(6), hidden=8, stay_prior=True)
+    fresh = model.initial_memory(city.n_regions, 1)
+    with md.memory_frozen(range(city.horizon)):
+        held = meta.adapt(model, city, 2, 6, seed=0)
+    torch.testing.assert_close(held.adapted, fresh)
+    with md.memory_frozen(None):
+        moved = meta.adapt(model, city, 2, 6, seed=0)
+    assert not torch.equal(moved.adapted, fresh)
+    torch.testing.assert_close(meta.adapt(model, city, 2, 6, seed=0).adapted, moved.adapted)  # unfrozen after
