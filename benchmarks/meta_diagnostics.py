@@ -80,7 +80,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Collection, Iterator
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -601,7 +601,7 @@ def usual_day(city: City) -> City:
 
 
 @contextlib.contextmanager
-def memory_frozen(steps: range | None) -> Iterator[None]:
+def memory_frozen(steps: Collection[int] | None) -> Iterator[None]:
     """Inside it, a meta agent's memory does not move at the control steps ``steps`` (it acts as usual):
     which steps of the adaptation episodes write what the memory carries (None: every step moves it)."""
     act = meta.MetaAgent.act
@@ -621,7 +621,7 @@ def memory_frozen(steps: range | None) -> Iterator[None]:
         meta.MetaAgent.act = act  # type: ignore[method-assign]
 
 
-def misread(policy: str, names: list[str], episodes: int = 20, seed: int = 1000, k: int = 3, freeze: range | None = None) -> dict[str, dict[str, float]]:
+def misread(policy: str, names: list[str], episodes: int = 20, seed: int = 1000, k: int = 3, freeze: Collection[int] | None = None) -> dict[str, dict[str, float]]:
     """Each evented task's profit with the policy's memory adapted (``k`` episodes, each ensemble member
     alone) on the task itself (as deployed), on its usual day (:func:`usual_day`), and not at all (K = 0),
     on the same validation episodes: a memory that misreads the event does better after the usual day;
@@ -668,7 +668,7 @@ def main() -> None:
     parser.add_argument("--windows", default="0-5,6-11,12-14,15-16,17-18", help="steps: the step windows MPC-F plays in (inclusive)")
     parser.add_argument("--region", type=int, default=None, help="steps: the region followed (default: the city's busiest origin)")
     parser.add_argument("--own", action="store_true", help="hotspot: also on the states the policy reaches itself (8 episodes, labelled by MPC-F)")
-    parser.add_argument("--freeze", default=None, help="misread: steps (inclusive, e.g. 6-13) at which the memory does not move while adapting")
+    parser.add_argument("--freeze", default=None, help="misread: steps (inclusive windows, e.g. 6-13 or 0-5,14-19) at which the memory does not move while adapting")
     args = parser.parse_args()
     torch.manual_seed(0)  # the policy's sampled adaptation episodes (gap, heldout, hotspot --own): a rerun repeats them
     ks = [int(k) for k in args.ks.split(",")]
@@ -693,7 +693,7 @@ def main() -> None:
     elif args.what == "rule":
         rule(args.policy, args.reference, args.rule_dir, args.rule_episodes)
     elif args.what == "misread":
-        freeze = next(iter(windows_of(args.freeze).values())) if args.freeze else None
+        freeze = set().union(*windows_of(args.freeze).values()) if args.freeze else None  # every window given, not the first
         misread(args.policy, args.cities.split(","), args.episodes, k=args.k, freeze=freeze)
     elif args.what == "compare":
         if not args.files:
