@@ -39,7 +39,7 @@
   policy gains with MPC-F's targets played in each of ``--windows`` (docs/meta/log.md, "San Francisco,
   step by step").
 * ``rule``: the selection rule the meta arms are judged by, in one command: the hotspot, skew and
-  sink variants, the training-city events, the shaped set and the hotspot events (:data:`RULE_SETS`,
+  sink variants, the training-city events, the shaped set, the hotspot events and the sink events (:data:`RULE_SETS`,
   20 validation episodes each) for ``--reference`` (the tables' meta-rl by default) and the candidate
   ``--policy``, each set's file under ``--rule-dir`` (reused when it holds the same policy), then the
   measures paired by episode and the verdict: every one must pass (docs/meta/log.md).
@@ -400,6 +400,11 @@ RULE_SETS: dict[str, tuple[str, list[str]]] = {
         "nyc_man_north~hot5x4.6~ev1+2x6@6-14dr3+5x0.5", "nyc_man_north~hot5x4.6~ev1+2x6@11-19dr3+5x0.5",
         "shenzhen_north~hot14x5.7~ev5+15x6@6-14dr8+14x0.5", "shenzhen_north~hot14x5.7~ev5+15x6@11-19dr8+14x0.5",
         "washington_dc~hot0x3.3~ev1+3x6@6-14dr0+4x0.5", "washington_dc~hot0x3.3~ev1+3x6@11-19dr0+4x0.5"]),
+    "sink events": ("profit", [  # the same events on the shaped set's sinks (Brooklyn's in-out imbalance), the one set whose
+        "porto~sink2x12~ev7+12x6@6-14dr1+2x0.5", "porto~sink2x12~ev7+12x6@11-19dr1+2x0.5",  # misreading ranked two pairs as Brooklyn's did
+        "nyc_man_north~sink5x12~ev1+2x6@6-14dr3+5x0.5", "nyc_man_north~sink5x12~ev1+2x6@11-19dr3+5x0.5",
+        "shenzhen_north~sink8x12~ev5+15x6@6-14dr8+14x0.5", "shenzhen_north~sink8x12~ev5+15x6@11-19dr8+14x0.5",
+        "washington_dc~sink4x12~ev1+3x6@6-14dr0+4x0.5", "washington_dc~sink4x12~ev1+3x6@11-19dr0+4x0.5"]),
 }  # fmt: skip
 
 

@@ -720,7 +720,7 @@ def test_rule_judges_a_candidate_by_every_set_from_the_files_it_finds(tmp_path, 
     write("candidate", "cand.yaml", None)
     assert md.rule("cand.yaml", "ref.yaml", str(tmp_path), episodes=3) is True
     assert "yes" in capsys.readouterr().out
-    for worse in ("skew variants 2.7", "training-city events", "hotspot events"):
+    for worse in ("skew variants 2.7", "training-city events", "hotspot events", "sink events"):
         write("candidate", "cand.yaml", worse)
         assert md.rule("cand.yaml", "ref.yaml", str(tmp_path), episodes=3) is False
         row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith(f"| {worse}"))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -181,6 +182,45 @@ def test_dagger_rounds_join_the_demonstrations_and_resume_from_disk(tasks, tmp_p
     model, _ = meta.load_meta(tmp_path / "bc3.pt")
     assert model.readout is not None
     assert np.isfinite(run_strategy("meta-rl", "synthetic", episodes=1, meta_policy=str(tmp_path / "bc3.pt"), adapt_episodes=1)["metrics"]["profit"]["mean"])
+
+
+def test_whole_dagger_trials_are_drawn_in_their_order_and_in_daggers_share():
+    """With ``dagger_from`` a trial that draws a DAgger episode first is that episode's whole trial
+    in the order played; the others draw demonstrations only, so DAgger's share of the trials is its
+    share of the pool. Without DAgger episodes (before round 1) the draw is the plain one, rng for rng."""
+    args = args_for("meta-bc", {"trial_episodes": 4, "num_envs": 16})
+    pool, first, draws = SimpleNamespace(episodes=32), 20, 2000  # 20 demonstrations, then 3 DAgger trials of 4
+    rng = np.random.default_rng(0)
+    got = np.concatenate([mi.draw_trials(pool, args, rng, first) for _ in range(draws)], axis=1)
+    whole = got[0] >= first
+    assert got.shape == (4, 16 * draws) and (got[:, ~whole] < first).all()
+    starts = got[0, whole]
+    assert ((starts - first) % 4 == 0).all() and (got[:, whole] == starts + np.arange(4)[:, None]).all()
+    assert set(starts) == {20, 24, 28} and abs(whole.mean() - 12 / 32) < 0.01
+    for dagger_from in (None, 32):
+        a, b = np.random.default_rng(1), np.random.default_rng(1)
+        np.testing.assert_array_equal(mi.draw_trials(pool, args, a, dagger_from), b.integers(32, size=(4, 16)))
+
+
+@pytest.mark.parametrize("values", [{"dagger_whole_trials": True}, {"dagger_whole_trials": True, "dagger_rounds": 2, "dagger_episodes": 6}])
+def test_whole_dagger_trials_without_rounds_of_whole_trials_are_refused(values):
+    with pytest.raises(ConfigError, match="dagger_whole_trials"):
+        args_for("meta-bc", {"trial_episodes": 4, **values})
+    assert args_for("meta-bc", {**values, "trial_episodes": 4, "dagger_rounds": 2, "dagger_episodes": 8}).dagger_whole_trials
+
+
+def test_a_run_with_whole_dagger_trials_says_so_on_its_card_and_resumes_only_with_them(tasks, tmp_path, monkeypatch):
+    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=4,
+                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=2, eval_every=2,
+                   eval_episodes=1, final_eval_episodes=1, dagger_rounds=1, dagger_first=0, dagger_episodes=4,
+                   dagger_whole_trials=True, run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
+    seen = []
+    real = mi.draw_trials
+    monkeypatch.setattr(mi, "draw_trials", lambda demos, a, rng, dagger_from=None: seen.append(dagger_from) or real(demos, a, rng, dagger_from))
+    card = ALGOS["meta-bc"].train(args)["card"]
+    assert card["dagger"]["whole_trials"] is True and seen == [2] * 4  # each task's 2 demonstrations, then its round's 2 trials
+    with pytest.raises(DataError, match="dagger_whole_trials"):
+        ALGOS["meta-bc"].train(args.model_copy(update={"updates": 3, "dagger_whole_trials": False}), resume=str(tmp_path / "bc" / "state.pt"))
 
 
 def test_stop_after_cuts_the_run_not_its_schedule(tasks, tmp_path):

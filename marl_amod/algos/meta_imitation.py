@@ -32,8 +32,9 @@ random demand shock, labelled by :class:`MPCToldTheShock`. Rounds are files unde
 resumed run reads them back.
 
 Event tasks (``event_tasks``). A shocked DAgger trial's episodes join the city's pool and are
-teacher-forced among its other episodes, so the memory never sees its shock twice in a row, and
-the demonstrations have none. An event task (:func:`~marl_amod.algos.meta.event_task`) is a city
+teacher-forced among its other episodes, so the memory never sees its shock twice in a row
+(unless ``dagger_whole_trials``: a DAgger trial is drawn whole, in its order), and the
+demonstrations have none. An event task (:func:`~marl_amod.algos.meta.event_task`) is a city
 whose every episode carries one fixed event: demonstrated and labelled by :class:`MPCToldTheShock`
 (:func:`expert_for`), drawn as a task of its own (``event_share`` of the draws), so every
 teacher-forced trial of it repeats its shock.
@@ -430,6 +431,10 @@ class Args(meta.Args):
     dagger_shock_prob: float = Field(0.0, ge=0, le=1)
     """share of the DAgger trials with a random demand shock, labelled as ``dagger_shock_labels`` says:
     the policy learns to react to what the forecast misses"""
+    dagger_whole_trials: bool = False
+    """a DAgger trial is teacher-forced whole, its episodes in the order played (:func:`draw_trials`),
+    instead of episode by episode among the city's demonstrations: the memory then trains on a
+    shock repeated from one episode to the next, as it meets an event over its adaptation episodes"""
     dagger_shock_labels: ShockLabels = "told"
     """who labels the shocked DAgger trials: MPC told the shock (``told``, :class:`MPCToldTheShock`), or
     MPC-Forecast (``forecast``), which does not know it either, so its labels are moves the policy can
@@ -520,6 +525,9 @@ class Args(meta.Args):
         if self.shortfall_weight and self.imitation != "l1":
             raise ValueError(f"shortfall_weight {self.shortfall_weight} with imitation {self.imitation!r}: only l1 prices a "
                              "vehicle short apart (set imitation: l1, or shortfall_weight: 0)")  # fmt: skip
+        if self.dagger_whole_trials and (not self.dagger_rounds or self.dagger_episodes % self.trial_episodes):
+            raise ValueError(f"dagger_whole_trials with dagger_rounds {self.dagger_rounds} and dagger_episodes {self.dagger_episodes}: "
+                             f"whole trials need DAgger rounds of whole trials (dagger_episodes a multiple of trial_episodes {self.trial_episodes})")  # fmt: skip
         if self.dagger_rounds and self.dagger_first >= self.updates:
             raise ValueError(f"dagger_first {self.dagger_first} is not before the last update ({self.updates}): no DAgger round "
                              "would run (lower dagger_first, raise updates, or dagger_rounds: 0)")  # fmt: skip
@@ -568,9 +576,23 @@ def dagger_round(args: Args, model: RecurrentGNN, k: int, data: dict[str, tuple[
     return sum(walls.values())
 
 
-def draw_trials(demos: CityDemos, args: meta.Args, rng: np.random.Generator) -> np.ndarray:
-    """(K, B) demonstration episodes for ``num_envs`` trials of ``trial_episodes`` episodes."""
-    return rng.integers(demos.episodes, size=(args.trial_episodes, args.num_envs))
+def draw_trials(demos: CityDemos, args: meta.Args, rng: np.random.Generator, dagger_from: int | None = None) -> np.ndarray:
+    """(K, B) episodes of the city's pool for ``num_envs`` trials of ``trial_episodes`` episodes, each drawn alike.
+
+    With ``dagger_from`` (the pool's first DAgger episode; after it, DAgger trials of K episodes in the
+    order played) a trial whose first draw is a DAgger episode is that episode's whole trial, in its order,
+    and the other trials draw demonstrations only. DAgger's share of the episodes stays what it is
+    without it; what changes is that the memory reads a DAgger trial as the policy played it, a shocked
+    trial's shock repeated in each episode, as K adaptation episodes on an event repeat the event."""
+    k = args.trial_episodes
+    idx = rng.integers(demos.episodes, size=(k, args.num_envs))
+    if dagger_from is None or dagger_from >= demos.episodes:
+        return idx
+    whole = idx[0] >= dagger_from
+    idx[:, whole] = dagger_from + (idx[0, whole] - dagger_from) // k * k + np.arange(k)[:, None]
+    stray = (idx >= dagger_from) & ~whole  # a DAgger episode drawn into a demonstration trial
+    idx[stray] = rng.integers(dagger_from, size=int(stray.sum()))
+    return idx
 
 
 def tasks(args: Args) -> tuple[list[str], list[str]]:
@@ -653,6 +675,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     walls |= collect_demos(args.demos, events, args.event_episodes, args.seed, args.lookahead)
     data = load_all(args, cities, [*plain, *variants, *events])
     names = list(data)
+    dagger_from = {name: data[name][0].episodes if args.dagger_whole_trials else None for name in names}  # DAgger rounds join after these
     model = meta.make_model(args)
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     rng = np.random.default_rng([args.seed, 23])
@@ -664,10 +687,10 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
             raise DataError(f"{resume} trained on the tasks {st['tasks']}; this config names {names}: resume with the run's "
                             "cities, seed, hotspot and skew settings (hotspot_variants, hotspot_multipliers, hotspot_distinct_regions, "
                             "skew_variants, skew_gammas, sink_variants, sink_multipliers) and event settings (event_tasks, event_multipliers)")  # fmt: skip
-        for key, drawn in (("hotspot_share", "variants"), ("event_share", "event tasks")):  # older states: every task as often
-            if st.get(key) != getattr(args, key):
+        for key, drawn in (("hotspot_share", "variants"), ("event_share", "event tasks"), ("dagger_whole_trials", "DAgger trials")):
+            if st.get(key, False if key == "dagger_whole_trials" else None) != getattr(args, key):  # older states: as the defaults
                 raise DataError(f"{resume} drew its {drawn} with {key} {st.get(key)}; this config sets "
-                                f"{getattr(args, key)}: resume with the run's share (the card names one)")  # fmt: skip
+                                f"{getattr(args, key)}: resume with the run's setting (the card names it)")  # fmt: skip
         model.load_state_dict(st["model"]), opt.load_state_dict(st["opt"])
         step, prior_wall, best = st["episode"], st["wall_s"], C.BestActor(st["best_val"], st["best_actor"])
         rng.bit_generator.state = st["city_rng"]
@@ -678,7 +701,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     def save() -> tuple[Path, int]:
         C.save_state(C.state_path(args), algorithm="meta-bc", model=model.state_dict(), opt=opt.state_dict(), episode=step,
                      best_val=book.best.value, best_actor=book.best.state, wall_s=timer(), city_rng=rng.bit_generator.state, tasks=names,
-                     hotspot_share=args.hotspot_share, event_share=args.event_share)  # fmt: skip
+                     hotspot_share=args.hotspot_share, event_share=args.event_share, dagger_whole_trials=args.dagger_whole_trials)  # fmt: skip
         return C.state_path(args), step
 
     dagger_wall = sum(dagger_round(args, model, k, data, cities) for k in range(1, started_rounds(args, step) + 1))  # resumed: read back
@@ -689,8 +712,9 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                 dagger_wall += dagger_round(args, model, k, data, cities)
             draws = []
             for _ in range(args.cities_per_update):
-                demos, graph = data[draw_run_task(args, names, len(plain), events, rng)]
-                draws.append((demos, draw_trials(demos, args, rng), graph))
+                name = draw_run_task(args, names, len(plain), events, rng)
+                demos, graph = data[name]
+                draws.append((demos, draw_trials(demos, args, rng, dagger_from[name]), graph))
             ce, vl = cities_losses(model, draws, args.gamma, args.pad_cities, args.fit)
             for group in opt.param_groups:
                 group["lr"] = lr_at(args, step)
@@ -719,5 +743,6 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                                     "event_expert": MPCToldTheShock.name}  # fmt: skip
     if args.dagger_rounds:
         extra["dagger"] = {"rounds": started_rounds(args, step), "episodes_per_city": args.dagger_episodes, "shock_prob": args.dagger_shock_prob,
-                           "shock_labels": args.dagger_shock_labels, "collection_wall_s": round(dagger_wall, 1)}  # fmt: skip
+                           "shock_labels": args.dagger_shock_labels, "whole_trials": args.dagger_whole_trials,
+                           "collection_wall_s": round(dagger_wall, 1)}  # fmt: skip
     return meta.finish(args, model, timer(), 0, config_path, algorithm="meta-bc", extra=extra)
