@@ -209,18 +209,36 @@ def test_whole_dagger_trials_without_rounds_of_whole_trials_are_refused(values):
     assert args_for("meta-bc", {**values, "trial_episodes": 4, "dagger_rounds": 2, "dagger_episodes": 8}).dagger_whole_trials
 
 
-def test_a_run_with_whole_dagger_trials_says_so_on_its_card_and_resumes_only_with_them(tasks, tmp_path, monkeypatch):
+def test_a_run_with_whole_dagger_trials_and_shocks_per_task_says_so_on_its_card_and_resumes_only_with_them(tasks, tmp_path, monkeypatch):
     args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=4,
                    cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=2, eval_every=2,
                    eval_episodes=1, final_eval_episodes=1, dagger_rounds=1, dagger_first=0, dagger_episodes=4,
-                   dagger_whole_trials=True, run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
+                   dagger_whole_trials=True, dagger_shock_prob=0.5, dagger_shock_per_task=True, run_dir=str(tmp_path / "bc"),
+                   policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
     seen = []
     real = mi.draw_trials
     monkeypatch.setattr(mi, "draw_trials", lambda demos, a, rng, dagger_from=None: seen.append(dagger_from) or real(demos, a, rng, dagger_from))
     card = ALGOS["meta-bc"].train(args)["card"]
-    assert card["dagger"]["whole_trials"] is True and seen == [2] * 4  # each task's 2 demonstrations, then its round's 2 trials
-    with pytest.raises(DataError, match="dagger_whole_trials"):
-        ALGOS["meta-bc"].train(args.model_copy(update={"updates": 3, "dagger_whole_trials": False}), resume=str(tmp_path / "bc" / "state.pt"))
+    assert card["dagger"]["whole_trials"] is True and card["dagger"]["shock_per_task"] is True
+    assert seen == [2] * 4  # each task's 2 demonstrations, then its round's 2 trials
+    for key in ("dagger_whole_trials", "dagger_shock_per_task"):
+        with pytest.raises(DataError, match=key):
+            ALGOS["meta-bc"].train(args.model_copy(update={"updates": 3, key: False}), resume=str(tmp_path / "bc" / "state.pt"))
+
+
+def test_shock_draws_are_one_for_every_task_unless_per_task():
+    """Without ``per_task`` every task of a round draws the same shocked trials and shocks (the runs
+    before the option, to the bit); with it each task its own, and the same again for the same task."""
+    def first(task: str, per_task: bool) -> np.ndarray:
+        return mi.shock_draws(mi.dagger_seed, 3, task, per_task).random(8)
+
+    np.testing.assert_array_equal(first("porto", False), np.random.default_rng(mi.dagger_seed(3, 10**6)).random(8))
+    np.testing.assert_array_equal(first("porto", False), first("rome~hot1x2", False))
+    np.testing.assert_array_equal(first("porto", True), first("porto", True))
+    assert not np.allclose(first("porto", True), first("rome~hot1x2", True)) and not np.allclose(first("porto", True), first("porto", False))
+    with pytest.raises(ConfigError, match="dagger_shock_per_task"):
+        args_for("meta-bc", {"dagger_shock_per_task": True, "dagger_rounds": 2})
+    assert args_for("meta-bc", {"dagger_shock_per_task": True, "dagger_rounds": 2, "dagger_shock_prob": 0.3}).dagger_shock_per_task
 
 
 def test_stop_after_cuts_the_run_not_its_schedule(tasks, tmp_path):

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import functools
 import time
+import zlib
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -122,6 +123,7 @@ def expert_for(city: City) -> MPCForecast:
 def collect_city(
     city: City, episodes: int, seed: int, lookahead: int, learner: RecurrentGNN | None = None, trial_episodes: int = 1,
     seed_of: Callable[[int, int], np.random.SeedSequence] = demo_seed, shock_prob: float = 0.0, shock_labels: ShockLabels = "told",
+    shock_per_task: bool = False,
 ) -> dict[str, np.ndarray]:
     """``episodes`` episodes of ``city`` labelled by MPC-Forecast (by MPC told the event on a city
     that carries one: :func:`expert_for`): the arrays of :class:`CityDemos`.
@@ -132,11 +134,12 @@ def collect_city(
     reaches. With ``shock_prob`` that share of the trials get a random demand shock
     (:func:`~marl_amod.algos.meta.random_shock`, the same in each of the trial's episodes), which
     the features do not show and :class:`MPCToldTheShock` labels (``shock_labels="told"``) or
-    MPC-Forecast, which plans as the policy must, not knowing it (``"forecast"``)."""
+    MPC-Forecast, which plans as the policy must, not knowing it (``"forecast"``). Which trials are
+    shocked, and how, is one draw for every task (:func:`shock_draws`) unless ``shock_per_task``."""
     scale, n = CityScale.of(city), city.n_regions
     cols: dict[str, list[np.ndarray]] = {"x": [], "share": [], "region_reward": [], "reward": [], "action": []}
     system, policy = FleetSystem(city), expert_for(city)
-    shocks = np.random.default_rng(seed_of(seed, 10**6))  # which trials are shocked, and how
+    shocks = shock_draws(seed_of, seed, city.name, shock_per_task)  # which trials are shocked, and how
     agent = None
     for e in range(episodes):
         if learner is not None and e % trial_episodes == 0:  # a new trial: fresh memory, maybe a shock
@@ -179,10 +182,20 @@ def demo_path(folder: str | Path, city: str) -> Path:
     return Path(folder) / f"{city}.npz"
 
 
+def shock_draws(seed_of: Callable[[int, int], np.random.SeedSequence], seed: int, task: str, per_task: bool) -> np.random.Generator:
+    """The stream that decides which of a task's DAgger trials are shocked, and with what shock.
+
+    Without ``per_task`` it does not depend on the task: in a round every task's trial is shocked or
+    none is, with nearly the same shock (the runs up to the whole-trials pair). With it each task
+    draws its own (the task's name mixed into the seed), so a round holds shocks of many kinds."""
+    base = seed_of(seed, 10**6)
+    return np.random.default_rng([*base.generate_state(4), zlib.crc32(task.encode())] if per_task else base)
+
+
 def collect_demos(
     folder: str | Path, cities: list[str], episodes: int, seed: int, lookahead: int, learner: RecurrentGNN | None = None,
     trial_episodes: int = 1, seed_of: Callable[[int, int], np.random.SeedSequence] = demo_seed, shock_prob: float = 0.0,
-    shock_labels: ShockLabels = "told",
+    shock_labels: ShockLabels = "told", shock_per_task: bool = False,
 ) -> dict[str, float]:
     """Write ``folder/<task>.npz`` for each task (a city or a :func:`~marl_amod.algos.meta.task_city`
     variant) not yet there (resumable, split by task; a file there is checked, :func:`check_demo_file`; with
@@ -199,7 +212,7 @@ def collect_demos(
             check_demo_file(path, episodes, lookahead)
         else:
             start = time.perf_counter()
-            arrays = collect_city(city, episodes, seed, lookahead, learner, trial_episodes, seed_of, shock_prob, shock_labels)
+            arrays = collect_city(city, episodes, seed, lookahead, learner, trial_episodes, seed_of, shock_prob, shock_labels, shock_per_task)
             wall = time.perf_counter() - start
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_suffix(".tmp.npz")
@@ -431,6 +444,10 @@ class Args(meta.Args):
     dagger_shock_prob: float = Field(0.0, ge=0, le=1)
     """share of the DAgger trials with a random demand shock, labelled as ``dagger_shock_labels`` says:
     the policy learns to react to what the forecast misses"""
+    dagger_shock_per_task: bool = False
+    """each task draws its own shocked trials and shocks (:func:`shock_draws`) instead of one draw a
+    round for every task (a round all shocked or none, with nearly the same shock): more kinds of shock
+    in the same share of the trials"""
     dagger_whole_trials: bool = False
     """a DAgger trial is teacher-forced whole, its episodes in the order played (:func:`draw_trials`),
     instead of episode by episode among the city's demonstrations: the memory then trains on a
@@ -528,6 +545,9 @@ class Args(meta.Args):
         if self.dagger_whole_trials and (not self.dagger_rounds or self.dagger_episodes % self.trial_episodes):
             raise ValueError(f"dagger_whole_trials with dagger_rounds {self.dagger_rounds} and dagger_episodes {self.dagger_episodes}: "
                              f"whole trials need DAgger rounds of whole trials (dagger_episodes a multiple of trial_episodes {self.trial_episodes})")  # fmt: skip
+        if self.dagger_shock_per_task and not (self.dagger_rounds and self.dagger_shock_prob):
+            raise ValueError(f"dagger_shock_per_task with dagger_rounds {self.dagger_rounds} and dagger_shock_prob {self.dagger_shock_prob}: "
+                             "no DAgger trial is shocked, so there is nothing to draw per task")  # fmt: skip
         if self.dagger_rounds and self.dagger_first >= self.updates:
             raise ValueError(f"dagger_first {self.dagger_first} is not before the last update ({self.updates}): no DAgger round "
                              "would run (lower dagger_first, raise updates, or dagger_rounds: 0)")  # fmt: skip
@@ -569,7 +589,7 @@ def dagger_round(args: Args, model: RecurrentGNN, k: int, data: dict[str, tuple[
     with torch.no_grad():
         walls = collect_demos(folder, list(data), args.dagger_episodes, args.seed, args.lookahead, learner=model,
                               trial_episodes=args.trial_episodes, seed_of=functools.partial(dagger_seed, round=k), shock_prob=args.dagger_shock_prob,
-                              shock_labels=args.dagger_shock_labels)  # fmt: skip
+                              shock_labels=args.dagger_shock_labels, shock_per_task=args.dagger_shock_per_task)  # fmt: skip
     for name in data:
         demos, graph = data[name]
         data[name] = (joined(demos, load_run_demos(folder, cities[name], args)), graph)
@@ -687,8 +707,9 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
             raise DataError(f"{resume} trained on the tasks {st['tasks']}; this config names {names}: resume with the run's "
                             "cities, seed, hotspot and skew settings (hotspot_variants, hotspot_multipliers, hotspot_distinct_regions, "
                             "skew_variants, skew_gammas, sink_variants, sink_multipliers) and event settings (event_tasks, event_multipliers)")  # fmt: skip
-        for key, drawn in (("hotspot_share", "variants"), ("event_share", "event tasks"), ("dagger_whole_trials", "DAgger trials")):
-            if st.get(key, False if key == "dagger_whole_trials" else None) != getattr(args, key):  # older states: as the defaults
+        for key, drawn in (("hotspot_share", "variants"), ("event_share", "event tasks"), ("dagger_whole_trials", "DAgger trials"),
+                           ("dagger_shock_per_task", "DAgger shocks")):  # fmt: skip
+            if st.get(key, Args.model_fields[key].default) != getattr(args, key):  # older states: as the defaults
                 raise DataError(f"{resume} drew its {drawn} with {key} {st.get(key)}; this config sets "
                                 f"{getattr(args, key)}: resume with the run's setting (the card names it)")  # fmt: skip
         model.load_state_dict(st["model"]), opt.load_state_dict(st["opt"])
@@ -701,7 +722,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     def save() -> tuple[Path, int]:
         C.save_state(C.state_path(args), algorithm="meta-bc", model=model.state_dict(), opt=opt.state_dict(), episode=step,
                      best_val=book.best.value, best_actor=book.best.state, wall_s=timer(), city_rng=rng.bit_generator.state, tasks=names,
-                     hotspot_share=args.hotspot_share, event_share=args.event_share, dagger_whole_trials=args.dagger_whole_trials)  # fmt: skip
+                     hotspot_share=args.hotspot_share, event_share=args.event_share, dagger_whole_trials=args.dagger_whole_trials,
+                     dagger_shock_per_task=args.dagger_shock_per_task)  # fmt: skip
         return C.state_path(args), step
 
     dagger_wall = sum(dagger_round(args, model, k, data, cities) for k in range(1, started_rounds(args, step) + 1))  # resumed: read back
@@ -744,5 +766,6 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     if args.dagger_rounds:
         extra["dagger"] = {"rounds": started_rounds(args, step), "episodes_per_city": args.dagger_episodes, "shock_prob": args.dagger_shock_prob,
                            "shock_labels": args.dagger_shock_labels, "whole_trials": args.dagger_whole_trials,
+                           "shock_per_task": args.dagger_shock_per_task,
                            "collection_wall_s": round(dagger_wall, 1)}  # fmt: skip
     return meta.finish(args, model, timer(), 0, config_path, algorithm="meta-bc", extra=extra)
