@@ -41,8 +41,9 @@
 * ``rule``: the selection rule the meta arms are judged by, in one command: the hotspot, skew and
   sink variants, the training-city events, the shaped set, the hotspot events and the sink events (:data:`RULE_SETS`,
   20 validation episodes each) for ``--reference`` (the tables' meta-rl by default) and the candidate
-  ``--policy``, each set's file under ``--rule-dir`` (reused when it holds the same policy), then the
-  measures paired by episode and the verdict: every one must pass (docs/meta/log.md).
+  ``--policy``, each set's file under ``--rule-dir`` (reused when it holds the same policy; the tables'
+  meta-rl's own are shipped in ``docs/meta/rule/``), then the measures paired by episode and the
+  verdict: every one must pass (docs/meta/log.md). ``--workers 2`` runs the tasks over two processes.
 * ``misread``: each evented task (``--cities``: event tasks ``<city>~ev...`` or scenarios with
   ``events:``) scored with the memory adapted on the evented day, on the usual day and not at all:
   whether the memory misreads the event or drifts with any adaptation; with ``--freeze 6-13`` the
@@ -72,7 +73,7 @@
     python benchmarks/meta_diagnostics.py tasks --cities porto~hot1x2.5,porto~ev7+12x6@6-14dr1+2x0.5 --episodes 20 --out A.json
     python benchmarks/meta_diagnostics.py compare A.json B.json
     python benchmarks/meta_diagnostics.py misread --cities nyc_brooklyn_event,porto~ev7+12x6@6-14dr1+2x0.5 --episodes 20 --policy policies/meta_rl_l1_cut_ensemble.yaml
-    python benchmarks/meta_diagnostics.py rule --policy runs/ens/candidate.yaml [--reference policies/meta_rl_l1_cut_ensemble.yaml]
+    python benchmarks/meta_diagnostics.py rule --policy runs/ens/candidate.yaml --workers 2 [--reference policies/meta_rl_l1_cut_ensemble.yaml]
 """
 
 from __future__ import annotations
@@ -80,7 +81,9 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import multiprocessing
 from collections.abc import Callable, Collection, Iterator
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -318,22 +321,45 @@ def transplant(policy: str, cities: list[str], episodes: int = 8) -> None:
         _transplanted(model, graph, region, "whole trials, its own means as previous", theirs, own_prev_action=True)  # as own_prev_action trains
 
 
-def tasks(policy: str, names: list[str], episodes: int, out: str, seed: int = 1000, mpc_from: str | None = None, k: int = 3) -> None:
+def task_profits(policy: str, name: str, episodes: int, seed: int, k: int, mpc: list[float] | None = None) -> dict[str, list[float]]:
+    """One task's per-episode profits of ``policy`` (adapted over ``k`` episodes) and of MPC-Forecast
+    (``mpc`` when given, an earlier record's: MPC-F is the slow half). Pure in its arguments, so the
+    tasks of a rule can run in any order and any process."""
+    task = meta.task_city(name)
+    mine = [m["profit"] for m in evaluate(meta.load_policy(policy, task, k, seed=seed), task, episodes, seed)["per_episode"]]
+    theirs = mpc or [m["profit"] for m in evaluate(MPCForecast(), task, episodes, seed)["per_episode"]]
+    return {"policy": mine, "mpc-forecast": theirs}
+
+
+def in_workers(jobs: list[tuple[Any, ...]], workers: int) -> Iterator[dict[str, list[float]]]:
+    """:func:`task_profits` of each job, in order; over ``workers`` processes when more than one (spawned:
+    torch and HiGHS do not survive a fork cleanly), so a two-core machine measures a rule in half the time."""
+    if workers <= 1 or len(jobs) <= 1:
+        yield from (task_profits(*job) for job in jobs)
+        return
+    with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=multiprocessing.get_context("spawn")) as pool:
+        yield from pool.map(task_profits, *zip(*jobs, strict=True))
+
+
+def tasks(policy: str, names: list[str], episodes: int, out: str, seed: int = 1000, mpc_from: str | None = None, k: int = 3,
+          workers: int = 1) -> None:  # fmt: skip
     """Per-episode profits of ``policy`` (adapted over ``k`` episodes) and MPC-Forecast on each task, into ``out``;
     with ``mpc_from`` (an earlier ``out`` of the same episodes) MPC-F's are read from there, not rerun."""
     record: dict[str, Any] = {"policy": policy, "seed": seed, "episodes": episodes, "k": k, "tasks": {}}
     old = json.load(open(mpc_from)) if mpc_from else {"tasks": {}}
     if mpc_from and (old["seed"], old["episodes"]) != (seed, episodes):
         raise SystemExit(f"--mpc-from {mpc_from}: other episodes (seed {old['seed']}, {old['episodes']} episodes)")
-    for name in names:
-        task = meta.task_city(name)
-        mine = [m["profit"] for m in evaluate(meta.load_policy(policy, task, k, seed=seed), task, episodes, seed)["per_episode"]]
-        theirs = old["tasks"].get(name, {}).get("mpc-forecast") or [m["profit"] for m in evaluate(MPCForecast(), task, episodes, seed)["per_episode"]]
-        record["tasks"][name] = {"policy": mine, "mpc-forecast": theirs}
-        gap = 100 * (1 - np.mean(mine) / np.mean(theirs))
-        print(f"{name:44s} policy {np.mean(mine):10,.0f}  MPC-F {np.mean(theirs):10,.0f}  gap {gap:5.2f}%", flush=True)
+    jobs = [(policy, name, episodes, seed, k, old["tasks"].get(name, {}).get("mpc-forecast")) for name in names]
+    for name, got in zip(names, in_workers(jobs, workers), strict=True):
+        record["tasks"][name] = got
+        print_task(name, got)
     with open(out, "w") as f:
         json.dump(record, f, indent=1)
+
+
+def print_task(name: str, got: dict[str, list[float]]) -> None:
+    mine, theirs = np.mean(got["policy"]), np.mean(got["mpc-forecast"])
+    print(f"{name:44s} policy {mine:10,.0f}  MPC-F {theirs:10,.0f}  gap {100 * (1 - mine / theirs):5.2f}%", flush=True)
 
 
 def paired_se(d: np.ndarray) -> tuple[float, float]:
@@ -409,6 +435,7 @@ RULE_SETS: dict[str, tuple[str, list[str]]] = {
 
 
 RULE_SEED, RULE_K = 1000, 3  # the validation streams, and the adaptation episodes as deployed
+RULE_RECORDS = Path(__file__).resolve().parent.parent / "docs" / "meta" / "rule"  # the tables' meta-rl's sets, as the rule measured them
 
 
 def rule_file(out_dir: str | Path, label: str, name: str) -> Path:
@@ -429,23 +456,45 @@ def rule_rows(reference: dict[str, dict[str, Any]], candidate: dict[str, dict[st
     return rows
 
 
-def rule(policy: str, reference: str, out_dir: str, episodes: int = 20) -> bool:
+def rule_record(out_dir: str | Path, label: str, name: str, policy: str, episodes: int) -> dict[str, Any] | None:
+    """The ``tasks`` record of one rule set for ``policy`` if one is kept: under ``out_dir``, or for the
+    reference among the shipped records of the tables' meta-rl (:data:`RULE_RECORDS`, copied into
+    ``out_dir`` so the candidate reads MPC-F's profits from there). None when none holds the same policy
+    path, tasks, episodes, seed and K."""
+    same = (policy, episodes, RULE_SETS[name][1], RULE_SEED, RULE_K)
+    places = [rule_file(out_dir, label, name)] + ([rule_file(RULE_RECORDS, label, name)] if label == "reference" else [])
+    for path in places:
+        held = json.loads(path.read_text()) if path.is_file() else None
+        if held and (held["policy"], held["episodes"], list(held["tasks"]), held["seed"], held.get("k", 3)) == same:
+            if path != places[0]:
+                places[0].write_text(path.read_text())
+            return held
+    return None
+
+
+def rule(policy: str, reference: str, out_dir: str, episodes: int = 20, workers: int = 1) -> bool:
     """The selection rule, one command: every set of :data:`RULE_SETS` for ``reference`` and the candidate
     ``policy`` on the same validation episodes (each set's ``tasks`` file under ``out_dir``, reused when it
     holds the same policy path, tasks and episodes: use a fresh ``out_dir`` after retraining a file in place;
-    MPC-F run once, for the reference), then a table of the measures. All pass: the candidate
-    replaces the reference. Returns the verdict."""
+    MPC-F run once, for the reference; the reference's own from :data:`RULE_RECORDS` when it is the tables'),
+    then a table of the measures. All pass: the candidate replaces the reference. Returns the verdict."""
     Path(out_dir).mkdir(parents=True, exist_ok=True)
-    recs: dict[str, dict[str, dict[str, Any]]] = {}
-    for label, pol in (("reference", reference), ("candidate", policy)):
-        for name, (_, names) in RULE_SETS.items():
-            path = rule_file(out_dir, label, name)
-            held = json.loads(path.read_text()) if path.is_file() else None
-            same = (pol, episodes, names, RULE_SEED, RULE_K)
-            if not held or (held["policy"], held["episodes"], list(held["tasks"]), held["seed"], held.get("k", 3)) != same:
-                mpc = str(rule_file(out_dir, "reference", name)) if label == "candidate" else None
-                tasks(pol, names, episodes, str(path), seed=RULE_SEED, mpc_from=mpc, k=RULE_K)
-            recs.setdefault(label, {})[name] = json.loads(path.read_text())
+    recs: dict[str, dict[str, dict[str, Any]]] = {"reference": {}, "candidate": {}}
+    for label, pol in (("reference", reference), ("candidate", policy)):  # the reference first: its MPC-F serves both
+        for name in RULE_SETS:
+            if (held := rule_record(out_dir, label, name, pol, episodes)) is not None:
+                recs[label][name] = held
+        todo = [name for name in RULE_SETS if name not in recs[label]]
+        jobs = [(pol, task, episodes, RULE_SEED, RULE_K, recs["reference"][name]["tasks"][task]["mpc-forecast"] if label == "candidate" else None)
+                for name in todo for task in RULE_SETS[name][1]]  # fmt: skip
+        got = iter(in_workers(jobs, workers))
+        for name in todo:
+            record = {"policy": pol, "seed": RULE_SEED, "episodes": episodes, "k": RULE_K, "tasks": {}}
+            for task in RULE_SETS[name][1]:
+                record["tasks"][task] = next(got)
+                print_task(task, record["tasks"][task])
+            rule_file(out_dir, label, name).write_text(json.dumps(record, indent=1))
+            recs[label][name] = record
     rows = rule_rows(recs["reference"], recs["candidate"])
     print(f"| rule set | {reference} | {policy} | difference (SE by episode) | passes |\n|---|---|---|---|---|")
     for r in rows:
@@ -668,6 +717,7 @@ def main() -> None:
     parser.add_argument("--k", type=int, default=3, help="tasks: the policy's adaptation episodes before each scored one")
     parser.add_argument("--reference", default=META_POLICY, help="rule: the policy the candidate (--policy) must beat (default: the tables' meta-rl)")
     parser.add_argument("--rule-dir", default="runs/rule", help="rule: where each set's tasks files go (reused when they hold the same policy)")
+    parser.add_argument("--workers", type=int, default=1, help="rule, tasks: processes the tasks run over (one core each)")
     parser.add_argument("--rule-episodes", type=int, default=20, help="rule: validation episodes per task")
     parser.add_argument("--last", type=int, default=3, help="hold: the episode's last steps held")
     parser.add_argument("--windows", default="0-5,6-11,12-14,15-16,17-18", help="steps: the step windows MPC-F plays in (inclusive)")
@@ -694,9 +744,9 @@ def main() -> None:
     elif args.what == "tasks":
         if not args.out:
             parser.error("tasks needs --out")
-        tasks(args.policy, args.cities.split(","), args.episodes, args.out, mpc_from=args.mpc_from, k=args.k)
+        tasks(args.policy, args.cities.split(","), args.episodes, args.out, mpc_from=args.mpc_from, k=args.k, workers=args.workers)
     elif args.what == "rule":
-        rule(args.policy, args.reference, args.rule_dir, args.rule_episodes)
+        rule(args.policy, args.reference, args.rule_dir, args.rule_episodes, args.workers)
     elif args.what == "misread":
         freeze = set().union(*windows_of(args.freeze).values()) if args.freeze else None  # every window given, not the first
         misread(args.policy, args.cities.split(","), args.episodes, k=args.k, freeze=freeze)

@@ -732,6 +732,44 @@ def test_rule_judges_a_candidate_by_every_set_from_the_files_it_finds(tmp_path, 
     assert skew["diff"] == pytest.approx(np.mean([-100 / (100 + e) for e in range(3)])) and skew["passes"]
 
 
+def test_rule_reads_the_tables_records_for_its_reference_and_keeps_a_copy(tmp_path, monkeypatch, capsys):
+    """benchmarks/meta_diagnostics.py rule: the reference's sets come from the shipped records
+    (docs/meta/rule) when they hold the same policy, tasks and episodes, copied into the rule's folder
+    (the candidate reads MPC-F's profits there); a record of another policy is not taken."""
+    import json
+
+    import meta_diagnostics as md
+
+    shipped, out = tmp_path / "shipped", tmp_path / "rule"
+    shipped.mkdir()
+    out.mkdir()
+    monkeypatch.setattr(md, "RULE_RECORDS", shipped)
+    for name, (_, names) in md.RULE_SETS.items():
+        for label, folder, policy, own in (("reference", shipped, "ref.yaml", 95.0), ("candidate", out, "cand.yaml", 96.0)):
+            tasks = {n: {"policy": [own, own + 1], "mpc-forecast": [100.0, 101.0]} for n in names}
+            md.rule_file(folder, label, name).write_text(json.dumps({"policy": policy, "seed": 1000, "episodes": 2, "k": 3, "tasks": tasks}))
+    assert md.rule("cand.yaml", "ref.yaml", str(out), episodes=2) is True  # nearer MPC-F everywhere, nothing rerun
+    assert all(md.rule_file(out, "reference", name).is_file() for name in md.RULE_SETS)
+    capsys.readouterr()
+    assert md.rule_record(out, "reference", "sink events", "other.yaml", 2) is None
+    assert md.rule_record(shipped, "reference", "sink events", "ref.yaml", 3) is None
+
+
+def test_rule_tasks_measured_in_two_processes_are_those_measured_in_one(tmp_path):
+    """benchmarks/meta_diagnostics.py --workers: each task's profits depend on its arguments only, so a
+    rule split over spawned processes writes the numbers one process writes, in the order asked."""
+    import meta_diagnostics as md
+
+    args = meta.Args(scenario="synthetic", cities=["porto"], val_cities=["porto"], hidden=8, trial_episodes=2, final_eval_episodes=1,
+                     run_dir=str(tmp_path / "run"), policy_out=str(tmp_path / "tiny.pt"))  # fmt: skip
+    torch.manual_seed(0)
+    meta.finish(args, meta.make_model(args), 1.0, 0, None)
+    jobs = [(str(tmp_path / "tiny.pt"), "synthetic", 2, 1000 + i, 1, None) for i in range(3)]
+    alone = list(md.in_workers(jobs, 1))
+    assert list(md.in_workers(jobs, 2)) == alone
+    assert alone[0] != alone[1] and all(len(r["policy"]) == len(r["mpc-forecast"]) == 2 for r in alone)
+
+
 def test_misread_adapts_on_the_usual_day_without_the_event_and_refuses_a_task_without_one():
     """benchmarks/meta_diagnostics.py misread: the usual day of an evented task is the task's own
     variant with the draw back on its forecast (a hotspot stays, the event goes), so the memory adapts
