@@ -755,6 +755,21 @@ def test_rule_reads_the_tables_records_for_its_reference_and_keeps_a_copy(tmp_pa
     assert md.rule_record(shipped, "reference", "sink events", "ref.yaml", 3) is None
 
 
+def test_the_rule_reference_averages_in_the_replicate_episode_by_episode():
+    """benchmarks/meta_diagnostics.py rule: where the recipe's replicate did worse, the reference is both
+    pairs averaged per episode (MPC-F's profits unchanged); a replicate of other tasks is refused."""
+    import meta_diagnostics as md
+
+    ref = {"policy": "ref.yaml", "episodes": 2, "tasks": {"a": {"policy": [10.0, 20.0], "mpc-forecast": [30.0, 31.0]}}}
+    rep = {"policy": "rep.yaml", "episodes": 2, "tasks": {"a": {"policy": [14.0, 10.0], "mpc-forecast": [30.0, 31.0]}}}
+    both = md.with_replicate(ref, rep)
+    assert both["tasks"]["a"] == {"policy": [12.0, 15.0], "mpc-forecast": [30.0, 31.0]} and ref["tasks"]["a"]["policy"] == [10.0, 20.0]
+    with pytest.raises(SystemExit, match="other tasks"):
+        md.with_replicate(ref, {**rep, "tasks": {"b": rep["tasks"]["a"]}})
+    assert set(md.RULE_AVERAGED) < set(md.RULE_SETS)
+    assert all(md.rule_file(md.RULE_RECORDS, "replicate", name).is_file() for name in md.RULE_AVERAGED)
+
+
 def test_rule_tasks_measured_in_two_processes_are_those_measured_in_one(tmp_path):
     """benchmarks/meta_diagnostics.py --workers: each task's profits depend on its arguments only, so a
     rule split over spawned processes writes the numbers one process writes, in the order asked."""
