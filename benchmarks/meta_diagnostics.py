@@ -445,7 +445,7 @@ RULE_AVERAGED = ("hotspot variants x2.5", "skew variants 2.7", "training-city ev
 
 def with_replicate(record: dict[str, Any], replicate: dict[str, Any]) -> dict[str, Any]:
     """The reference's record of one set with the replicate's profits averaged in, episode by episode
-    (the same tasks, episodes and MPC-F: refused otherwise)."""
+    (the same tasks and episodes, so the same MPC-F: refused otherwise)."""
     if list(replicate["tasks"]) != list(record["tasks"]) or replicate["episodes"] != record["episodes"]:
         raise SystemExit("the replicate's record holds other tasks or episodes than the reference's")
     tasks_ = {name: {"policy": list((np.asarray(t["policy"]) + replicate["tasks"][name]["policy"]) / 2), "mpc-forecast": t["mpc-forecast"]}
@@ -492,7 +492,8 @@ def rule(policy: str, reference: str, out_dir: str, episodes: int = 20, workers:
     ``policy`` on the same validation episodes (each set's ``tasks`` file under ``out_dir``, reused when it
     holds the same policy path, tasks and episodes: use a fresh ``out_dir`` after retraining a file in place;
     MPC-F run once, for the reference; the reference's own from :data:`RULE_RECORDS` when it is the tables'),
-    then a table of the measures. All pass: the candidate replaces the reference. Returns the verdict."""
+    then a table of the measures (against the tables' pair, on :data:`RULE_AVERAGED` its replicate averaged in).
+    All pass: the candidate replaces the reference. Returns the verdict."""
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     recs: dict[str, dict[str, dict[str, Any]]] = {"reference": {}, "candidate": {}}
     for label, pol in (("reference", reference), ("candidate", policy)):  # the reference first: its MPC-F serves both
