@@ -44,6 +44,9 @@
   ``--policy``, each set's file under ``--rule-dir`` (reused when it holds the same policy; the tables'
   meta-rl's own are shipped in ``docs/meta/rule/``), then the measures paired by episode and the
   verdict: every one must pass (docs/meta/log.md). ``--workers 2`` runs the tasks over two processes.
+* ``recipes``: two recipes on the rule's sets from records the rule kept, each recipe's pairs averaged
+  episode by episode (``--first`` and ``--second``: record prefixes, ``runs/rule6/candidate``), the
+  second against the first in the rule's table. It decides nothing: does a difference outlive the seeds?
 * ``misread``: each evented task (``--cities``: event tasks ``<city>~ev...`` or scenarios with
   ``events:``) scored with the memory adapted on the evented day, on the usual day and not at all:
   whether the memory misreads the event or drifts with any adaptation; with ``--freeze 6-13`` the
@@ -443,14 +446,16 @@ RULE_AVERAGED_WITH = "policies/meta_rl_l1_cut_ensemble.yaml"  # the pair the rep
 RULE_AVERAGED = ("hotspot variants x2.5", "skew variants 2.7", "training-city events", "shaped set", "hotspot events", "sink events")
 
 
-def with_replicate(record: dict[str, Any], replicate: dict[str, Any]) -> dict[str, Any]:
-    """The reference's record of one set with the replicate's profits averaged in, episode by episode
-    (the same tasks and episodes, so the same MPC-F: refused otherwise)."""
-    if list(replicate["tasks"]) != list(record["tasks"]) or replicate["episodes"] != record["episodes"]:
-        raise SystemExit("the replicate's record holds other tasks or episodes than the reference's")
-    tasks_ = {name: {"policy": list((np.asarray(t["policy"]) + replicate["tasks"][name]["policy"]) / 2), "mpc-forecast": t["mpc-forecast"]}
-              for name, t in record["tasks"].items()}  # fmt: skip
-    return {**record, "policy": f"{record['policy']} + replicate", "tasks": tasks_}
+def averaged(records: list[dict[str, Any]]) -> dict[str, Any]:
+    """One set's records of several policies as one, their profits averaged episode by episode: a recipe
+    measured over its pairs of seeds rather than one draw (the same tasks and episodes, so the same MPC-F:
+    refused otherwise)."""
+    first = records[0]
+    if any(list(r["tasks"]) != list(first["tasks"]) or r["episodes"] != first["episodes"] for r in records):
+        raise SystemExit("the records hold other tasks or episodes than the first's")
+    tasks_ = {name: {"policy": list(np.mean([r["tasks"][name]["policy"] for r in records], axis=0)), "mpc-forecast": t["mpc-forecast"]}
+              for name, t in first["tasks"].items()}  # fmt: skip
+    return {**first, "policy": " + ".join(r["policy"] for r in records), "tasks": tasks_}
 
 
 def rule_file(out_dir: str | Path, label: str, name: str) -> Path:
@@ -469,6 +474,28 @@ def rule_rows(reference: dict[str, dict[str, Any]], candidate: dict[str, dict[st
         rows.append({"set": name, "what": what, "reference": float(ref.mean()), "candidate": float(cand.mean()),
                      "diff": float(d.mean()), "se": paired_se(d)[1], "passes": passes})  # fmt: skip
     return rows
+
+
+def print_rule_table(rows: list[dict[str, Any]], reference: str, candidate: str) -> bool:
+    """:func:`rule_rows` as a markdown table; whether every set passes."""
+    print(f"| rule set | {reference} | {candidate} | difference (SE by episode) | passes |\n|---|---|---|---|---|")
+    for r in rows:
+        unit = "%" if r["what"] == "gap" else ""
+        fmt = (lambda v: f"{v:.3f}%") if r["what"] == "gap" else (lambda v: f"{v:,.0f}")
+        print(f"| {r['set']} ({'gap to MPC-F' if r['what'] == 'gap' else 'profit'}) | {fmt(r['reference'])} | {fmt(r['candidate'])} "
+              f"| {r['diff']:+.3f}{unit} ({r['se']:.3f}) | {'yes' if r['passes'] else '**no**'} |")  # fmt: skip
+    return all(r["passes"] for r in rows)
+
+
+def recipes(first: list[str], second: list[str]) -> bool:
+    """Two recipes on the rule's sets, each its pairs' kept records averaged episode by episode (a record
+    prefix is a rule dir and label: ``runs/rule6/candidate`` reads ``runs/rule6/candidate_<set>.json``): the
+    rule's table for the second against the first. It decides nothing; it says whether a difference
+    between two pairs outlives the seeds."""
+    def pooled(prefixes: list[str]) -> dict[str, dict[str, Any]]:
+        return {name: averaged([json.loads(rule_file(Path(p).parent, Path(p).name, name).read_text()) for p in prefixes]) for name in RULE_SETS}
+
+    return print_rule_table(rule_rows(pooled(first), pooled(second)), " + ".join(first), " + ".join(second))
 
 
 def rule_record(out_dir: str | Path, label: str, name: str, policy: str, episodes: int) -> dict[str, Any] | None:
@@ -513,16 +540,9 @@ def rule(policy: str, reference: str, out_dir: str, episodes: int = 20, workers:
             recs[label][name] = record
     if reference == RULE_AVERAGED_WITH:  # the tables' recipe, not one draw of it, where its replicate did worse
         for name in RULE_AVERAGED:
-            recs["reference"][name] = with_replicate(recs["reference"][name], json.loads(rule_file(RULE_RECORDS, "replicate", name).read_text()))
+            recs["reference"][name] = averaged([recs["reference"][name], json.loads(rule_file(RULE_RECORDS, "replicate", name).read_text())])
         print(f"reference on {', '.join(RULE_AVERAGED)}: {reference} and its replicate (seeds 2, 3) averaged")
-    rows = rule_rows(recs["reference"], recs["candidate"])
-    print(f"| rule set | {reference} | {policy} | difference (SE by episode) | passes |\n|---|---|---|---|---|")
-    for r in rows:
-        unit = "%" if r["what"] == "gap" else ""
-        fmt = (lambda v: f"{v:.3f}%") if r["what"] == "gap" else (lambda v: f"{v:,.0f}")
-        print(f"| {r['set']} ({'gap to MPC-F' if r['what'] == 'gap' else 'profit'}) | {fmt(r['reference'])} | {fmt(r['candidate'])} "
-              f"| {r['diff']:+.3f}{unit} ({r['se']:.3f}) | {'yes' if r['passes'] else '**no**'} |")  # fmt: skip
-    verdict = all(r["passes"] for r in rows)
+    verdict = print_rule_table(rule_rows(recs["reference"], recs["candidate"]), reference, policy)
     print(f"verdict: {'the candidate replaces the reference' if verdict else 'no: the reference stays'}")
     return verdict
 
@@ -723,7 +743,7 @@ def misread(policy: str, names: list[str], episodes: int = 20, seed: int = 1000,
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hold", "steps", "hotspot", "transplant", "tasks", "compare", "rule", "misread"])
+    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hold", "steps", "hotspot", "transplant", "tasks", "compare", "rule", "recipes", "misread"])
     parser.add_argument("files", nargs="*", help="compare: two tasks --out files (the second against the first)")
     parser.add_argument("--policy", default="policies/meta_rl_l1_cities.pt")
     parser.add_argument("--demos", default="runs/meta_demos")
@@ -738,6 +758,8 @@ def main() -> None:
     parser.add_argument("--reference", default=META_POLICY, help="rule: the policy the candidate (--policy) must beat (default: the tables' meta-rl)")
     parser.add_argument("--rule-dir", default="runs/rule", help="rule: where each set's tasks files go (reused when they hold the same policy)")
     parser.add_argument("--workers", type=int, default=1, help="rule, tasks: processes the tasks run over (one core each)")
+    parser.add_argument("--first", default="", help="recipes: the first recipe's record prefixes, comma-separated (docs/meta/rule/reference)")
+    parser.add_argument("--second", default="", help="recipes: the second recipe's record prefixes, comma-separated")
     parser.add_argument("--rule-episodes", type=int, default=20, help="rule: validation episodes per task")
     parser.add_argument("--last", type=int, default=3, help="hold: the episode's last steps held")
     parser.add_argument("--windows", default="0-5,6-11,12-14,15-16,17-18", help="steps: the step windows MPC-F plays in (inclusive)")
@@ -767,6 +789,10 @@ def main() -> None:
         tasks(args.policy, args.cities.split(","), args.episodes, args.out, mpc_from=args.mpc_from, k=args.k, workers=args.workers)
     elif args.what == "rule":
         rule(args.policy, args.reference, args.rule_dir, args.rule_episodes, args.workers)
+    elif args.what == "recipes":
+        if not (args.first and args.second):
+            parser.error("recipes needs --first and --second record prefixes")
+        recipes(args.first.split(","), args.second.split(","))
     elif args.what == "misread":
         freeze = set().union(*windows_of(args.freeze).values()) if args.freeze else None  # every window given, not the first
         misread(args.policy, args.cities.split(","), args.episodes, k=args.k, freeze=freeze)

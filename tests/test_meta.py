@@ -755,19 +755,32 @@ def test_rule_reads_the_tables_records_for_its_reference_and_keeps_a_copy(tmp_pa
     assert md.rule_record(shipped, "reference", "sink events", "ref.yaml", 3) is None
 
 
-def test_the_rule_reference_averages_in_the_replicate_episode_by_episode():
+def test_the_rule_reference_averages_in_the_replicate_episode_by_episode(tmp_path, capsys):
     """benchmarks/meta_diagnostics.py rule: where the recipe's replicate did worse, the reference is both
-    pairs averaged per episode (MPC-F's profits unchanged); a replicate of other tasks is refused."""
+    pairs averaged per episode (MPC-F's profits unchanged); records of other tasks are refused; ``recipes``
+    reads two recipes' kept records, each averaged, and judges the second against the first."""
+    import json
+
     import meta_diagnostics as md
 
     ref = {"policy": "ref.yaml", "episodes": 2, "tasks": {"a": {"policy": [10.0, 20.0], "mpc-forecast": [30.0, 31.0]}}}
     rep = {"policy": "rep.yaml", "episodes": 2, "tasks": {"a": {"policy": [14.0, 10.0], "mpc-forecast": [30.0, 31.0]}}}
-    both = md.with_replicate(ref, rep)
+    both = md.averaged([ref, rep])
     assert both["tasks"]["a"] == {"policy": [12.0, 15.0], "mpc-forecast": [30.0, 31.0]} and ref["tasks"]["a"]["policy"] == [10.0, 20.0]
+    assert both["policy"] == "ref.yaml + rep.yaml"
     with pytest.raises(SystemExit, match="other tasks"):
-        md.with_replicate(ref, {**rep, "tasks": {"b": rep["tasks"]["a"]}})
+        md.averaged([ref, {**rep, "tasks": {"b": rep["tasks"]["a"]}}])
     assert set(md.RULE_AVERAGED) < set(md.RULE_SETS)
     assert all(md.rule_file(md.RULE_RECORDS, "replicate", name).is_file() for name in md.RULE_AVERAGED)
+
+    for label, profit in (("a0", 80.0), ("a1", 90.0), ("b0", 70.0), ("b1", 99.0)):  # recipe b: 84.5 against a's 85 on average
+        for name, (_, names) in md.RULE_SETS.items():
+            tasks = {t: {"policy": [profit, profit], "mpc-forecast": [100.0, 100.0]} for t in names}
+            md.rule_file(tmp_path, label, name).write_text(json.dumps({"policy": label, "seed": 1000, "episodes": 2, "k": 3, "tasks": tasks}))
+    assert md.recipes([str(tmp_path / "a0"), str(tmp_path / "a1")], [str(tmp_path / "b0"), str(tmp_path / "b1")]) is False
+    assert "| 15.000% | 15.500% | +0.500% (0.000) | **no** |" in capsys.readouterr().out
+    assert md.recipes([str(tmp_path / "a0")], [str(tmp_path / "b0"), str(tmp_path / "b1")]) is True  # 84.5 against 80 alone
+    assert md.recipes([str(tmp_path / "a1")], [str(tmp_path / "b0"), str(tmp_path / "b1")]) is False
 
 
 def test_rule_tasks_measured_in_two_processes_are_those_measured_in_one(tmp_path):
