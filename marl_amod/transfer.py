@@ -32,7 +32,7 @@ Strategy = Literal["zero-shot", "fine-tune", "meta-rl", "single-city", "mpc-fore
 STRATEGIES: tuple[Strategy, ...] = ("zero-shot", "fine-tune", "meta-rl", "single-city", "mpc-forecast", "mpc-oracle")
 K_FINE_TUNE = 10  # online (training) episodes fine-tuning gets in the target city
 FINE_TUNE_VALIDATION = 2  # deterministic validation episodes of the start and of the end
-META_POLICY = "policies/meta_rl_l1_cut_ensemble.yaml"  # two training seeds of configs/meta/bc_dagger_l1_cut*.yaml (chosen by its rule: docs/meta/log.md)
+META_POLICY = "policies/meta_rl_l1_whole_ensemble.yaml"  # two training seeds of configs/meta/bc_dagger_l1_whole_rep*.yaml (chosen by its rule: docs/meta/log.md)
 
 
 @dataclass(frozen=True)
