@@ -42,10 +42,11 @@
   sink variants, the training-city events, the shaped set, the hotspot events and the sink events (:data:`RULE_SETS`,
   20 validation episodes each) for ``--reference`` (the tables' meta-rl by default) and the candidate
   ``--policy``, each set's file under ``--rule-dir`` (reused when it holds the same policy; the tables'
-  meta-rl's own are shipped in ``docs/meta/rule/``), then the measures paired by episode and the
-  verdict: every one must pass (docs/meta/log.md). ``--workers 2`` runs the tasks over two processes.
+  meta-rl's own are shipped in ``docs/meta/rule/``, with its recipe's other pair, which the reference
+  averages in), then the measures paired by episode and the verdict: every one must pass
+  (docs/meta/log.md). ``--workers 2`` runs the tasks over two processes.
 * ``recipes``: two recipes on the rule's sets from records the rule kept, each recipe's pairs averaged
-  episode by episode (``--first`` and ``--second``: record prefixes, ``runs/rule6/candidate``), the
+  episode by episode (``--first`` and ``--second``: record prefixes, ``docs/meta/rule/cut01``), the
   second against the first in the rule's table. It decides nothing: does a difference outlive the seeds?
 * ``misread``: each evented task (``--cities``: event tasks ``<city>~ev...`` or scenarios with
   ``events:``) scored with the memory adapted on the evented day, on the usual day and not at all:
@@ -72,11 +73,12 @@
     python benchmarks/meta_diagnostics.py hotspot --cities san_francisco --episodes 0 --own
     python benchmarks/meta_diagnostics.py transplant --cities san_francisco,nyc_brooklyn --episodes 8
     python benchmarks/meta_diagnostics.py hold --cities nyc_brooklyn,san_francisco --last 3
-    python benchmarks/meta_diagnostics.py steps --cities san_francisco --policy policies/meta_rl_l1_cut_ensemble.yaml
+    python benchmarks/meta_diagnostics.py steps --cities san_francisco --policy policies/meta_rl_l1_whole_ensemble.yaml
     python benchmarks/meta_diagnostics.py tasks --cities porto~hot1x2.5,porto~ev7+12x6@6-14dr1+2x0.5 --episodes 20 --out A.json
     python benchmarks/meta_diagnostics.py compare A.json B.json
-    python benchmarks/meta_diagnostics.py misread --cities nyc_brooklyn_event,porto~ev7+12x6@6-14dr1+2x0.5 --episodes 20 --policy policies/meta_rl_l1_cut_ensemble.yaml
-    python benchmarks/meta_diagnostics.py rule --policy runs/ens/candidate.yaml --workers 2 [--reference policies/meta_rl_l1_cut_ensemble.yaml]
+    python benchmarks/meta_diagnostics.py misread --cities nyc_brooklyn_event,porto~ev7+12x6@6-14dr1+2x0.5 --episodes 20 --policy policies/meta_rl_l1_whole_ensemble.yaml
+    python benchmarks/meta_diagnostics.py rule --policy runs/ens/candidate.yaml --workers 2 [--reference policies/meta_rl_l1_whole_ensemble.yaml]
+    python benchmarks/meta_diagnostics.py recipes --first docs/meta/rule/cut01,docs/meta/rule/cut23 --second docs/meta/rule/replicate,docs/meta/rule/reference
 """
 
 from __future__ import annotations
@@ -439,11 +441,11 @@ RULE_SETS: dict[str, tuple[str, list[str]]] = {
 
 RULE_SEED, RULE_K = 1000, 3  # the validation streams, and the adaptation episodes as deployed
 RULE_RECORDS = Path(__file__).resolve().parent.parent / "docs" / "meta" / "rule"  # the tables' meta-rl's sets, as the rule measured them
-# The sets on which a replicate of the tables' recipe (seeds 2, 3) did worse than the tables' pair: there the reference
-# is both pairs averaged episode by episode, so a candidate beats the recipe, not its luckiest draw (docs/meta/log.md,
-# "The tables' recipe, two fresh seeds"; the replicate's records are RULE_RECORDS' replicate_*.json).
-RULE_AVERAGED_WITH = "policies/meta_rl_l1_cut_ensemble.yaml"  # the pair the replicate replicates
-RULE_AVERAGED = ("hotspot variants x2.5", "skew variants 2.7", "training-city events", "shaped set", "hotspot events", "sink events")
+# The rule's reference is the tables' recipe, not one draw of it: where the reference is the tables' pair, each set's
+# record is that pair and the recipe's other pair (RULE_RECORDS' replicate_*.json: the whole-trials recipe's seeds 0
+# and 1) averaged episode by episode (docs/meta/log.md, "The tables' recipe, two fresh seeds", "Whole DAgger trials,
+# two fresh seeds"). The earlier recipe's two pairs are kept beside them (cut01_*, cut23_*) for ``recipes``.
+RULE_AVERAGED_WITH = "policies/meta_rl_l1_whole_ensemble.yaml"  # the pair whose recipe the replicate shares
 
 
 def averaged(records: list[dict[str, Any]]) -> dict[str, Any]:
@@ -519,7 +521,7 @@ def rule(policy: str, reference: str, out_dir: str, episodes: int = 20, workers:
     ``policy`` on the same validation episodes (each set's ``tasks`` file under ``out_dir``, reused when it
     holds the same policy path, tasks and episodes: use a fresh ``out_dir`` after retraining a file in place;
     MPC-F run once, for the reference; the reference's own from :data:`RULE_RECORDS` when it is the tables'),
-    then a table of the measures (against the tables' pair, on :data:`RULE_AVERAGED` its replicate averaged in).
+    then a table of the measures (against the tables' pair, its recipe's other pair averaged in: :data:`RULE_AVERAGED_WITH`).
     All pass: the candidate replaces the reference. Returns the verdict."""
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     recs: dict[str, dict[str, dict[str, Any]]] = {"reference": {}, "candidate": {}}
@@ -538,10 +540,10 @@ def rule(policy: str, reference: str, out_dir: str, episodes: int = 20, workers:
                 print_task(task, record["tasks"][task])
             rule_file(out_dir, label, name).write_text(json.dumps(record, indent=1))
             recs[label][name] = record
-    if reference == RULE_AVERAGED_WITH:  # the tables' recipe, not one draw of it, where its replicate did worse
-        for name in RULE_AVERAGED:
+    if reference == RULE_AVERAGED_WITH:  # the tables' recipe, not one draw of it
+        for name in RULE_SETS:
             recs["reference"][name] = averaged([recs["reference"][name], json.loads(rule_file(RULE_RECORDS, "replicate", name).read_text())])
-        print(f"reference on {', '.join(RULE_AVERAGED)}: {reference} and its replicate (seeds 2, 3) averaged")
+        print(f"reference: {reference} and its recipe's other pair averaged")
     verdict = print_rule_table(rule_rows(recs["reference"], recs["candidate"]), reference, policy)
     print(f"verdict: {'the candidate replaces the reference' if verdict else 'no: the reference stays'}")
     return verdict
@@ -758,7 +760,7 @@ def main() -> None:
     parser.add_argument("--reference", default=META_POLICY, help="rule: the policy the candidate (--policy) must beat (default: the tables' meta-rl)")
     parser.add_argument("--rule-dir", default="runs/rule", help="rule: where each set's tasks files go (reused when they hold the same policy)")
     parser.add_argument("--workers", type=int, default=1, help="rule, tasks: processes the tasks run over (one core each)")
-    parser.add_argument("--first", default="", help="recipes: the first recipe's record prefixes, comma-separated (docs/meta/rule/reference)")
+    parser.add_argument("--first", default="", help="recipes: the first recipe's record prefixes, comma-separated (docs/meta/rule/cut01,docs/meta/rule/cut23)")
     parser.add_argument("--second", default="", help="recipes: the second recipe's record prefixes, comma-separated")
     parser.add_argument("--rule-episodes", type=int, default=20, help="rule: validation episodes per task")
     parser.add_argument("--last", type=int, default=3, help="hold: the episode's last steps held")

@@ -756,8 +756,8 @@ def test_rule_reads_the_tables_records_for_its_reference_and_keeps_a_copy(tmp_pa
 
 
 def test_the_rule_reference_averages_in_the_replicate_episode_by_episode(tmp_path, capsys):
-    """benchmarks/meta_diagnostics.py rule: where the recipe's replicate did worse, the reference is both
-    pairs averaged per episode (MPC-F's profits unchanged); records of other tasks are refused; ``recipes``
+    """benchmarks/meta_diagnostics.py rule: the tables' reference is both pairs of its recipe averaged per
+    episode (MPC-F's profits unchanged), every pair's records shipped; records of other tasks are refused; ``recipes``
     reads two recipes' kept records, each averaged, and judges the second against the first."""
     import json
 
@@ -770,8 +770,11 @@ def test_the_rule_reference_averages_in_the_replicate_episode_by_episode(tmp_pat
     assert both["policy"] == "ref.yaml + rep.yaml"
     with pytest.raises(SystemExit, match="other tasks"):
         md.averaged([ref, {**rep, "tasks": {"b": rep["tasks"]["a"]}}])
-    assert set(md.RULE_AVERAGED) < set(md.RULE_SETS)
-    assert all(md.rule_file(md.RULE_RECORDS, "replicate", name).is_file() for name in md.RULE_AVERAGED)
+    assert md.RULE_AVERAGED_WITH == md.META_POLICY
+    for label in ("reference", "replicate", "cut01", "cut23"):  # the tables' recipe's two pairs, the earlier recipe's two
+        assert all(md.rule_file(md.RULE_RECORDS, label, name).is_file() for name in md.RULE_SETS)
+    (tmp_path / "shipped").mkdir()
+    assert all(md.rule_record(tmp_path / "shipped", "reference", name, md.META_POLICY, 20) for name in md.RULE_SETS)  # read, not rerun
 
     for label, profit in (("a0", 80.0), ("a1", 90.0), ("b0", 70.0), ("b1", 99.0)):  # recipe b: 84.5 against a's 85 on average
         for name, (_, names) in md.RULE_SETS.items():
