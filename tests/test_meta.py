@@ -833,3 +833,28 @@ def test_a_memory_frozen_at_every_step_adapts_to_nothing_and_unfreezes_after():
         moved = meta.adapt(model, city, 2, 6, seed=0)
     assert not torch.equal(moved.adapted, fresh)
     torch.testing.assert_close(meta.adapt(model, city, 2, 6, seed=0).adapted, moved.adapted)  # unfrozen after
+
+
+def test_the_pairs_figure_reads_every_pair_and_its_tables_row_is_the_tables(tmp_path):
+    """benchmarks/meta_pairs_plot.py: docs/meta/pairs.csv holds four numbers and a verdict for every
+    pair, its last chosen pair is the tables' meta-rl to the rounding (so the figure cannot drift from
+    the tables), a bad row is refused, and the figure is written."""
+    import json
+
+    import meta_pairs_plot as mp
+
+    rows = mp.load_pairs()
+    tables = [r for r in rows if r["verdict"] == "yes"][-1]
+    for city in mp.CITIES:
+        rows_ = json.loads((mp.DOCS / "intercity.json").read_text())["targets"][city]
+        gap = 100 * (1 - rows_["meta-rl"]["metrics"]["profit"]["mean"] / rows_["mpc-oracle"]["metrics"]["profit"]["mean"])
+        assert float(tables[city]) == pytest.approx(gap, abs=0.005), city
+    event = json.loads((mp.DOCS / "event.json").read_text())["targets"]["nyc_brooklyn_event"]["meta-rl"]["metrics"]["profit"]["mean"]
+    assert float(tables["event"]) == pytest.approx(event, abs=0.5)
+    bad = tmp_path / "pairs.csv"
+    bad.write_text(mp.DOCS.joinpath("pairs.csv").read_text().replace(",yes\n", ",maybe\n", 1))
+    with pytest.raises(SystemExit, match="verdict"):
+        mp.load_pairs(bad)
+    from marl_amod.plots import save_figure
+
+    assert save_figure(mp.figure(rows, mp.event_references()), tmp_path / "pairs.png").stat().st_size > 10_000
