@@ -445,7 +445,7 @@ RULE_RECORDS = Path(__file__).resolve().parent.parent / "docs" / "meta" / "rule"
 # record is that pair and the recipe's other pair (RULE_RECORDS' replicate_*.json: the whole-trials recipe's seeds 0
 # and 1) averaged episode by episode (docs/meta/log.md, "The tables' recipe, two fresh seeds", "Whole DAgger trials,
 # two fresh seeds"). The earlier recipe's two pairs are kept beside them (cut01_*, cut23_*) for ``recipes``.
-RULE_AVERAGED_WITH = "policies/meta_rl_l1_whole_ensemble.yaml"  # the pair whose recipe the replicate shares
+RULE_AVERAGED_WITH = META_POLICY  # the tables' pair, whose recipe the replicate shares (its records hold this path: tested)
 
 
 def averaged(records: list[dict[str, Any]]) -> dict[str, Any]:
