@@ -412,9 +412,17 @@ def load_policy(path: str | Path, city: City | str | None = None, selection: Sel
     ``selection`` (default: the card's) picks each action among candidates by the file's critic
     (:mod:`marl_amod.selection`); ``{"candidates": 0, ...}`` turns a card's selection off.
     An ensemble file (:mod:`marl_amod.ensemble`) gives its members' mean, each member loaded so."""
-    from marl_amod.ensemble import is_ensemble, load_ensemble
+    from marl_amod.ensemble import is_ensemble, load_ensemble, read_spec
 
     if is_ensemble(path):
+        if read_spec(path).adaptation is not None:  # how its meta-policies adapt (write_ensemble refuses it for others)
+            from marl_amod.algos import meta
+            from marl_amod.ensemble import read_members
+            from marl_amod.scenario import load_city
+
+            if not isinstance(city, City):
+                city = load_city(city if city is not None else training_scenario(read_card(read_members(path)[0])))
+            return meta.load_policy(path, city)
         return load_ensemble(path, lambda member: load_policy(member, city, selection))
     card = _card_of(Path(path), _read_blob(Path(path))["card"])
     if not isinstance(city, City):

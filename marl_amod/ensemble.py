@@ -9,6 +9,8 @@ them that loads wherever a checkpoint does (``make_policy``, ``marl-amod evaluat
 
     # policies/meta_rl_l1_ensemble.yaml
     members: [meta_rl_l1_cities.pt, seeds/meta_rl_l1_cities_seed1.pt]
+    adaptation: mean   # optional, meta-policies only: how they act in their adaptation episodes
+
 
 ``marl-amod ensemble MEMBER.pt MEMBER.pt --out X.yaml`` writes the file and its card (``X.md``:
 each member's card in a row). Member paths are relative to the file. A member that reads its own
@@ -23,7 +25,7 @@ from __future__ import annotations
 import os
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -34,13 +36,17 @@ from marl_amod.errors import ConfigError, DataError, pydantic_problems
 from marl_amod.system import FleetSystem
 
 ENSEMBLE_SUFFIXES = (".yaml", ".yml")
+Adaptation = Literal["sampled", "mean", "prior-concentration"]
+"""How a meta-policy acts in its adaptation episodes (:func:`marl_amod.algos.meta.adapt`)."""
 
 
 class EnsembleFile(BaseModel):
-    """What an ensemble file holds: two or more policy files (relative to it)."""
+    """What an ensemble file holds: two or more policy files (relative to it) and, for meta-policies,
+    how they adapt (None: as each was trained, sampled)."""
 
     model_config = ConfigDict(extra="forbid")
     members: list[str] = Field(min_length=2)
+    adaptation: Adaptation | None = None
 
 
 def is_ensemble(path: str | Path) -> bool:
@@ -48,13 +54,18 @@ def is_ensemble(path: str | Path) -> bool:
     return Path(path).suffix in ENSEMBLE_SUFFIXES
 
 
+def read_spec(path: str | Path) -> EnsembleFile:
+    """The ensemble file ``path``, validated (members not yet checked: :func:`read_members`)."""
+    try:
+        return EnsembleFile.model_validate(read_yaml(Path(path), what="ensemble"))
+    except ValidationError as exc:
+        raise ConfigError(f"ensemble {path}: {pydantic_problems(exc)}") from None
+
+
 def read_members(path: str | Path) -> list[Path]:
     """The member checkpoints of the ensemble file ``path``, each checked to be there."""
     path = Path(path)
-    try:
-        spec = EnsembleFile.model_validate(read_yaml(path, what="ensemble"))
-    except ValidationError as exc:
-        raise ConfigError(f"ensemble {path}: {pydantic_problems(exc)}") from None
+    spec = read_spec(path)
     members = [path.parent / m for m in spec.members]
     for m in members:
         if m.suffix != ".pt":
@@ -110,27 +121,35 @@ def load_ensemble(path: str | Path, load_member: Callable[[Path], WeightPolicy])
     return PolicyEnsemble([load_member(m) for m in read_members(path)], name=Path(path).stem)
 
 
-def write_ensemble(out: str | Path, members: list[str | Path]) -> Path:
+def write_ensemble(out: str | Path, members: list[str | Path], adaptation: Adaptation | None = None) -> Path:
     """Write the ensemble file ``out`` (.yaml) of the checkpoints ``members`` (paths relative to it)
-    and its card ``out.md``; each member is read first, so a file that is not a policy fails here."""
+    and its card ``out.md``; each member is read first, so a file that is not a policy fails here
+    (and ``adaptation`` is refused unless every member is a meta-policy)."""
     from marl_amod.checkpoints import read_card
     from marl_amod.files import atomic_write
 
     out = Path(out)
     if out.suffix not in ENSEMBLE_SUFFIXES:
         raise ConfigError(f"ensemble {out}: name it .yaml")
+    try:
+        EnsembleFile(members=[str(m) for m in members], adaptation=adaptation)
+    except ValidationError as exc:
+        raise ConfigError(f"ensemble {out}: {pydantic_problems(exc)}") from None
     cards = [read_card(m) for m in members]
+    if adaptation is not None and (others := [str(m) for m, c in zip(members, cards, strict=True) if c["algorithm"] not in ("meta", "meta-bc")]):
+        raise ConfigError(f"ensemble {out}: adaptation is how meta-policies adapt; {', '.join(others)} are not meta-policies")
     relative = [Path(os.path.relpath(Path(m).resolve(), out.resolve().parent)).as_posix() for m in members]
-    atomic_write(out, "members:\n" + "".join(f"  - {r}\n" for r in relative))
+    atomic_write(out, "members:\n" + "".join(f"  - {r}\n" for r in relative) + (f"adaptation: {adaptation}\n" if adaptation else ""))
     read_members(out)  # what loading will check, checked now
-    atomic_write(out.with_suffix(".md"), ensemble_markdown(out, [str(m) for m in members], cards))
+    atomic_write(out.with_suffix(".md"), ensemble_markdown(out, [str(m) for m in members], cards, adaptation))
     return out
 
 
-def ensemble_markdown(path: Path, members: list[str], cards: list[dict[str, Any]]) -> str:
+def ensemble_markdown(path: Path, members: list[str], cards: list[dict[str, Any]], adaptation: Adaptation | None = None) -> str:
     """The card of an ensemble: its members' cards side by side, training wall time summed."""
     fields = ("algorithm", "seed", "config", "updates", "training_wall_s", "eval_streams", "profit_mean")
-    lines = [f"# Policy ensemble `{path.stem}`", "", f"The mean of {len(members)} policies' desired distributions (`marl_amod.ensemble`).", "",
+    adapts = f" Its meta-policies act by `{adaptation}` in their adaptation episodes." if adaptation else ""
+    lines = [f"# Policy ensemble `{path.stem}`", "", f"The mean of {len(members)} policies' desired distributions (`marl_amod.ensemble`).{adapts}", "",
              "| member | " + " | ".join(fields) + " |", "|---" * (len(fields) + 1) + "|"]  # fmt: skip
     for member, card in zip(members, cards, strict=True):
         cells = [f"{card[k]:,.2f}" if isinstance(card.get(k), float) else str(card.get(k, "-")) for k in fields]
@@ -139,6 +158,6 @@ def ensemble_markdown(path: Path, members: list[str], cards: list[dict[str, Any]
     longest = max(float(c.get("training_wall_s") or 0.0) for c in cards)
     lines += ["", f"Training: {wall / 60:,.1f} min in all; {longest / 60:,.1f} min for the longest member (the wall time when the members "
               "train side by side, one core each).", "",
-              f"Make: `marl-amod ensemble {' '.join(members)} --out {path}`", "",
+              f"Make: `marl-amod ensemble {' '.join(members)} --out {path}{f' --adaptation {adaptation}' if adaptation else ''}`", "",
               f"Evaluate: `marl-amod evaluate --scenario {cards[0]['scenario']} --policy {path} --episodes 10`", ""]  # fmt: skip
     return "\n".join(lines)

@@ -10,7 +10,7 @@ import torch
 
 from marl_amod.algos import meta
 from marl_amod.baselines import EqualDistribution, Proportional
-from marl_amod.ensemble import PolicyEnsemble
+from marl_amod.ensemble import PolicyEnsemble, write_ensemble
 from marl_amod.errors import ConfigError
 from marl_amod.evaluation import evaluate
 from marl_amod.policies import make_policy
@@ -158,3 +158,51 @@ def test_the_meta_rl_row_says_seeds_only_for_members_of_one_recipe():
     older = card(1)
     del older["args"]["lr"]  # a card written before an argument existed is not another recipe for it
     assert meta_used([card(0), older])["source_city"].startswith("2 seeds x (")
+
+
+def _stay_prior_file(tmp_path, name: str, level: float) -> str:
+    """A stay-prior meta-policy whose actor outputs carry a common ``level`` (the actor's last bias)."""
+    args = meta.Args(scenario="synthetic", hidden=8, trial_episodes=2, final_eval_episodes=1, stay_prior=True,
+                     run_dir=str(tmp_path / name), policy_out=str(tmp_path / f"{name}.pt"))  # fmt: skip
+    torch.manual_seed(0)
+    model = meta.make_model(args)
+    with torch.no_grad():
+        model.actor[-1].bias += level
+    return meta.finish(args, model, 0.0, 0, None)["policy"]
+
+
+def test_adaptation_by_the_mean_or_the_priors_concentration_does_not_read_the_actors_level(tmp_path):
+    """Two stay-prior policies that differ only in their actor's common level (-3 and +3: the same
+    Dirichlet means, concentrations e^6 apart) adapt to different memories when they sample, and to
+    the same one by the mean or with the prior's concentration."""
+    city = load_city("synthetic")
+    low, high = _stay_prior_file(tmp_path, "low", -3.0), _stay_prior_file(tmp_path, "high", 3.0)
+    memory = {mode: [meta.load_policy(p, city, 2, seed=0, adaptation=mode).adapted for p in (low, high)]
+              for mode in ("sampled", "mean", "prior-concentration")}  # fmt: skip
+    assert not torch.allclose(*memory["sampled"], atol=1e-4)
+    torch.testing.assert_close(*memory["mean"], rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(*memory["prior-concentration"], rtol=1e-4, atol=1e-5)
+    assert not torch.allclose(memory["mean"][0], memory["prior-concentration"][0], atol=1e-4)
+
+
+def test_an_ensemble_file_says_how_its_meta_members_adapt(tmp_path, members):
+    from typer.testing import CliRunner
+
+    from marl_amod.cli import app
+
+    city = load_city("synthetic")
+    out = tmp_path / "pair.yaml"
+    result = CliRunner().invoke(app, ["ensemble", str(members[0]), str(members[1]), "--out", str(out), "--adaptation", "mean"])
+    assert result.exit_code == 0, result.output
+    assert "adaptation: mean" in out.read_text() and "--adaptation mean" in out.with_suffix(".md").read_text()
+    by_file = [m.adapted for m in make_policy(str(out), city).members]
+    by_call = [meta.load_policy(m, city, seed=0, adaptation="mean").adapted for m in members]
+    for a, b in zip(by_file, by_call, strict=True):
+        torch.testing.assert_close(a, b)
+    sampled = meta.load_policy(members[0], city, seed=0).adapted
+    assert not torch.allclose(by_file[0], sampled, atol=1e-4)
+    bad = CliRunner().invoke(app, ["ensemble", str(members[0]), str(members[1]), "--out", str(tmp_path / "b.yaml"), "--adaptation", "greedy"])
+    assert bad.exit_code != 0 and "adaptation" in str(bad.exception) and not (tmp_path / "b.yaml").exists()
+    actor = str(Path("policies", "a2c_gnn_synthetic.pt").resolve())
+    with pytest.raises(ConfigError, match="not meta-policies"):
+        write_ensemble(tmp_path / "c.yaml", [members[0], actor], "mean")

@@ -184,14 +184,14 @@ def test_recurrent_gnn_is_size_agnostic_batched_and_its_memory_changes_the_actio
         assert not torch.allclose(alpha, again)
 
 
-@pytest.mark.parametrize("stay_prior, readout", [(True, "mean-max"), (False, "max")])
-def test_recurrent_gnn_on_padded_cities_is_each_city_on_its_own(stay_prior, readout):
+@pytest.mark.parametrize("stay_prior, readout, centred", [(True, "mean-max", False), (False, "max", False), (True, "none", True)])
+def test_recurrent_gnn_on_padded_cities_is_each_city_on_its_own(stay_prior, readout, centred):
     """Cities of 6 and 16 regions in one (C, B, N_max) batch: each city's concentrations, value and
     memory are those of the city alone, whatever the padding holds; the padding's alpha is 0."""
     from marl_amod.models.dense import DenseGraph, PaddedGraphs
 
     torch.manual_seed(0)
-    model = RecurrentGNN(n_features=5, hidden=8, stay_prior=stay_prior, readout=readout)
+    model = RecurrentGNN(n_features=5, hidden=8, stay_prior=stay_prior, readout=readout, centred=centred)
     graphs = [DenseGraph(torch.as_tensor(np.array(c.edge_index)), c.n_regions) for c in (grid_city(rows=2, cols=3), grid_city(rows=4, cols=4))]
     padded = PaddedGraphs(graphs)
     x, a, rr, r, mem = torch.rand(2, 3, 16, 5), torch.rand(2, 3, 16), torch.rand(2, 3, 16), torch.rand(2, 3), torch.rand(2, 3, 16, 8)
@@ -248,6 +248,46 @@ def test_the_stay_prior_starts_from_the_idle_vehicles_distribution():
     assert np.abs(system.targets_from_weights(w) - idle).sum() <= 0.25 * idle.sum()
     torch.nn.init.constant_(model.actor[-1].bias, 1.0)  # the same log-ratio everywhere: the same mean
     np.testing.assert_allclose(agent.act(system, sample=False)[0][0], w, rtol=1e-5)
+
+
+def test_a_common_level_past_the_clamp_stalls_the_actor_unless_it_is_centred():
+    """The stay prior's mean reads only the differences of the actor's log-ratios. Pushed to a common
+    level past the clamp (+25, where seed 7 of the tables' recipe sat), the plain actor plays the
+    stay prior and its imitation loss sends no gradient to the actor: it cannot come back. Centred,
+    the same weights give the mean and concentration of level 0, and the gradient flows."""
+    from marl_amod.models.dense import DenseGraph
+
+    city = grid_city(rows=2, cols=3)
+    graph = DenseGraph(torch.as_tensor(np.array(city.edge_index)), city.n_regions)
+    torch.manual_seed(0)
+    x, a, rr, r, mem = torch.rand(3, 6, 5), torch.rand(3, 6), torch.rand(3, 6), torch.rand(3), torch.rand(3, 6, 8)
+    target = torch.softmax(torch.randn(3, 6), -1)
+    out = {}
+    for centred in (False, True):
+        torch.manual_seed(1)
+        model = RecurrentGNN(n_features=5, hidden=8, stay_prior=True, centred=centred)
+        at_zero = model(x, a, rr, r, mem, graph)[0].detach()
+        with torch.no_grad():
+            model.actor[-1].bias += 25.0
+        alpha = model(x, a, rr, r, mem, graph)[0]
+        mean = alpha / alpha.sum(-1, keepdim=True)
+        (mean - target).abs().sum(-1).mean().backward()
+        grad = sum(float(p.grad.abs().sum()) for p in model.actor.parameters())
+        model.actor[-1].bias.data.zero_()
+        plain = model(x, a, rr, r, mem, graph)[0].detach()
+        out[centred] = (at_zero, alpha.detach(), mean.detach(), grad, plain)
+    at_zero, alpha, mean, grad, plain = out[False]
+    stay = RecurrentGNN(n_features=5, hidden=8, stay_prior=True)
+    torch.nn.init.zeros_(stay.actor[-1].weight), torch.nn.init.zeros_(stay.actor[-1].bias)
+    stay_alpha = stay(x, a, rr, r, mem, graph)[0].detach()
+    torch.testing.assert_close(mean, stay_alpha / stay_alpha.sum(-1, keepdim=True))  # the stay prior, whatever it was fitted to
+    assert grad == 0.0
+    at_zero, alpha, mean, grad, plain = out[True]
+    torch.testing.assert_close(alpha, at_zero, rtol=1e-5, atol=1e-4)  # no level to drift (to the rounding of +25 - 25)
+    assert grad > 0
+    torch.testing.assert_close(mean, plain / plain.sum(-1, keepdim=True))  # centring changes no mean within the clamp
+    with pytest.raises(ValueError, match="stay_prior"):
+        RecurrentGNN(n_features=5, hidden=8, centred=True)
 
 
 def test_the_demand_prior_gives_an_emptied_busy_region_weight():

@@ -294,6 +294,20 @@ def test_an_end_cut_policy_trains_on_cut_demonstrations_loads_with_its_cut_and_r
     with pytest.raises(DataError, match="end_cut"):
         meta.load_meta(tmp_path / "p.pt", like=meta.make_model(args.model_copy(update={"end_cut": False})))
 
+
+def test_a_centred_policy_loads_centred_and_refuses_to_warm_start_another(tasks, tmp_path):
+    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
+                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=1, eval_every=1,
+                   eval_episodes=1, final_eval_episodes=1, stay_prior=True, centred_actor=True, run_dir=str(tmp_path / "run"),
+                   policy_out=str(tmp_path / "p.pt"))  # fmt: skip
+    ALGOS["meta-bc"].train(args)
+    model, card = meta.load_meta(tmp_path / "p.pt")
+    assert model.centred and card["args"]["centred_actor"]
+    with pytest.raises(DataError, match="centred_actor"):
+        meta.load_meta(tmp_path / "p.pt", like=meta.make_model(args.model_copy(update={"centred_actor": False})))
+    with pytest.raises(ConfigError, match="stay_prior"):  # with the config, before any demonstration is collected
+        args_for("meta-bc", {"scenario": "synthetic", "cities": tasks, "centred_actor": True})
+
 @pytest.mark.parametrize(("first", "every", "rounds", "starts"), [(0, 3, 2, [0, 3]), (0, 500, 5, [0, 500, 1000, 1500, 2000]),
                                                                  (4, 3, 3, [4, 7, 10]), (5, 10, 1, [5])])
 def test_dagger_rounds_start_at_the_offset_and_a_resume_reads_back_the_ones_begun(first, every, rounds, starts):
@@ -687,3 +701,21 @@ def test_end_weight_counts_an_episodes_last_decisions_more(tasks, tmp_path):
     assert args_for("meta-bc", {"scenario": "synthetic", "cities": tasks, "imitation": "l1", "end_weight": 3.0}).fit == mi.Fit(
         imitation="l1", end_weight=3.0, end_steps=3
     )
+
+
+def test_a_run_whose_validations_stopped_moving_stops_says_so_and_keeps_the_best(tasks, tmp_path, monkeypatch):
+    """Seed 7 of the tables' recipe validated 0.43814 for 2,400 updates and finished in silence.
+    Validations that stay within STALL_TOL for ``stall_validations`` rounds now stop the run with a
+    warning and ``stalled_at`` on the card; ones that move (as converged runs do, ~1e-3) never do."""
+    assert not meta.stalled([0.5190, 0.5196, 0.5188, 0.5193, 0.5195], 5)  # a converged run's last validations
+    assert meta.stalled([0.43817, 0.43814, 0.43814, 0.43814, 0.43814], 5)  # seed 7's
+    assert not meta.stalled([0.43814] * 4, 5) and not meta.stalled([0.43814] * 9, 0)
+    flat = iter([0.40, 0.41, 0.43814, 0.43814, 0.43815, 0.43814, 0.9])
+    monkeypatch.setattr(meta, "validate", lambda *a, **k: next(flat))
+    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
+                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=7, eval_every=1,
+                   eval_episodes=1, final_eval_episodes=1, stay_prior=True, stall_validations=4, run_dir=str(tmp_path / "run"),
+                   policy_out=str(tmp_path / "p.pt"))  # fmt: skip
+    with pytest.warns(RuntimeWarning, match="no longer moves"):
+        out = ALGOS["meta-bc"].train(args)
+    assert out["card"]["stalled_at"] == 6 and out["card"]["updates"] == 6

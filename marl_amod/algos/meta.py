@@ -76,9 +76,10 @@ from __future__ import annotations
 
 import copy
 import itertools
+import warnings
 import weakref
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 from typing import Any, Literal
@@ -93,13 +94,13 @@ from marl_amod.algos.rollout import train_seed
 from marl_amod.baselines.base import WeightPolicy
 from marl_amod.batch_system import BatchFleetSystem
 from marl_amod.data import resolve
-from marl_amod.ensemble import PolicyEnsemble, is_ensemble, load_ensemble
+from marl_amod.ensemble import Adaptation, PolicyEnsemble, is_ensemble, load_ensemble, read_spec
 from marl_amod.env.features import state_features
 from marl_amod.errors import ConfigError, DataError
 from marl_amod.models.dense import DenseGraph
 from marl_amod.models.distributions import dirichlet
 from marl_amod.models.gnn import Readout
-from marl_amod.models.recurrent import RecurrentGNN
+from marl_amod.models.recurrent import STAY_CONCENTRATION, RecurrentGNN
 from marl_amod.scenario import City, load_city
 from marl_amod.scenario.registry import load_spec
 from marl_amod.scenario.types import step_rows
@@ -448,6 +449,7 @@ class MetaAgent:
         self.scale, (self.structure, self.place) = CityScale.of(city), features_read(model, lookahead)
         self.graph = city_graph(city)
         self.memory = model.initial_memory(city.n_regions, num_trials)  # a new trial: nothing known yet
+        self.concentration: float | None = None  # sampled actions: Dirichlet(this x mean) instead of the model's alpha (adapt)
         self.new_episode()
 
     def new_episode(self) -> None:
@@ -460,7 +462,7 @@ class MetaAgent:
         b, n = self.num_trials, self.city.n_regions
         x = torch.as_tensor(task_features(system, self.scale, self.lookahead, self.structure, self.place, self.model.end_cut)).reshape(b, n, -1)
         alpha, v, self.memory = self.model(x, self.prev_action, self.prev_region_reward, self.prev_reward, self.memory, self.graph)
-        dist = dirichlet(alpha)
+        dist = dirichlet(alpha if self.concentration is None else self.concentration * alpha / alpha.sum(-1, keepdim=True))
         if sample:
             y = dist.sample().clamp_min(1e-6)
             y = y / y.sum(-1, keepdim=True)
@@ -546,6 +548,9 @@ class Args(C.RunArgs):
     demand_prior: float = Field(0.0, ge=0, le=0.9)
     """with ``stay_prior``, the share of the prior given to the regions' requests (:func:`demand_columns`):
     a busy region its own demand has emptied keeps weight (:class:`RecurrentGNN`)"""
+    centred_actor: bool = False
+    """with ``stay_prior``, the actor's log-ratios centred over the city's regions (:class:`RecurrentGNN`):
+    their common level, which imitation never trains, cannot drift (nor stall the actor past the clamp)"""
     end_cut: bool = False
     """the task features show no demand past the episode's last step, as MPC-Forecast plans (:func:`cut_at_end`)"""
     episodes: int = Field(20000, ge=1)
@@ -581,6 +586,10 @@ class Args(C.RunArgs):
     """training cities whose adapted profit (``eval_episodes`` trials each, validation seeds) picks the best model"""
     eval_every: int = Field(600, ge=1)
     """episodes between validations (and training-state saves)"""
+    stall_validations: int = Field(5, ge=0)
+    """stop, with a warning and the card's ``stalled_at``, when this many validations in a row lie within
+    ``STALL_TOL`` of each other: the policy no longer moves (a stay-prior actor past its clamp did so
+    for 2,400 updates in silence: docs/meta/log.md, "Why seed 7 stalled"); 0: never"""
     run_dir: str = "runs/meta"
     """logs, the resumable training state"""
 
@@ -588,6 +597,8 @@ class Args(C.RunArgs):
     def _prior(self) -> Args:
         if self.demand_prior and not self.stay_prior:  # refused with the config, not after the demonstrations
             raise ValueError(f"demand_prior {self.demand_prior} mixes into the stay prior: set stay_prior too")
+        if self.centred_actor and not self.stay_prior:
+            raise ValueError("centred_actor centres the log-ratios to the stay prior: set stay_prior too")
         return self
 
     def ignored_keys(self) -> dict[str, str]:
@@ -602,7 +613,7 @@ def make_model(args: Args) -> RecurrentGNN:
     """The run's recurrent GNN (its inputs: the task features and the optional column sets)."""
     n_features = n_task_features(args.lookahead, args.city_features, args.place_features)
     return RecurrentGNN(n_features, args.hidden, args.conv, args.stay_prior, args.readout, args.demand_prior, demand_columns(args.lookahead),
-                        end_cut=args.end_cut)  # fmt: skip
+                        end_cut=args.end_cut, centred=args.centred_actor)  # fmt: skip
 
 
 def held_out_among(tasks: list[str]) -> list[str]:
@@ -648,6 +659,15 @@ def validate(model: RecurrentGNN, args: Args, cities: dict[str, City]) -> float:
     return float(np.mean(scores))
 
 
+STALL_TOL = 1e-4  # relative spread of validations that counts as "not moving": converged runs still move ~1e-3
+
+
+def stalled(values: list[float], rounds: int) -> bool:
+    """Whether the last ``rounds`` validations (>= 2) lie within ``STALL_TOL`` of each other."""
+    last = values[-rounds:]
+    return rounds >= 2 and len(last) == rounds and max(last) - min(last) <= STALL_TOL * max(abs(float(np.mean(last))), 1e-12)
+
+
 @dataclass
 class MetaBook:
     """What meta-RL and its imitation warm start do after every update, in one place: validate when
@@ -661,20 +681,33 @@ class MetaBook:
     timer: C.Timer
     best: C.BestActor
     progress: C.Progress | None = None
+    validations: list[float] = field(default_factory=list)  # this process's, in order (a resume starts afresh)
+    stalled_at: int | None = None  # the update at which the validations stopped moving (``Args.stall_validations``)
 
     def close(self, count: int, total: int, stats: dict[str, float], due: bool, save: Callable[[], Any]) -> bool:
-        """After update ``count`` (of ``total``): validate if ``due`` or out of time, log; True when time is up."""
+        """After update ``count`` (of ``total``): validate if ``due`` or out of time, log; True when
+        time is up or the validations have stalled."""
         out_of_time = bool(self.args.time_limit_s) and self.timer() > self.args.time_limit_s  # validate the last model too
         if due or out_of_time:
             stats["eval/scaled_return"] = val = validate(self.model, self.args, self.cities)
             if val > self.best.value:
                 self.best = C.BestActor(val, copy.deepcopy(self.model.state_dict()))
+            self.validations.append(val)
+            if stalled(self.validations, self.args.stall_validations):
+                self.stalled_at = count
+                warnings.warn(f"{self.args.run_dir}: the last {self.args.stall_validations} validations lie within {STALL_TOL:g} of "
+                              f"{val:.5f} (update {count}): the policy no longer moves; stopping and keeping the best "
+                              "(stall_validations: 0 never stops)", RuntimeWarning, stacklevel=2)  # fmt: skip
             save()
         stats["time/wall_s"] = self.timer()
         self.log.log(count, **stats)
         if self.progress is not None:
             self.progress(count, total, stats)
-        return out_of_time
+        return out_of_time or self.stalled_at is not None
+
+    def card_fields(self) -> dict[str, Any]:
+        """What the card says of how the run ended, beside its updates: ``stalled_at`` when it stalled."""
+        return {} if self.stalled_at is None else {"stalled_at": self.stalled_at}
 
 
 def warm_start(args: Args, model: RecurrentGNN, cities: dict[str, City], resume: str | None) -> tuple[C.BestActor, dict[str, Any]]:
@@ -785,7 +818,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
 
     log.close()
     model.load_state_dict(book.best.state)
-    return finish(args, model, timer(), ep, config_path, extra=warm)
+    return finish(args, model, timer(), ep, config_path, extra=warm | book.card_fields())
 
 
 def finish(
@@ -855,16 +888,25 @@ class MetaPolicy(WeightPolicy):
 
 
 @torch.no_grad()
-def adapt(model: RecurrentGNN, city: City, episodes: int, lookahead: int, seed: int = 0) -> MetaPolicy:
-    """Run ``episodes`` adaptation episodes in ``city`` (memory carried, no gradient) -> the policy."""
+def adapt(model: RecurrentGNN, city: City, episodes: int, lookahead: int, seed: int = 0, adaptation: Adaptation = "sampled") -> MetaPolicy:
+    """Run ``episodes`` adaptation episodes in ``city`` (memory carried, no gradient) -> the policy.
+
+    ``adaptation``: how it acts there. "sampled" (as trained: the DAgger trials' first episodes
+    sample too) draws from its Dirichlet, whose concentration, for a stay-prior actor that is not
+    ``centred``, is set by a level imitation never trained (180x apart across one recipe's seeds:
+    docs/meta/log.md, "Why seed 7 stalled"); "mean" plays the Dirichlet mean, as the scored
+    episodes do; "prior-concentration" samples around the mean with the stay prior's total
+    concentration (``STAY_CONCENTRATION`` x N), what a centred actor's level-0 output gives."""
     model.eval()
     agent = MetaAgent(model, city, lookahead)
+    if adaptation == "prior-concentration":
+        agent.concentration = STAY_CONCENTRATION * city.n_regions
     # the adaptation samples its actions: draw them from a stream of the seed, not torch's global one,
     # so the same policy file, city and seed always adapt to the same memory (and report the same numbers)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(np.random.SeedSequence([seed, 4243, 7]).generate_state(1)[0]))
         if episodes:  # K = 0: zero-shot, the memory of a new trial
-            run_trials(agent, BatchFleetSystem(city, 1), [[adapt_seed(seed, k)] for k in range(episodes)], sample=True)
+            run_trials(agent, BatchFleetSystem(city, 1), [[adapt_seed(seed, k)] for k in range(episodes)], sample=adaptation != "mean")
     return MetaPolicy(agent)
 
 
@@ -883,28 +925,31 @@ def load_meta(path: str | Path, like: RecurrentGNN | None = None) -> tuple[Recur
 
     args = card["args"]
     model = RecurrentGNN(card["n_features"], card["hidden"], card["conv"], args.get("stay_prior", False), args.get("readout", "none"),
-                         args.get("demand_prior", 0.0), demand_columns(card["lookahead"]), end_cut=args.get("end_cut", False))  # fmt: skip
+                         args.get("demand_prior", 0.0), demand_columns(card["lookahead"]), end_cut=args.get("end_cut", False),
+                         centred=args.get("centred_actor", False))  # fmt: skip
     try:
         model.load_state_dict(blob["state_dict"])
     except RuntimeError as exc:
         raise DataError(f"{path}: weights do not fit its card: {str(exc).splitlines()[0]}") from None
     theirs, ours = model.state_dict(), (like.state_dict() if like is not None else None)
     if ours is not None and (set(theirs) != set(ours) or any(theirs[k].shape != ours[k].shape for k in ours)
-                             or (model.stay_prior, model.demand_prior, model.end_cut) != (like.stay_prior, like.demand_prior, like.end_cut)):
+                             or (model.stay_prior, model.demand_prior, model.end_cut, model.centred) != (like.stay_prior, like.demand_prior, like.end_cut, like.centred)):
         raise DataError(f"{path} is a recurrent GNN with {card['n_features']} features, hidden {card['hidden']}, {card['conv']}, "
-                        f"readout {model.readout_kind}; this run's differs (set lookahead, hidden, conv, stay_prior, demand_prior, end_cut and readout to match)")  # fmt: skip
+                        f"readout {model.readout_kind}; this run's differs (set lookahead, hidden, conv, stay_prior, demand_prior, end_cut, centred_actor and readout to match)")  # fmt: skip
     model.eval()
     return model, card
 
 
-def load_policy(path: str | Path, city: City, episodes: int | None = None, seed: int = 0) -> MetaPolicy | PolicyEnsemble:
+def load_policy(path: str | Path, city: City, episodes: int | None = None, seed: int = 0, adaptation: Adaptation = "sampled") -> MetaPolicy | PolicyEnsemble:
     """A meta-RL policy file adapted to ``city`` (``episodes`` adaptation episodes; default: the
-    trial length it was trained with, minus one), ready for :func:`marl_amod.evaluation.evaluate`;
-    an ensemble file (:mod:`marl_amod.ensemble`) of them, each member adapted alone."""
+    trial length it was trained with, minus one; acting by ``adaptation`` there: :func:`adapt`),
+    ready for :func:`marl_amod.evaluation.evaluate`; an ensemble file (:mod:`marl_amod.ensemble`)
+    of them, each member adapted alone, by the file's ``adaptation`` where it names one."""
     if is_ensemble(path):
-        return load_ensemble(path, lambda member: load_policy(member, city, episodes, seed))
+        adaptation = read_spec(path).adaptation or adaptation
+        return load_ensemble(path, lambda member: load_policy(member, city, episodes, seed, adaptation))
     model, card = load_meta(path)
     k = card["args"]["trial_episodes"] - 1 if episodes is None else episodes
-    policy = adapt(model, city, k, card["lookahead"], seed=seed)
+    policy = adapt(model, city, k, card["lookahead"], seed=seed, adaptation=adaptation)
     policy.name = Path(path).stem
     return policy

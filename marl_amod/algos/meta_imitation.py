@@ -750,7 +750,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                 break
     log.close()
     model.load_state_dict(book.best.state)
-    extra = {"updates": step, "demonstrations": {"policy": "mpc-forecast", "cities": list(args.cities), "episodes_per_city": args.demo_episodes,
+    extra = book.card_fields() | {"updates": step, "demonstrations": {"policy": "mpc-forecast", "cities": list(args.cities), "episodes_per_city": args.demo_episodes,
              "seeds": demo_seeds(args.demos, walls), "collection_wall_s": round(sum(walls.values()), 1)}, **warm}  # fmt: skip
     if hot:
         extra["demonstrations"] |= {"hotspot_variants": hot, "episodes_per_variant": args.hotspot_episodes}

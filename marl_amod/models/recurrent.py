@@ -65,17 +65,28 @@ class RecurrentGNN(nn.Module):
     dominant hotspot, a surge) as "few vehicles wanted", so filling it takes a log-ratio that grows
     without bound as its idle vehicles run out, on states imitation rarely showed (docs/meta/log.md,
     "Where the held-out gap is now"); with demand in the prior an emptied busy region keeps weight.
+
+    ``centred`` (with ``stay_prior``): the actor's outputs minus their mean over the city's regions
+    before the clamp. Why: the Dirichlet mean reads only their differences, so imitation never
+    trains their common level; it drifts (-2.9 to +2.3 across six seeds of one recipe, so their
+    adaptation episodes sample with concentrations 180x apart) and, past the clamp at +10, passes
+    no gradient: one seed's actor sat there from update 200 on as the stay prior itself
+    (docs/meta/log.md, "Why seed 7 stalled"). Centred, the level is 0 by construction and the
+    concentration is the prior's ``STAY_CONCENTRATION`` as designed.
     """
 
     def __init__(
         self, n_features: int, hidden: int = 64, conv: ConvKind = "sage", stay_prior: bool = False, readout: Readout = "none",
-        demand_prior: float = 0.0, demand_columns: tuple[int, ...] = (), end_cut: bool = False,
+        demand_prior: float = 0.0, demand_columns: tuple[int, ...] = (), end_cut: bool = False, centred: bool = False,
     ) -> None:
         super().__init__()
+        if centred and not stay_prior:
+            raise ValueError("centred takes the actor's log-ratios to the stay prior: set stay_prior too")
         if demand_prior and (not stay_prior or not demand_columns or demand_prior + STAY_FLOOR > 1 or max(demand_columns) >= n_features):
             raise ValueError(f"demand_prior {demand_prior} needs stay_prior, demand columns among the {n_features} features and a share <= {1 - STAY_FLOOR}")
         self.hidden, self.stay_prior, self.n_features, self.readout_kind = hidden, stay_prior, n_features, readout
         self.demand_prior, self.demand_columns = float(demand_prior), tuple(demand_columns)
+        self.centred = centred  # how its outputs are read, not a weight (docstring)
         self.end_cut = end_cut  # what its inputs are, not a weight: the task features cut at the episode's end (meta.cut_at_end)
         self.encode = nn.Sequential(nn.Linear(n_features + N_FEEDBACK, hidden), nn.ReLU())
         self.memory = nn.GRUCell(hidden, hidden)
@@ -117,6 +128,8 @@ class RecurrentGNN(nn.Module):
             if self.demand_prior:
                 demand = x[..., list(self.demand_columns)].sum(-1)  # (..., N) requests, in per-city units
                 stay = stay + self.demand_prior * _share(demand, mask)
+            if self.centred:
+                actor = actor - _region_mean(actor, mask)
             alpha = STAY_CONCENTRATION * regions * stay * torch.exp(actor.clamp(-10, 10))  # (..., N)
         else:
             alpha = concentration(actor)  # (..., N)
@@ -151,6 +164,13 @@ def concatenated_heads(z: torch.Tensor, fleet: torch.Tensor | None, heads: tuple
     concatenation. The reference the tests and ``benchmarks/meta_update.py`` compare it with."""
     full = z if fleet is None else torch.cat([z, fleet.expand(*z.shape[:-1], fleet.shape[-1])], dim=-1)
     return [head(full) for head in heads]
+
+
+def _region_mean(v: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
+    """(..., N) -> (..., 1) the mean over the (real) regions."""
+    if mask is None:
+        return v.mean(-1, keepdim=True)
+    return v.masked_fill(~mask, 0.0).sum(-1, keepdim=True) / mask.sum(-1, keepdim=True)
 
 
 def _share(v: torch.Tensor, mask: torch.Tensor | None) -> torch.Tensor:
