@@ -550,7 +550,8 @@ class Args(C.RunArgs):
     a busy region its own demand has emptied keeps weight (:class:`RecurrentGNN`)"""
     centred_actor: bool = False
     """with ``stay_prior``, the actor's log-ratios centred over the city's regions (:class:`RecurrentGNN`):
-    their common level, which imitation never trains, cannot drift (nor stall the actor past the clamp)"""
+    their common level, which imitation never trains, cannot drift (nor stall the actor past the clamp).
+    For imitation (``meta-bc``): RL² trains that level, the only way it sets how widely it samples"""
     end_cut: bool = False
     """the task features show no demand past the episode's last step, as MPC-Forecast plans (:func:`cut_at_end`)"""
     episodes: int = Field(20000, ge=1)
