@@ -20,6 +20,15 @@ from marl_amod.models.recurrent import RecurrentGNN
 from marl_amod.scenario import load_city
 
 
+def tiny_args(tasks: list[str], tmp_path, name: str = "run", **overrides) -> mi.Args:
+    """A meta-bc run small enough for a test: the synthetic tasks, 2 demonstrations a task, one update
+    validated at once; its folder and policy file named ``name`` under ``tmp_path``; ``overrides`` on top."""
+    return mi.Args(**{"scenario": "synthetic", "cities": tasks, "val_cities": tasks[:1], "hidden": 8, "trial_episodes": 2, "num_envs": 2,
+                      "cities_per_update": 2, "demos": str(tmp_path / "demos"), "demo_episodes": 2, "updates": 1, "eval_every": 1,
+                      "eval_episodes": 1, "final_eval_episodes": 1, "run_dir": str(tmp_path / name), "policy_out": str(tmp_path / f"{name}.pt")}
+                   | overrides)  # fmt: skip
+
+
 def _city_yaml(tmp_path, name, **keys):
     text = f"name: {name}\nsource: synthetic\nhorizon: 6\n" + "".join(f"{k}: {v}\n" for k, v in keys.items())
     (tmp_path / f"{name}.yaml").write_text(text)
@@ -93,9 +102,7 @@ def test_imitation_fits_mpc_forecasts_distribution(tasks, tmp_path):
 
 
 def test_imitation_ships_a_meta_policy_that_warm_starts_rl2(tasks, tmp_path):
-    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
-                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=4, eval_every=2,
-                   eval_episodes=2, final_eval_episodes=1, run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
+    args = tiny_args(tasks, tmp_path, "bc", updates=4, eval_every=2, eval_episodes=2)
     card = ALGOS["meta-bc"].train(args)["card"]
     assert card["algorithm"] == "meta-bc" and card["demonstrations"]["episodes_per_city"] == 2 and card["updates"] == 4
     assert card["demonstrations"]["seeds"] == [0]
@@ -145,10 +152,8 @@ def test_dagger_episodes_are_the_learners_labelled_by_mpc_forecast(tasks):
 
 
 def test_dagger_rounds_join_the_demonstrations_and_resume_from_disk(tasks, tmp_path):
-    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
-                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=4, eval_every=2,
-                   eval_episodes=2, final_eval_episodes=1, dagger_rounds=2, dagger_every=2, dagger_episodes=2,
-                   lr=0.01, lr_final=0.001, run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
+    args = tiny_args(tasks, tmp_path, "bc", updates=4, eval_every=2, eval_episodes=2, dagger_rounds=2, dagger_every=2,
+                     dagger_episodes=2, lr=0.01, lr_final=0.001)
     assert mi.lr_at(args, 0) == 0.01 and mi.lr_at(args, 2) == pytest.approx(0.01 * 0.1**0.5) and mi.lr_at(args, 9) == pytest.approx(0.001)
     card = ALGOS["meta-bc"].train(args.model_copy(update={"updates": 2}))["card"]
     rounds = tmp_path / "bc" / "dagger"
@@ -210,11 +215,8 @@ def test_whole_dagger_trials_without_rounds_of_whole_trials_are_refused(values):
 
 
 def test_a_run_with_whole_dagger_trials_and_shocks_per_task_says_so_on_its_card_and_resumes_only_with_them(tasks, tmp_path, monkeypatch):
-    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=4,
-                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=2, eval_every=2,
-                   eval_episodes=1, final_eval_episodes=1, dagger_rounds=1, dagger_first=0, dagger_episodes=4,
-                   dagger_whole_trials=True, dagger_shock_prob=0.5, dagger_shock_per_task=True, run_dir=str(tmp_path / "bc"),
-                   policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
+    args = tiny_args(tasks, tmp_path, "bc", num_envs=4, updates=2, eval_every=2, dagger_rounds=1, dagger_first=0,
+                     dagger_episodes=4, dagger_whole_trials=True, dagger_shock_prob=0.5, dagger_shock_per_task=True)
     seen = []
     real = mi.draw_trials
     monkeypatch.setattr(mi, "draw_trials", lambda demos, a, rng, dagger_from=None: seen.append(dagger_from) or real(demos, a, rng, dagger_from))
@@ -244,10 +246,7 @@ def test_shock_draws_are_one_for_every_task_unless_per_task():
 def test_stop_after_cuts_the_run_not_its_schedule(tasks, tmp_path):
     """A run stopped by ``stop_after`` took the first updates of the full schedule: resumed without
     it, it ends on the same weights as the run that was never stopped."""
-    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
-                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=4, eval_every=2,
-                   eval_episodes=1, final_eval_episodes=1, lr=0.01, lr_final=0.001, run_dir=str(tmp_path / "whole"),
-                   policy_out=str(tmp_path / "whole.pt"))  # fmt: skip
+    args = tiny_args(tasks, tmp_path, "whole", updates=4, eval_every=2, lr=0.01, lr_final=0.001)
     ALGOS["meta-bc"].train(args)
     cut = args.model_copy(update={"stop_after": 3, "run_dir": str(tmp_path / "cut"), "policy_out": str(tmp_path / "cut.pt")})
     assert ALGOS["meta-bc"].train(cut)["card"]["updates"] == 3
@@ -260,27 +259,21 @@ def test_stop_after_cuts_the_run_not_its_schedule(tasks, tmp_path):
 
 
 def test_a_demand_prior_policy_loads_with_its_prior_and_refuses_to_warm_start_another(tasks, tmp_path):
-    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
-                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=1, eval_every=1,
-                   eval_episodes=1, final_eval_episodes=1, stay_prior=True, demand_prior=0.25, run_dir=str(tmp_path / "run"),
-                   policy_out=str(tmp_path / "p.pt"))  # fmt: skip
+    args = tiny_args(tasks, tmp_path, stay_prior=True, demand_prior=0.25)
     ALGOS["meta-bc"].train(args)
-    model, card = meta.load_meta(tmp_path / "p.pt")
+    model, card = meta.load_meta(tmp_path / "run.pt")
     assert model.demand_prior == 0.25 and model.demand_columns == meta.demand_columns(card["lookahead"])
     with pytest.raises(DataError, match="demand_prior"):
-        meta.load_meta(tmp_path / "p.pt", like=meta.make_model(args.model_copy(update={"demand_prior": 0.0})))
+        meta.load_meta(tmp_path / "run.pt", like=meta.make_model(args.model_copy(update={"demand_prior": 0.0})))
     with pytest.raises(ConfigError, match="stay_prior"):  # with the config, before any demonstration is collected
         args_for("meta-bc", {"scenario": "synthetic", "cities": tasks, "demand_prior": 0.25})
 
 
 
 def test_an_end_cut_policy_trains_on_cut_demonstrations_loads_with_its_cut_and_refuses_to_warm_start_another(tasks, tmp_path):
-    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
-                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=1, eval_every=1,
-                   eval_episodes=1, final_eval_episodes=1, stay_prior=True, end_cut=True, run_dir=str(tmp_path / "run"),
-                   policy_out=str(tmp_path / "p.pt"))  # fmt: skip
+    args = tiny_args(tasks, tmp_path, stay_prior=True, end_cut=True)
     ALGOS["meta-bc"].train(args)
-    model, card = meta.load_meta(tmp_path / "p.pt")
+    model, card = meta.load_meta(tmp_path / "run.pt")
     assert model.end_cut and card["args"]["end_cut"]
     city, lookahead = load_city(tasks[0]), card["lookahead"]
     cut, raw = mi.load_run_demos(args.demos, city, args).x, mi.load_demos(args.demos, city, lookahead).x  # (E, T, N, F)
@@ -292,19 +285,16 @@ def test_an_end_cut_policy_trains_on_cut_demonstrations_loads_with_its_cut_and_r
     assert (raw[..., value].transpose(2, 3)[:, past] != 0).any()  # the file keeps what the env showed
     torch.testing.assert_close(cut[..., value].transpose(2, 3)[:, ~past], raw[..., value].transpose(2, 3)[:, ~past])
     with pytest.raises(DataError, match="end_cut"):
-        meta.load_meta(tmp_path / "p.pt", like=meta.make_model(args.model_copy(update={"end_cut": False})))
+        meta.load_meta(tmp_path / "run.pt", like=meta.make_model(args.model_copy(update={"end_cut": False})))
 
 
 def test_a_centred_policy_loads_centred_and_refuses_to_warm_start_another(tasks, tmp_path):
-    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
-                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=1, eval_every=1,
-                   eval_episodes=1, final_eval_episodes=1, stay_prior=True, centred_actor=True, run_dir=str(tmp_path / "run"),
-                   policy_out=str(tmp_path / "p.pt"))  # fmt: skip
+    args = tiny_args(tasks, tmp_path, stay_prior=True, centred_actor=True)
     ALGOS["meta-bc"].train(args)
-    model, card = meta.load_meta(tmp_path / "p.pt")
+    model, card = meta.load_meta(tmp_path / "run.pt")
     assert model.centred and card["args"]["centred_actor"]
     with pytest.raises(DataError, match="centred_actor"):
-        meta.load_meta(tmp_path / "p.pt", like=meta.make_model(args.model_copy(update={"centred_actor": False})))
+        meta.load_meta(tmp_path / "run.pt", like=meta.make_model(args.model_copy(update={"centred_actor": False})))
     with pytest.raises(ConfigError, match="stay_prior"):  # with the config, before any demonstration is collected
         args_for("meta-bc", {"scenario": "synthetic", "cities": tasks, "centred_actor": True})
 
@@ -355,10 +345,8 @@ def test_hotspot_variants_are_tasks_with_demonstrations_and_dagger_rounds_of_the
     """One variant per city: its own MPC-F demonstrations (``hotspot_episodes``), drawn like a city,
     driven in the DAgger rounds (here the first at update 1, not before the first update), named on
     the card and counted by the transfer table."""
-    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
-                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=2, eval_every=2,
-                   eval_episodes=2, final_eval_episodes=1, dagger_rounds=1, dagger_first=1, dagger_episodes=2,
-                   hotspot_variants=1, hotspot_episodes=4, hotspot_share=0.5, run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
+    args = tiny_args(tasks, tmp_path, "bc", updates=2, eval_every=2, eval_episodes=2, dagger_rounds=1, dagger_first=1,
+                     dagger_episodes=2, hotspot_variants=1, hotspot_episodes=4, hotspot_share=0.5)
     plain, variants = mi.tasks(args)
     assert plain == tasks and [meta.base_city(v) for v in variants] == tasks and all(meta.HOTSPOT in v for v in variants)
     shares, draw = [], mi.draw_task
@@ -425,10 +413,8 @@ def test_event_tasks_are_demonstrated_and_labelled_by_mpc_told_the_event(tasks, 
     """One event task per city: its own demonstrations (``event_episodes``) and DAgger episodes,
     every one labelled by MPC told the event (and the cities' by MPC-Forecast), named on the card,
     counted by the transfer table; a resume with another share is refused."""
-    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
-                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=2, eval_every=2,
-                   eval_episodes=2, final_eval_episodes=1, dagger_rounds=1, dagger_first=1, dagger_episodes=2,
-                   event_tasks=1, event_episodes=4, event_share=0.5, run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
+    args = tiny_args(tasks, tmp_path, "bc", updates=2, eval_every=2, eval_episodes=2, dagger_rounds=1, dagger_first=1,
+                     dagger_episodes=2, event_tasks=1, event_episodes=4, event_share=0.5)
     events = mi.event_names(args)
     assert [meta.base_city(e) for e in events] == tasks and all(meta.EVENT in e for e in events)
     experts, expert_for = [], mi.expert_for
@@ -458,10 +444,8 @@ def test_without_event_tasks_a_runs_draws_are_draw_tasks_own(tasks, tmp_path, mo
     """The shipped configs (no event tasks) rerun with the draws they had: inside train every draw
     is draw_task's over the cities and variants, from the same generator state, leaving it where
     draw_task leaves it, and every demonstration is labelled by MPC-Forecast."""
-    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
-                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=3, eval_every=3,
-                   eval_episodes=2, final_eval_episodes=1, hotspot_variants=1, hotspot_episodes=2, hotspot_share=0.4,
-                   run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
+    args = tiny_args(tasks, tmp_path, "bc", updates=3, eval_every=3, eval_episodes=2, hotspot_variants=1, hotspot_episodes=2,
+                     hotspot_share=0.4)
     draws, real, experts, expert_for = [], mi.draw_run_task, [], mi.expert_for
 
     def spy(a: mi.Args, names: list[str], plain: int, events: list[str], rng: np.random.Generator) -> str:
@@ -544,10 +528,7 @@ def test_a_resume_refuses_a_config_that_names_other_tasks(tasks, tmp_path):
     """The state's updates and DAgger rounds are of its tasks: resumed with other hotspot variants
     (or cities, or event tasks), the run would train on tasks it was not started on and collect the missing tasks'
     earlier DAgger rounds with a later model."""
-    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
-                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=1, eval_every=2,
-                   eval_episodes=2, final_eval_episodes=1, hotspot_variants=1, hotspot_episodes=2,
-                   run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
+    args = tiny_args(tasks, tmp_path, "bc", eval_every=2, eval_episodes=2, hotspot_variants=1, hotspot_episodes=2)
     ALGOS["meta-bc"].train(args)
     state = str(tmp_path / "bc" / "state.pt")
     with pytest.raises(DataError, match="hotspot"):
@@ -565,11 +546,9 @@ def test_skew_and_sink_variants_are_tasks_with_demonstrations_of_their_own_and_a
     of other tasks)."""
     assert args_for("meta-bc", {"hotspot_share": 0.4, "skew_variants": 1}).hotspot_share == 0.4
     assert args_for("meta-bc", {"hotspot_share": 0.4, "sink_variants": 1}).hotspot_share == 0.4
-    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
-                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=1, eval_every=2,
-                   eval_episodes=2, final_eval_episodes=1, hotspot_variants=1, hotspot_episodes=2, skew_variants=1,
-                   skew_gammas=(1.5, 2.5), skew_episodes=3, sink_variants=1, sink_multipliers=(2.0, 4.0), sink_episodes=4,
-                   hotspot_share=0.5, run_dir=str(tmp_path / "bc"), policy_out=str(tmp_path / "bc.pt"))  # fmt: skip
+    args = tiny_args(tasks, tmp_path, "bc", eval_every=2, eval_episodes=2, hotspot_variants=1, hotspot_episodes=2,
+                     skew_variants=1, skew_gammas=(1.5, 2.5), skew_episodes=3, sink_variants=1, sink_multipliers=(2.0, 4.0),
+                     sink_episodes=4, hotspot_share=0.5)
     plain, variants = mi.tasks(args)
     assert variants == mi.hotspot_names(args) + mi.skew_names(args) + mi.sink_names(args) and len(variants) == 3 * len(tasks)
     skewed, sinks = mi.skew_names(args), mi.sink_names(args)
@@ -712,10 +691,7 @@ def test_a_run_whose_validations_stopped_moving_stops_says_so_and_keeps_the_best
     assert not meta.stalled([0.43814] * 4, 5) and not meta.stalled([0.43814] * 9, 0)
     flat = iter([0.40, 0.41, 0.43814, 0.43814, 0.43815, 0.43814, 0.9])
     monkeypatch.setattr(meta, "validate", lambda *a, **k: next(flat))
-    args = mi.Args(scenario="synthetic", cities=tasks, val_cities=tasks[:1], hidden=8, trial_episodes=2, num_envs=2,
-                   cities_per_update=2, demos=str(tmp_path / "demos"), demo_episodes=2, updates=7, eval_every=1,
-                   eval_episodes=1, final_eval_episodes=1, stay_prior=True, stall_validations=4, run_dir=str(tmp_path / "run"),
-                   policy_out=str(tmp_path / "p.pt"))  # fmt: skip
+    args = tiny_args(tasks, tmp_path, updates=7, stay_prior=True, stall_validations=4)
     with pytest.warns(RuntimeWarning, match="no longer moves"):
         out = ALGOS["meta-bc"].train(args)
     assert out["card"]["stalled_at"] == 6 and out["card"]["updates"] == 6
