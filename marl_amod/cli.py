@@ -278,6 +278,40 @@ def collect(
 
 
 @app.command()
+def fqe(
+    dataset: Annotated[Path, typer.Option(help="the offline dataset (.npz) to score the policies on")],
+    policy: Annotated[list[str] | None, typer.Option(help="a policy file (.pt) to score (repeat); none: the logged behaviour only")] = None,
+    scenario: Annotated[str | None, typer.Option(help="the dataset's city (a name or YAML path; default: its scenario by name)")] = None,
+    updates: Annotated[int, typer.Option(min=1, help="critic regression steps per policy")] = 3000,
+    seed: Annotated[int, typer.Option(min=0, help="seed of the critic's initialisation and minibatches")] = 0,
+    output: Annotated[Path | None, typer.Option(help="also write the estimates as JSON")] = None,
+    data_dir: DataDir = None,
+) -> None:
+    """Score policies from a dataset alone (fitted Q evaluation): each one's episode profit, estimated with no env episode, beside the logged behaviour's estimate and its logged return."""
+    from marl_amod import fqe as F
+    from marl_amod.datasets import OfflineDataset
+
+    _use_data_dir(data_dir)
+    if output is not None:
+        output = check_destination(output, what="--output")  # before the fits, not after them
+    settings = F.FQESettings(updates=updates, seed=seed)
+    logged = F.logged_returns(OfflineDataset.load(dataset))
+    rows = {"logged behaviour": F.estimate(None, dataset, scenario, settings).to_dict() | {"logged_return": float(logged.mean())}}
+    for p in policy or []:
+        rows[p] = F.estimate(p, dataset, scenario, settings).to_dict()
+    table = Table(title=f"FQE on {dataset} ({len(logged)} episodes; the decisions' profit, the first dispatch left out)")
+    for col in ("policy", "FQE estimate", "logged return"):
+        table.add_column(col, justify="left" if col == "policy" else "right")
+    for name, r in rows.items():
+        table.add_row(name, f"{r['profit']:,.0f}", f"{r['logged_return']:,.0f}" if "logged_return" in r else "-")
+    console.print(table)
+    if output is not None:
+        save_or_fallback(output, lambda path: write_json(path, {"dataset": str(dataset), "updates": updates, "seed": seed, "policies": rows}),
+                         what="the estimates")  # fmt: skip
+        console.print(f"wrote {output}")
+
+
+@app.command()
 def merge_datasets(
     pieces: Annotated[list[Path], typer.Argument(help="dataset pieces of one collection (collect outputs, cards beside them)")],
     output: Annotated[Path, typer.Option(help="merged dataset file (.npz); its card beside it")] = Path("data.npz"),
