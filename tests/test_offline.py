@@ -596,3 +596,15 @@ def test_iql_learns_from_a_mixture_and_its_card_scores_each_behaviour(tmp_path, 
     assert card["dataset"]["policy"] == "prop & prop+noise0.05" and card["dataset"]["episodes"] == 6
     assert [s["behaviour"] for s in card["dataset"]["behaviour_scores"]] == ["prop", "prop+noise0.05"]
     assert "behaviour_score" not in card["dataset"] and np.isfinite(O.card_normalised(card))
+
+
+def test_the_fqe_page_is_its_benchmarks_rendering_and_index_holds_its_choices():
+    """docs/offline/fqe.md is offline_fqe.py's page of fqe.json, and index.md quotes its choice table
+    row for row (an FQE study rerun and not pasted there fails)."""
+    import offline_fqe
+
+    folder = Path(__file__).resolve().parent.parent / "docs" / "offline"
+    md = offline_fqe.page(json.loads((folder / "fqe.json").read_text()))
+    assert (folder / "fqe.md").read_text() == md
+    choices = [line for line in md.splitlines() if line.startswith("| ") and line.endswith(" |") and line.count("|") == 6 and "k |" in line and not line.startswith("| dataset")]
+    assert len(choices) == 5 and all(line in (folder / "index.md").read_text() for line in choices)
