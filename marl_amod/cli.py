@@ -294,6 +294,10 @@ def fqe(
     _use_data_dir(data_dir)
     if output is not None:
         output = check_destination(output, what="--output")  # before the fits, not after them
+    from marl_amod.checkpoints import read_card
+
+    for p in policy or []:  # every policy file read before the first fit, so a typo in the last does not wait for the others
+        read_card(p)
     settings = F.FQESettings(updates=updates, seed=seed)
     logged = F.logged_returns(OfflineDataset.load(dataset))
     rows = {"logged behaviour": F.estimate(None, dataset, scenario, settings).to_dict() | {"logged_return": float(logged.mean())}}

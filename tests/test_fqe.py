@@ -60,3 +60,5 @@ def test_the_fqe_command_prints_the_estimates_and_writes_them(tmp_path, tiny_pro
     assert got["episodes"] == 4 and got["logged_return"] == pytest.approx(fqe.logged_returns(OfflineDataset.load(path)).mean())
     bad = CliRunner().invoke(app, ["fqe", "--dataset", str(tmp_path / "none.npz"), "--scenario", scenario])
     assert bad.exit_code != 0 and "no dataset" in str(bad.exception)
+    typo = CliRunner().invoke(app, ["fqe", "--dataset", path, "--scenario", scenario, "--policy", str(tmp_path / "gone.pt")])
+    assert typo.exit_code != 0 and "gone.pt" in str(typo.exception) and "logged behaviour" not in typo.output  # before any fit
