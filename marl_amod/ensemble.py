@@ -11,7 +11,6 @@ them that loads wherever a checkpoint does (``make_policy``, ``marl-amod evaluat
     members: [meta_rl_l1_cities.pt, seeds/meta_rl_l1_cities_seed1.pt]
     adaptation: mean   # optional, meta-policies only: how they act in their adaptation episodes
 
-
 ``marl-amod ensemble MEMBER.pt MEMBER.pt --out X.yaml`` writes the file and its card (``X.md``:
 each member's card in a row). Member paths are relative to the file. A member that reads its own
 last action (a meta-policy) is told the ensemble's action instead

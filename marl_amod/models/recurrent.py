@@ -68,7 +68,7 @@ class RecurrentGNN(nn.Module):
 
     ``centred`` (with ``stay_prior``): the actor's outputs minus their mean over the city's regions
     before the clamp. Why: the Dirichlet mean reads only their differences, so imitation never
-    trains their common level; it drifts (-2.9 to +2.3 across six seeds of one recipe, so their
+    trains their common level; it drifts (-2.9 to +2.3 across nine good seeds of the recipes, so their
     adaptation episodes sample with concentrations 180x apart) and, past the clamp at +10, passes
     no gradient: one seed's actor sat there from update 200 on as the stay prior itself
     (docs/meta/log.md, "Why seed 7 stalled"). Centred, the level is 0 by construction and the
