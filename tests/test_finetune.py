@@ -67,6 +67,14 @@ def test_summary_counts_steps_revenue_and_cost_until_scratch_matches():
     assert s["above_behaviour_throughout"]
 
 
+def test_a_crossing_that_scratch_does_not_hold_is_no_match():
+    """An early spike above the offline start that falls back is noise: the match is the validation
+    from which scratch stays at or above it."""
+    assert finetune.summarise(_study([(10, 50.5), (20, 45.0)]))["episodes_to_match"] is None
+    s = finetune.summarise(_study([(10, 50.5), (20, 45.0), (30, 50.0), (40, 51.0)]))
+    assert s["episodes_to_match"] == 30 and s["steps_to_match"] == 30 * 19
+
+
 def test_summary_when_scratch_never_matches_and_fine_tuning_dips():
     s = finetune.summarise(_study([(10, 45.0), (20, 49.0)], ft_val=((0, 50.0), (10, 48.5), (20, 51.0))))
     assert not s["matched"] and s["steps_to_match"] is None and s["budget_steps"] == 20 * 19
