@@ -533,6 +533,7 @@ def finetune_curve(
     concentration_cap: Annotated[
         float | None, typer.Option(min=0, help="cap on the fine-tuned actor's total Dirichlet concentration when sampling")
     ] = None,
+    critic_dataset: Annotated[Path | None, typer.Option(help="start the fine-tuned run's critic pre-trained on this dataset (its behaviour's values), not fresh")] = None,
     out: Annotated[Path, typer.Option(help="folder for finetune.json and finetune.png")] = Path("docs/offline"),
     run_root: Annotated[Path, typer.Option(help="the two runs' logs")] = Path("runs/finetune"),
     seed: Annotated[int, typer.Option(min=0, help="training seed of both runs (torch, numpy, training demand)")] = 0,
@@ -546,7 +547,7 @@ def finetune_curve(
         task = bar.add_task("A2C", total=episodes)
         study = finetune.finetune_curve(
             str(policy), episodes=episodes, num_envs=num_envs, eval_every=eval_every, eval_episodes=eval_episodes, seed=seed,
-            finetune_lr_actor=finetune_lr, critic_warmup=critic_warmup, concentration_cap=concentration_cap,
+            finetune_lr_actor=finetune_lr, critic_warmup=critic_warmup, concentration_cap=concentration_cap, critic_dataset=critic_dataset,
             run_root=run_root, progress=lambda ep, total, stats: bar.update(task, completed=ep),
         )  # fmt: skip
     paths = finetune.write(study, out)

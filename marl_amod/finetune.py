@@ -42,10 +42,11 @@ METRICS = ("eval/profit", "train/revenue", "train/rebalancing_cost")
 def finetune_curve(
     policy: str, *, episodes: int = 6000, num_envs: int = 4, eval_every: int = 200, eval_episodes: int = 10, seed: int = 0,
     lr_actor: float = 1e-3, finetune_lr_actor: float = 1e-4, critic_warmup: int = 50, concentration_cap: float | None = None,
-    run_root: str | Path = "runs/finetune", progress: a2c.C.Progress | None = None,
+    critic_dataset: str | Path | None = None, run_root: str | Path = "runs/finetune", progress: a2c.C.Progress | None = None,
 ) -> dict[str, Any]:
     """Fine-tune ``policy`` (an offline policy file) online and train from scratch with the same budget;
-    returns the curves and the study's numbers (see the module docstring)."""
+    returns the curves and the study's numbers (see the module docstring). ``critic_dataset``: the
+    fine-tuned run's critic starts pre-trained on that dataset (:func:`pretrain_critic`), not fresh."""
     trained = read_card(policy)
     scenario = training_scenario(trained)  # the scenario file it was trained on, where it was one
     city = load_city(scenario)
@@ -63,6 +64,9 @@ def finetune_curve(
                              concentration_cap=concentration_cap, run_dir=str(Path(run_root) / "finetune")),  # fmt: skip
         "scratch": a2c.Args(**{**common, "standardise_inputs": False}, lr_actor=lr_actor, run_dir=str(Path(run_root) / "scratch")),  # no start: no statistics
     }
+    if critic_dataset is not None:
+        start = pretrain_critic(runs["finetune"], city, critic_dataset, Path(run_root) / "critic_init.pt")
+        runs["finetune"] = runs["finetune"].model_copy(update={"init_critic": str(start)})
     val = {"episodes": eval_episodes, "seed": runs["scratch"].eval_seed}
     pretrained = evaluate_actor(actor, city, eval_episodes, val["seed"], **feature_args(card))["metrics"]["profit"]["mean"]
     beh = evaluate(behaviour, city, eval_episodes, val["seed"])["metrics"]["profit"]["mean"]
@@ -74,7 +78,7 @@ def finetune_curve(
         summary = a2c.train(args, progress=progress)
         curves = {m: read_curve(args.run_dir, m) for m in METRICS}
         out["runs"][name] = {
-            "args": {k: v for k, v in args.model_dump(mode="json").items() if k in ("init_actor", "lr_actor", "lr_critic", "critic_warmup", "concentration_cap", "num_envs", "episodes_per_update")},
+            "args": {k: v for k, v in args.model_dump(mode="json").items() if k in ("init_actor", "init_critic", "lr_actor", "lr_critic", "critic_warmup", "concentration_cap", "num_envs", "episodes_per_update")},
             "validation": [list(p) for p in zip(*curves["eval/profit"], strict=True)],  # [episodes, profit]
             "train": [[e, r, c] for e, r, c in zip(curves["train/revenue"][0], curves["train/revenue"][1], curves["train/rebalancing_cost"][1], strict=True)],
             "wall_s": summary["card"]["training_wall_s"],
@@ -82,6 +86,52 @@ def finetune_curve(
     out["runs"]["finetune"]["validation"].insert(0, [0, pretrained])  # the start, validated before any update
     out["summary"] = summarise(out)
     return out
+
+
+def standardised_returns(data: Any, gamma: float, reward_scale: float) -> np.ndarray:
+    """Each logged transition's discounted return to its episode's end (team reward x ``reward_scale``),
+    standardised over the dataset: what A2C's critic regresses, batch by batch (``normalize_returns``)."""
+    episode, step, reward = np.asarray(data.episode_ids), np.asarray(data.step_ids), np.asarray(data.team_rewards, dtype=np.float64)
+    returns = np.zeros(len(step))
+    for e in np.unique(episode):  # one episode at a time, its steps in order
+        rows = np.flatnonzero(episode == e)
+        rows = rows[np.argsort(step[rows])]
+        returns[rows] = a2c.discounted_returns(reward[rows] * reward_scale, gamma)
+    return (returns - returns.mean()) / (returns.std() + 1e-8)
+
+
+def pretrain_critic(args: a2c.Args, city: Any, dataset: str | Path, out: str | Path, updates: int = 2000, batch: int = 256,
+                    seed: int = 0) -> Path:  # fmt: skip
+    """A critic of ``args``' shape regressed on the logged episodes' discounted returns (``gamma``,
+    ``reward_scale``), standardised over the dataset as A2C standardises each batch's: the behaviour's
+    values, a start that gives the fine-tuned actor advantages from its first update instead of
+    after a warm-up of a fresh critic. Saved to ``out`` (``init_critic``)."""
+    import torch
+    import torch.nn.functional as F
+
+    from marl_amod.algos.common import make_graph, with_time
+    from marl_amod.datasets import OfflineDataset
+
+    data = OfflineDataset.load(dataset)
+    if data.meta["scenario"] != city.name:
+        raise ConfigError(f"critic dataset {dataset} was collected on {data.meta['scenario']}, the policy fine-tunes on {city.name}")
+    view = data.global_view()
+    target = torch.tensor(standardised_returns(data, args.gamma, args.reward_scale), dtype=torch.float32)
+    x = with_time(torch.tensor(view["x"], dtype=torch.float32), torch.tensor(view["ctx"], dtype=torch.float32), args.critic_time)
+    torch.manual_seed(seed)
+    gen = torch.Generator().manual_seed(seed)
+    critic, graph = a2c.make_critic(args, city), make_graph(city, args)
+    opt = torch.optim.Adam(critic.parameters(), lr=args.lr_critic)
+    for _ in range(updates):
+        idx = torch.randint(0, len(target), (batch,), generator=gen)
+        loss = F.smooth_l1_loss(critic(x[idx], graph), target[idx])  # A2C's critic loss
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(critic.parameters(), args.max_grad_norm)
+        opt.step()
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    torch.save(critic.state_dict(), out)
+    return Path(out)
 
 
 def matched_from(validation: list[list[float]], start: float) -> int | None:

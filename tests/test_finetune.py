@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 from marl_amod import finetune
 from marl_amod.algos.registry import ALGOS, args_for
 from marl_amod.cli import app
-from marl_amod.errors import ConfigError
+from marl_amod.errors import ConfigError, DataError
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -126,3 +126,37 @@ def test_a_standardised_mlp_start_fine_tunes_beside_a_plain_scratch_arm(tmp_path
     study = finetune.finetune_curve(str(tmp_path / "bc.pt"), episodes=2, num_envs=2, eval_every=2, eval_episodes=1, critic_warmup=2, run_root=tmp_path / "runs")
     ft, sc = study["runs"]["finetune"], study["runs"]["scratch"]
     assert ft["validation"][0] == [0, study["pretrained_profit"]] and [ep for ep, _ in sc["validation"]] == [2]
+
+
+def test_a_critic_pretrained_on_the_dataset_starts_the_fine_tuned_run(tmp_path, offline_policy, tiny_prop_dataset):
+    """``critic_dataset``: the fine-tuned run's critic starts from one regressed on the logged episodes'
+    standardised returns (it fits them: its loss falls well below a fresh critic's), the scratch run's
+    stays fresh, and a critic state of another shape is refused by name."""
+    import torch
+    import torch.nn.functional as F
+
+    from marl_amod.algos import a2c
+    from marl_amod.algos.common import make_graph
+    from marl_amod.scenario import load_city
+
+    scenario, dataset = tiny_prop_dataset
+    study = finetune.finetune_curve(offline_policy, episodes=4, num_envs=2, eval_every=4, eval_episodes=1, critic_warmup=0,
+                                    critic_dataset=dataset, run_root=tmp_path / "runs")  # fmt: skip
+    start = study["runs"]["finetune"]["args"]["init_critic"]
+    assert start.endswith("critic_init.pt") and not study["runs"]["scratch"]["args"]["init_critic"]
+    city = load_city(scenario)
+    args = a2c.Args(scenario=scenario, hidden=8, num_envs=2, episodes_per_update=2, init_actor=offline_policy)
+    fresh, fitted = a2c.make_critic(args, city), a2c.make_critic(args, city)
+    a2c.load_critic_state(fitted, finetune.pretrain_critic(args, city, dataset, tmp_path / "c.pt", updates=300))
+    from marl_amod.datasets import OfflineDataset
+
+    data = OfflineDataset.load(dataset)
+    x, graph = torch.tensor(data.global_view()["x"]), make_graph(city, args)
+    target = torch.tensor(finetune.standardised_returns(data, args.gamma, args.reward_scale), dtype=torch.float32)
+    assert target.mean().abs() < 1e-5 and (target.std() - 1).abs() < 0.05
+    with torch.no_grad():
+        loss = {k: F.smooth_l1_loss(c(x, graph), target).item() for k, c in (("fresh", fresh), ("fitted", fitted))}
+    assert loss["fitted"] < 0.5 * loss["fresh"]
+    wide = a2c.make_critic(args.model_copy(update={"hidden": 16}), city)
+    with pytest.raises(DataError, match="does not fit"):
+        a2c.load_critic_state(wide, str(tmp_path / "c.pt"))

@@ -29,9 +29,10 @@ from pydantic import Field, model_validator
 
 from marl_amod.algos import common as C
 from marl_amod.algos.rollout import Obs, train_seed
+from marl_amod.errors import DataError
 from marl_amod.models import GNNValueCritic, LocalValueCritic, dirichlet, gamma, gamma_log_prob
 from marl_amod.models.gnn import Graph
-from marl_amod.scenario import load_city
+from marl_amod.scenario import City, load_city
 
 
 class Args(C.RunArgs):
@@ -66,6 +67,10 @@ class Args(C.RunArgs):
     """cap on the Dirichlet's total concentration sum(alpha) when sampling (alpha scaled down to it;
     the mean, which evaluation plays, is unchanged): an offline clone is ten times as concentrated
     as a fresh actor (109 vs 9 on PROP's states), so without a cap its samples barely explore"""
+    init_critic: str | None = None
+    """a state file of this run's critic (``torch.save`` of its ``state_dict``) to start from instead of
+    a fresh one: fine-tuning with a critic pre-trained on the offline dataset
+    (:func:`marl_amod.finetune.pretrain_critic`)"""
     run_dir: str = "runs/a2c"
     """TensorBoard + CSV logs and the resumable training state"""
 
@@ -148,6 +153,25 @@ def discounted_returns(rewards: np.ndarray, gamma_: float) -> np.ndarray:
     return out
 
 
+def make_critic(args: Args, city: City) -> torch.nn.Module:
+    """The run's value critic: local per agent (decentralised without ``central_critic``) or the GNN on the global graph."""
+    critic_in = C.critic_features(C.run_features(args), args)
+    if args.mode == "decentralised" and not args.central_critic:
+        return LocalValueCritic(critic_in, args.hidden)
+    return GNNValueCritic(critic_in, args.hidden, args.conv, args.readout, city.n_regions if args.agent_id else 0)
+
+
+def load_critic_state(critic: torch.nn.Module, path: str) -> None:
+    """``init_critic``: the weights of a critic of this run's shape, or a DataError that says which differ."""
+    state = torch.load(path, map_location="cpu", weights_only=True) if Path(path).is_file() else None
+    if not isinstance(state, dict):
+        raise DataError(f"init_critic {path}: no critic state there (a torch.save of a critic's state_dict)")
+    try:
+        critic.load_state_dict(state)
+    except RuntimeError as exc:
+        raise DataError(f"init_critic {path} does not fit this run's critic (hidden, conv, readout, critic_time): {str(exc).splitlines()[0]}") from None
+
+
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
     """Train, keep the best validation actor, write its policy card; returns the run summary."""
     torch.set_num_threads(args.threads)
@@ -155,15 +179,12 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     city = load_city(args.scenario)
     rollout = C.make_rollout(city, args)
     graph = C.make_graph(city, args)
-    n_features = C.run_features(args)
     local_critic = args.mode == "decentralised" and not args.central_critic
     actor = C.make_actor(args, city)
-    critic_in = C.critic_features(n_features, args)
-    if local_critic:
-        critic = LocalValueCritic(critic_in, args.hidden)
-    else:
-        critic = GNNValueCritic(critic_in, args.hidden, args.conv, args.readout, city.n_regions if args.agent_id else 0)
+    critic = make_critic(args, city)
     C.warm_start(actor, args, city)  # offline -> online: start from a trained policy
+    if args.init_critic:
+        load_critic_state(critic, args.init_critic)
     start = copy.deepcopy(actor).requires_grad_(False) if args.init_actor else None  # before resume: the init actor
     opt_a = torch.optim.Adam(actor.parameters(), lr=args.lr_actor)
     opt_c = torch.optim.Adam(critic.parameters(), lr=args.lr_critic)
