@@ -2,12 +2,13 @@
 
 Both runs are :func:`marl_amod.algos.a2c.train` with the same budget, batch and training streams
 (episode k draws the same demand in both, so they are compared pair by pair); the fine-tuned one
-starts its actor from the offline policy (``init_actor``), trains its fresh critic alone for
-``critic_warmup`` updates (advantages from an untrained critic would push the actor off its
-start), moves the actor with its own learning rate and samples with its total Dirichlet
-concentration capped (``concentration_cap``: an offline clone is ten times as concentrated as a
-fresh actor, so uncapped its samples barely explore and fine-tuning stalls). Every ``eval_every`` episodes each actor
-is scored deterministically on the validation seeds (never the report seeds).
+starts its actor from the offline policy (``init_actor``) and its critic either pre-trained on the
+offline dataset (``critic_dataset``, :func:`pretrain_critic`: the shipped study, docs/offline) or
+fresh and trained alone for ``critic_warmup`` updates (advantages from an untrained critic would
+push the actor off its start); it moves the actor with its own learning rate and may sample with
+its total Dirichlet concentration capped (``concentration_cap``: an offline clone is ten times as
+concentrated as a fresh actor). Every ``eval_every`` episodes each actor is scored
+deterministically on the validation seeds (never the report seeds).
 
 What the study reports, as the paper does:
 
