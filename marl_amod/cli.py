@@ -309,6 +309,10 @@ def fqe(
     for name, r in rows.items():
         table.add_row(name, f"{r['profit']:,.0f}", f"{r['logged_return']:,.0f}" if "logged_return" in r else "-")
     console.print(table)
+    behaviour = rows["logged behaviour"]
+    if abs(behaviour["profit"] - behaviour["logged_return"]) > F.CONVERGED_WITHIN * abs(behaviour["logged_return"]):
+        console.print(f"[yellow]warning:[/yellow] the logged behaviour's estimate is {behaviour['profit']:,.0f} against its logged return "
+                      f"{behaviour['logged_return']:,.0f}: the fits have not converged; raise --updates (default 3000)")  # fmt: skip
     if output is not None:
         save_or_fallback(output, lambda path: write_json(path, {"dataset": str(dataset), "updates": updates, "seed": seed, "policies": rows}),
                          what="the estimates")  # fmt: skip

@@ -38,6 +38,7 @@ from marl_amod.models.dense import DenseGraph
 from marl_amod.scenario import City, load_city
 
 REWARD_SCALE = 1e-3  # a step earns a few thousand in Brooklyn; the critic regresses thousands of $
+CONVERGED_WITHIN = 0.1  # the behaviour's own estimate this close to its logged return (relative), or the fits are too short
 
 
 @dataclass(frozen=True)

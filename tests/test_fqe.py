@@ -56,6 +56,7 @@ def test_the_fqe_command_prints_the_estimates_and_writes_them(tmp_path, tiny_pro
     result = CliRunner().invoke(app, ["fqe", "--dataset", path, "--scenario", scenario, "--updates", "20", "--output", str(out)])
     assert result.exit_code == 0, result.output
     assert "logged behaviour" in result.output and "FQE estimate" in result.output
+    assert "have not converged" in result.output  # 20 updates: the behaviour's estimate is far from its return
     got = json.loads(out.read_text())["policies"]["logged behaviour"]
     assert got["episodes"] == 4 and got["logged_return"] == pytest.approx(fqe.logged_returns(OfflineDataset.load(path)).mean())
     bad = CliRunner().invoke(app, ["fqe", "--dataset", str(tmp_path / "none.npz"), "--scenario", scenario])
