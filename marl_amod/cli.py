@@ -532,12 +532,13 @@ def finetune_curve(
     num_envs: Annotated[int, typer.Option(min=1, help="episodes in lockstep, one A2C update each")] = 4,
     eval_every: Annotated[int, typer.Option(min=1, help="episodes between validations")] = 200,
     eval_episodes: Annotated[int, typer.Option(min=1, help="validation episodes at each validation")] = 10,
-    critic_warmup: Annotated[int, typer.Option(min=0, help="first fine-tuning updates that train the critic only")] = 50,
-    finetune_lr: Annotated[float, typer.Option(min=0, help="actor learning rate when fine-tuning")] = 1e-4,
+    critic_warmup: Annotated[int, typer.Option(min=0, help="first fine-tuning updates that train the critic only")] = 0,
+    finetune_lr: Annotated[float, typer.Option(min=0, help="actor learning rate when fine-tuning")] = 3e-4,
     concentration_cap: Annotated[
         float | None, typer.Option(min=0, help="cap on the fine-tuned actor's total Dirichlet concentration when sampling")
     ] = None,
-    critic_dataset: Annotated[Path | None, typer.Option(help="start the fine-tuned run's critic pre-trained on this dataset (its behaviour's values), not fresh")] = None,
+    critic_dataset: Annotated[Path | None, typer.Option(help="pre-train the fine-tuned run's critic on this dataset (default: the policy's own training dataset)")] = None,
+    fresh_critic: Annotated[bool, typer.Option(help="start the fine-tuned run's critic fresh instead (train it alone for --critic-warmup updates)")] = False,
     out: Annotated[Path, typer.Option(help="folder for finetune.json and finetune.png")] = Path("docs/offline"),
     run_root: Annotated[Path, typer.Option(help="the two runs' logs")] = Path("runs/finetune"),
     seed: Annotated[int, typer.Option(min=0, help="training seed of both runs (torch, numpy, training demand)")] = 0,
@@ -551,7 +552,7 @@ def finetune_curve(
         task = bar.add_task("A2C", total=episodes)
         study = finetune.finetune_curve(
             str(policy), episodes=episodes, num_envs=num_envs, eval_every=eval_every, eval_episodes=eval_episodes, seed=seed,
-            finetune_lr_actor=finetune_lr, critic_warmup=critic_warmup, concentration_cap=concentration_cap, critic_dataset=critic_dataset,
+            finetune_lr_actor=finetune_lr, critic_warmup=critic_warmup, concentration_cap=concentration_cap, critic_dataset=None if fresh_critic else (critic_dataset or finetune.OWN_DATASET),
             run_root=run_root, progress=lambda ep, total, stats: bar.update(task, completed=ep),
         )  # fmt: skip
     paths = finetune.write(study, out)

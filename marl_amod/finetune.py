@@ -40,14 +40,19 @@ RUNS = ("finetune", "scratch")
 METRICS = ("eval/profit", "train/revenue", "train/rebalancing_cost")
 
 
+OWN_DATASET = "own"  # critic_dataset: the dataset on the policy's card, the one it was trained on
+
+
 def finetune_curve(
     policy: str, *, episodes: int = 6000, num_envs: int = 4, eval_every: int = 200, eval_episodes: int = 10, seed: int = 0,
-    lr_actor: float = 1e-3, finetune_lr_actor: float = 1e-4, critic_warmup: int = 50, concentration_cap: float | None = None,
-    critic_dataset: str | Path | None = None, run_root: str | Path = "runs/finetune", progress: a2c.C.Progress | None = None,
+    lr_actor: float = 1e-3, finetune_lr_actor: float = 3e-4, critic_warmup: int = 0, concentration_cap: float | None = None,
+    critic_dataset: str | Path | None = OWN_DATASET, run_root: str | Path = "runs/finetune", progress: a2c.C.Progress | None = None,
 ) -> dict[str, Any]:
     """Fine-tune ``policy`` (an offline policy file) online and train from scratch with the same budget;
     returns the curves and the study's numbers (see the module docstring). ``critic_dataset``: the
-    fine-tuned run's critic starts pre-trained on that dataset (:func:`pretrain_critic`), not fresh."""
+    fine-tuned run's critic starts pre-trained on that dataset (:func:`pretrain_critic`; ``"own"``,
+    the default: the policy's own training dataset), or fresh with None. The defaults are the
+    shipped study's (docs/offline, "Offline → online")."""
     trained = read_card(policy)
     scenario = training_scenario(trained)  # the scenario file it was trained on, where it was one
     city = load_city(scenario)
@@ -65,6 +70,11 @@ def finetune_curve(
                              concentration_cap=concentration_cap, run_dir=str(Path(run_root) / "finetune")),  # fmt: skip
         "scratch": a2c.Args(**{**common, "standardise_inputs": False}, lr_actor=lr_actor, run_dir=str(Path(run_root) / "scratch")),  # no start: no statistics
     }
+    if critic_dataset == OWN_DATASET:
+        critic_dataset = (card.get("args") or {}).get("dataset")
+        if not critic_dataset or not Path(critic_dataset).is_file():
+            raise ConfigError(f"{policy} was trained on the dataset {critic_dataset}, which is not there to pre-train the critic on: "
+                              f"make it (`marl-amod datasets`, docs/offline), name another (critic_dataset), or start the critic fresh (None)")  # fmt: skip
     if critic_dataset is not None:
         start = pretrain_critic(runs["finetune"], city, critic_dataset, Path(run_root) / "critic_init.pt")
         runs["finetune"] = runs["finetune"].model_copy(update={"init_critic": str(start)})

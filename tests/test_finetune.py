@@ -140,10 +140,22 @@ def test_a_critic_pretrained_on_the_dataset_starts_the_fine_tuned_run(tmp_path, 
     from marl_amod.scenario import load_city
 
     scenario, dataset = tiny_prop_dataset
-    study = finetune.finetune_curve(offline_policy, episodes=4, num_envs=2, eval_every=4, eval_episodes=1, critic_warmup=0,
-                                    critic_dataset=dataset, run_root=tmp_path / "runs")  # fmt: skip
-    start = study["runs"]["finetune"]["args"]["init_critic"]
+    study = finetune.finetune_curve(offline_policy, episodes=4, num_envs=2, eval_every=4, eval_episodes=1, run_root=tmp_path / "runs")
+    start = study["runs"]["finetune"]["args"]["init_critic"]  # the default: pre-trained on the policy's own dataset
     assert start.endswith("critic_init.pt") and not study["runs"]["scratch"]["args"]["init_critic"]
+    fresh = finetune.finetune_curve(offline_policy, episodes=2, num_envs=2, eval_every=2, eval_episodes=1, critic_dataset=None,
+                                    run_root=tmp_path / "fresh")  # fmt: skip
+    assert not fresh["runs"]["finetune"]["args"]["init_critic"]
+    import shutil
+
+    moved = tmp_path / "moved.npz"
+    shutil.copy(dataset, moved)
+    ALGOS["bc"].train(args_for("bc", {"scenario": scenario, "dataset": str(moved), "updates": 2, "batch_size": 8, "eval_every": 2,
+                                      "eval_episodes": 1, "final_eval_episodes": 1, "hidden": 8, "run_dir": str(tmp_path / "bc"),
+                                      "policy_out": str(tmp_path / "bc.pt")}))  # fmt: skip
+    moved.unlink()
+    with pytest.raises(ConfigError, match="not there to pre-train the critic"):
+        finetune.finetune_curve(str(tmp_path / "bc.pt"), episodes=2, num_envs=2, run_root=tmp_path / "gone")
     city = load_city(scenario)
     args = a2c.Args(scenario=scenario, hidden=8, num_envs=2, episodes_per_update=2, init_actor=offline_policy)
     fresh, fitted = a2c.make_critic(args, city), a2c.make_critic(args, city)
