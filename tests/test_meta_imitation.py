@@ -695,3 +695,38 @@ def test_a_run_whose_validations_stopped_moving_stops_says_so_and_keeps_the_best
     with pytest.warns(RuntimeWarning, match="no longer moves"):
         out = ALGOS["meta-bc"].train(args)
     assert out["card"]["stalled_at"] == 6 and out["card"]["updates"] == 6
+
+
+@pytest.mark.parametrize("adaptation", ["sampled", "mean"])
+def test_the_dagger_trials_adaptation_episodes_are_played_as_the_policy_adapts(tasks, adaptation):
+    """``adaptation``: the DAgger trials' first episodes play the Dirichlet mean (the same actions
+    whatever torch's stream, and so the same trial to its end) or sample from it (other actions
+    with another stream)."""
+    city = load_city(tasks[0])
+    torch.manual_seed(0)
+    model = RecurrentGNN(meta.n_task_features(2), hidden=8, stay_prior=True)
+    played = []
+    for stream in (1, 2):
+        torch.manual_seed(stream)
+        played.append(mi.collect_city(city, 2, 0, 2, learner=model, trial_episodes=2, adaptation=adaptation)["action"])
+    first, last = (np.array_equal(played[0][k], played[1][k]) for k in (0, 1))
+    assert (first and last) if adaptation == "mean" else not first
+
+
+def test_a_policys_card_says_how_it_adapts_and_validation_adapts_so(tasks, tmp_path, monkeypatch):
+    args = tiny_args(tasks, tmp_path, stay_prior=True, adaptation="mean")
+    ALGOS["meta-bc"].train(args)
+    model, card = meta.load_meta(tmp_path / "run.pt")
+    assert card["args"]["adaptation"] == "mean"
+    city = load_city(tasks[0])
+    torch.manual_seed(1)
+    by_card = meta.load_policy(tmp_path / "run.pt", city, 1).adapted
+    torch.manual_seed(2)
+    torch.testing.assert_close(by_card, meta.load_policy(tmp_path / "run.pt", city, 1, adaptation="mean").adapted)
+    assert not torch.allclose(by_card, meta.load_policy(tmp_path / "run.pt", city, 1, adaptation="sampled").adapted)
+    cities = {name: load_city(name) for name in args.val_cities}
+    scores = []
+    for stream in (1, 2):  # adapting by the mean, validation does not read torch's stream
+        torch.manual_seed(stream)
+        scores.append(meta.validate(model, args, cities))
+    assert scores[0] == scores[1]

@@ -587,6 +587,10 @@ class Args(C.RunArgs):
     """training cities whose adapted profit (``eval_episodes`` trials each, validation seeds) picks the best model"""
     eval_every: int = Field(600, ge=1)
     """episodes between validations (and training-state saves)"""
+    adaptation: Adaptation = "sampled"
+    """how the policy acts in its adaptation episodes (:func:`adapt`): in validation, in meta-bc's DAgger
+    trials and, read from its card, when deployed. RL²'s training trials always sample (their gradient
+    needs the draws)"""
     stall_validations: int = Field(5, ge=0)
     """stop, with a warning and the card's ``stalled_at``, when this many validations in a row lie within
     ``STALL_TOL`` of each other: the policy no longer moves (a stay-prior actor past its clamp did so
@@ -648,13 +652,23 @@ def check_tasks(args: Args) -> None:
         raise ConfigError(f"meta-RL validation cities (val_cities) include held-out {chosen_on}; the study tests on them")
 
 
+def adapting(agent: MetaAgent, adaptation: Adaptation) -> bool:
+    """Set ``agent`` up to act by ``adaptation`` in adaptation episodes (:func:`adapt`); whether it samples."""
+    if adaptation == "prior-concentration":
+        agent.concentration = STAY_CONCENTRATION * agent.city.n_regions
+    return adaptation != "mean"
+
+
 def validate(model: RecurrentGNN, args: Args, cities: dict[str, City]) -> float:
-    """Mean scaled profit of the last (deterministic) episode of ``eval_episodes`` trials on each validation city."""
+    """Mean scaled profit of the last (deterministic) episode of ``eval_episodes`` trials on each
+    validation city, their adaptation episodes played by ``args.adaptation``."""
     scores, b = [], args.eval_episodes
     with torch.no_grad():
         for name in args.val_cities:
             agent, system = MetaAgent(model, cities[name], args.lookahead, b), BatchFleetSystem(cities[name], b)
-            run_trials(agent, system, [[adapt_seed(args.eval_seed, k, j) for j in range(b)] for k in range(args.trial_episodes - 1)])
+            sample = adapting(agent, args.adaptation)
+            run_trials(agent, system, [[adapt_seed(args.eval_seed, k, j) for j in range(b)] for k in range(args.trial_episodes - 1)], sample)
+            agent.concentration = None
             last = run_trials(agent, system, [[np.random.SeedSequence([args.eval_seed, j]) for j in range(b)]], sample=False)
             scores.append(float(last.profits.mean()) / (cities[name].horizon * agent.scale.reward))
     return float(np.mean(scores))
@@ -835,7 +849,7 @@ def finish(
     from marl_amod.files import write_json
 
     city = load_city(args.scenario)
-    policy = adapt(model, city, args.trial_episodes - 1, args.lookahead, seed=args.eval_seed)
+    policy = adapt(model, city, args.trial_episodes - 1, args.lookahead, seed=args.eval_seed, adaptation=args.adaptation)
     result = evaluate(policy, city, args.final_eval_episodes, args.eval_seed)
     profit = result["metrics"]["profit"]
     card = make_card(
@@ -900,14 +914,13 @@ def adapt(model: RecurrentGNN, city: City, episodes: int, lookahead: int, seed: 
     concentration (``STAY_CONCENTRATION`` x N), what a centred actor's level-0 output gives."""
     model.eval()
     agent = MetaAgent(model, city, lookahead)
-    if adaptation == "prior-concentration":
-        agent.concentration = STAY_CONCENTRATION * city.n_regions
+    sample = adapting(agent, adaptation)
     # the adaptation samples its actions: draw them from a stream of the seed, not torch's global one,
     # so the same policy file, city and seed always adapt to the same memory (and report the same numbers)
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(np.random.SeedSequence([seed, 4243, 7]).generate_state(1)[0]))
         if episodes:  # K = 0: zero-shot, the memory of a new trial
-            run_trials(agent, BatchFleetSystem(city, 1), [[adapt_seed(seed, k)] for k in range(episodes)], sample=adaptation != "mean")
+            run_trials(agent, BatchFleetSystem(city, 1), [[adapt_seed(seed, k)] for k in range(episodes)], sample=sample)
     return MetaPolicy(agent)
 
 
@@ -941,16 +954,18 @@ def load_meta(path: str | Path, like: RecurrentGNN | None = None) -> tuple[Recur
     return model, card
 
 
-def load_policy(path: str | Path, city: City, episodes: int | None = None, seed: int = 0, adaptation: Adaptation = "sampled") -> MetaPolicy | PolicyEnsemble:
+def load_policy(path: str | Path, city: City, episodes: int | None = None, seed: int = 0, adaptation: Adaptation | None = None) -> MetaPolicy | PolicyEnsemble:
     """A meta-RL policy file adapted to ``city`` (``episodes`` adaptation episodes; default: the
-    trial length it was trained with, minus one; acting by ``adaptation`` there: :func:`adapt`),
-    ready for :func:`marl_amod.evaluation.evaluate`; an ensemble file (:mod:`marl_amod.ensemble`)
-    of them, each member adapted alone, by the file's ``adaptation`` where it names one."""
+    trial length it was trained with, minus one; acting by ``adaptation`` there, default: as its
+    card's ``adaptation`` says, "sampled" on older cards: :func:`adapt`), ready for
+    :func:`marl_amod.evaluation.evaluate`; an ensemble file (:mod:`marl_amod.ensemble`) of them, each
+    member adapted alone, by the file's ``adaptation`` where it names one."""
     if is_ensemble(path):
         adaptation = read_spec(path).adaptation or adaptation
         return load_ensemble(path, lambda member: load_policy(member, city, episodes, seed, adaptation))
     model, card = load_meta(path)
     k = card["args"]["trial_episodes"] - 1 if episodes is None else episodes
+    adaptation = adaptation or card["args"].get("adaptation", "sampled")
     policy = adapt(model, city, k, card["lookahead"], seed=seed, adaptation=adaptation)
     policy.name = Path(path).stem
     return policy

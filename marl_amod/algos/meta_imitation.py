@@ -123,14 +123,15 @@ def expert_for(city: City) -> MPCForecast:
 def collect_city(
     city: City, episodes: int, seed: int, lookahead: int, learner: RecurrentGNN | None = None, trial_episodes: int = 1,
     seed_of: Callable[[int, int], np.random.SeedSequence] = demo_seed, shock_prob: float = 0.0, shock_labels: ShockLabels = "told",
-    shock_per_task: bool = False,
+    shock_per_task: bool = False, adaptation: meta.Adaptation = "sampled",
 ) -> dict[str, np.ndarray]:
     """``episodes`` episodes of ``city`` labelled by MPC-Forecast (by MPC told the event on a city
     that carries one: :func:`expert_for`): the arrays of :class:`CityDemos`.
 
     Without ``learner`` MPC-F also drives (demonstrations). With it (DAgger) the recurrent policy
     drives, as it is deployed: trials of ``trial_episodes`` episodes with its memory carried, the
-    first ones sampled (adaptation), the last deterministic; MPC-F only labels the states it
+    first ones played by ``adaptation`` (:func:`~marl_amod.algos.meta.adapt`), the last
+    deterministic; MPC-F only labels the states it
     reaches. With ``shock_prob`` that share of the trials get a random demand shock
     (:func:`~marl_amod.algos.meta.random_shock`, the same in each of the trial's episodes), which
     the features do not show and :class:`MPCToldTheShock` labels (``shock_labels="told"``) or
@@ -148,11 +149,12 @@ def collect_city(
             system = FleetSystem(trial_city)
             policy = MPCForecast() if shocked and shock_labels == "forecast" else expert_for(trial_city)
             agent = meta.MetaAgent(learner, trial_city, lookahead)
+            adapts = meta.adapting(agent, adaptation)
         system.reset(seed_of(seed, e))
         policy.reset(system, np.random.default_rng(seed_of(seed, e)))
         if agent is not None:
             agent.new_episode()
-        sample = (e + 1) % trial_episodes != 0  # the trial's last episode is the deterministic one
+        sample = agent is not None and adapts and (e + 1) % trial_episodes != 0  # the trial's last episode is the deterministic one
         rows: dict[str, list[np.ndarray]] = {k: [] for k in cols}
         while not system.done:
             idle = system.sim.idle
@@ -195,7 +197,7 @@ def shock_draws(seed_of: Callable[[int, int], np.random.SeedSequence], seed: int
 def collect_demos(
     folder: str | Path, cities: list[str], episodes: int, seed: int, lookahead: int, learner: RecurrentGNN | None = None,
     trial_episodes: int = 1, seed_of: Callable[[int, int], np.random.SeedSequence] = demo_seed, shock_prob: float = 0.0,
-    shock_labels: ShockLabels = "told", shock_per_task: bool = False,
+    shock_labels: ShockLabels = "told", shock_per_task: bool = False, adaptation: meta.Adaptation = "sampled",
 ) -> dict[str, float]:
     """Write ``folder/<task>.npz`` for each task (a city or a :func:`~marl_amod.algos.meta.task_city`
     variant) not yet there (resumable, split by task; a file there is checked, :func:`check_demo_file`; with
@@ -212,7 +214,8 @@ def collect_demos(
             check_demo_file(path, episodes, lookahead)
         else:
             start = time.perf_counter()
-            arrays = collect_city(city, episodes, seed, lookahead, learner, trial_episodes, seed_of, shock_prob, shock_labels, shock_per_task)
+            arrays = collect_city(city, episodes, seed, lookahead, learner, trial_episodes, seed_of, shock_prob, shock_labels, shock_per_task,
+                                  adaptation)  # fmt: skip
             wall = time.perf_counter() - start
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_suffix(".tmp.npz")
@@ -589,7 +592,8 @@ def dagger_round(args: Args, model: RecurrentGNN, k: int, data: dict[str, tuple[
     with torch.no_grad():
         walls = collect_demos(folder, list(data), args.dagger_episodes, args.seed, args.lookahead, learner=model,
                               trial_episodes=args.trial_episodes, seed_of=functools.partial(dagger_seed, round=k), shock_prob=args.dagger_shock_prob,
-                              shock_labels=args.dagger_shock_labels, shock_per_task=args.dagger_shock_per_task)  # fmt: skip
+                              shock_labels=args.dagger_shock_labels, shock_per_task=args.dagger_shock_per_task,
+                              adaptation=args.adaptation)  # fmt: skip
     for name in data:
         demos, graph = data[name]
         data[name] = (joined(demos, load_run_demos(folder, cities[name], args)), graph)
@@ -708,7 +712,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                             "cities, seed, hotspot and skew settings (hotspot_variants, hotspot_multipliers, hotspot_distinct_regions, "
                             "skew_variants, skew_gammas, sink_variants, sink_multipliers) and event settings (event_tasks, event_multipliers)")  # fmt: skip
         for key, drawn in (("hotspot_share", "variants"), ("event_share", "event tasks"), ("dagger_whole_trials", "DAgger trials"),
-                           ("dagger_shock_per_task", "DAgger shocks")):  # fmt: skip
+                           ("dagger_shock_per_task", "DAgger shocks"), ("adaptation", "DAgger trials' adaptation episodes")):  # fmt: skip
             if st.get(key, Args.model_fields[key].default) != getattr(args, key):  # older states: as the defaults
                 raise DataError(f"{resume} drew its {drawn} with {key} {st.get(key)}; this config sets "
                                 f"{getattr(args, key)}: resume with the run's setting (the card names it)")  # fmt: skip
@@ -723,7 +727,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         C.save_state(C.state_path(args), algorithm="meta-bc", model=model.state_dict(), opt=opt.state_dict(), episode=step,
                      best_val=book.best.value, best_actor=book.best.state, wall_s=timer(), city_rng=rng.bit_generator.state, tasks=names,
                      hotspot_share=args.hotspot_share, event_share=args.event_share, dagger_whole_trials=args.dagger_whole_trials,
-                     dagger_shock_per_task=args.dagger_shock_per_task)  # fmt: skip
+                     dagger_shock_per_task=args.dagger_shock_per_task, adaptation=args.adaptation)  # fmt: skip
         return C.state_path(args), step
 
     dagger_wall = sum(dagger_round(args, model, k, data, cities) for k in range(1, started_rounds(args, step) + 1))  # resumed: read back
