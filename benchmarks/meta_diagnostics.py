@@ -102,6 +102,7 @@ from marl_amod.algos import meta_imitation as mi
 from marl_amod.baselines.mpc import MPCForecast, MPCOracle
 from marl_amod.batch_system import BatchFleetSystem
 from marl_amod.evaluation import evaluate
+from marl_amod.models.dense import DenseGraph
 from marl_amod.scenario import City, load_city
 from marl_amod.system import FleetSystem, StepOutcome
 from marl_amod.transfer import META_POLICY, STUDIES, run_strategy
@@ -219,7 +220,7 @@ def columns(d: mi.CityDemos) -> np.ndarray:
     return np.concatenate([x, d.region_reward.numpy().reshape(-1, 1), team], axis=1)
 
 
-def forced(model: meta.RecurrentGNN, d: mi.CityDemos, graph: meta.DenseGraph, own_prev_action: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+def forced(model: meta.RecurrentGNN, d: mi.CityDemos, graph: DenseGraph, own_prev_action: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """(the policy's Dirichlet means, MPC-F's shares), (decisions, B, N), teacher-forced over trials
     of 4 episodes (the memory carried as in training; ``own_prev_action``: reading its own means as
     the previous actions, :func:`~marl_amod.algos.meta_imitation.teacher_forced`)."""
@@ -234,7 +235,7 @@ def misplaced(means: torch.Tensor, share: torch.Tensor) -> float:
     return float(0.5 * (means - share).abs().sum(-1).mean())
 
 
-def imitation_error(model: meta.RecurrentGNN, d: mi.CityDemos, graph: meta.DenseGraph) -> tuple[float, float]:
+def imitation_error(model: meta.RecurrentGNN, d: mi.CityDemos, graph: DenseGraph) -> tuple[float, float]:
     """(cross-entropy above the labels' entropy, share of the idle fleet sent elsewhere) over trials of 4."""
     means, share = forced(model, d, graph)
     ce = -(share * torch.log(means.clamp_min(1e-8))).sum(-1) + (share * torch.log(share.clamp_min(1e-12))).sum(-1)
@@ -288,7 +289,7 @@ def hotspot(policy: str, cities: list[str], multiplier: float | None, episodes: 
             print(line, flush=True)
 
 
-def _transplanted(model: meta.RecurrentGNN, graph: meta.DenseGraph, region: int, label: str, d: mi.CityDemos, own_prev_action: bool = False) -> None:
+def _transplanted(model: meta.RecurrentGNN, graph: DenseGraph, region: int, label: str, d: mi.CityDemos, own_prev_action: bool = False) -> None:
     means, share = forced(model, d, graph, own_prev_action)
     print(f"  {label:44s} r{region} {means[..., region].mean():.3f} ({share[..., region].mean():.3f})  misplaced {misplaced(means, share):.3f}", flush=True)
 

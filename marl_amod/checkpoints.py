@@ -22,7 +22,7 @@ import subprocess
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -37,6 +37,9 @@ from marl_amod.models.distributions import dirichlet_mean
 from marl_amod.scenario import City
 from marl_amod.selection import QSelector, Selection
 from marl_amod.system import FleetSystem
+
+if TYPE_CHECKING:
+    from marl_amod.ensemble import Adaptation
 
 FORMAT = "marl_amod.policy/2"
 REGION_BOUND = ("mlp", "cnn")  # actors whose weights are tied to the city's region count
@@ -404,26 +407,23 @@ def _selection(raw: Selection | dict[str, Any] | None) -> Selection | None:
         raise ConfigError(f"selection: {pydantic_problems(exc)}") from None
 
 
-def load_policy(path: str | Path, city: City | str | None = None, selection: Selection | dict[str, Any] | None = None) -> WeightPolicy:
+def load_policy(
+    path: str | Path, city: City | str | None = None, selection: Selection | dict[str, Any] | None = None, adaptation: Adaptation | None = None
+) -> WeightPolicy:
     """A deterministic policy from a checkpoint, for ``city`` (a City or a scenario name; default:
     the scenario on its card). It runs on the simulator and as a callable on env observations; a
-    meta-RL policy (algorithm "meta") runs its adaptation episodes in ``city`` first.
+    meta-RL policy (algorithm "meta") runs its adaptation episodes in ``city`` first, played by
+    ``adaptation`` (default: as its card says; :func:`marl_amod.algos.meta.adapt`).
 
     ``selection`` (default: the card's) picks each action among candidates by the file's critic
     (:mod:`marl_amod.selection`); ``{"candidates": 0, ...}`` turns a card's selection off.
-    An ensemble file (:mod:`marl_amod.ensemble`) gives its members' mean, each member loaded so."""
+    An ensemble file (:mod:`marl_amod.ensemble`) gives its members' mean, each member loaded so
+    (its meta-policies adapting by the file's ``adaptation`` where it names one)."""
     from marl_amod.ensemble import is_ensemble, load_ensemble, read_spec
 
     if is_ensemble(path):
-        if read_spec(path).adaptation is not None:  # how its meta-policies adapt (write_ensemble refuses it for others)
-            from marl_amod.algos import meta
-            from marl_amod.ensemble import read_members
-            from marl_amod.scenario import load_city
-
-            if not isinstance(city, City):
-                city = load_city(city if city is not None else training_scenario(read_card(read_members(path)[0])))
-            return meta.load_policy(path, city)
-        return load_ensemble(path, lambda member: load_policy(member, city, selection))
+        adaptation = read_spec(path).adaptation or adaptation  # write_ensemble refuses it where a member is no meta-policy
+        return load_ensemble(path, lambda member: load_policy(member, city, selection, adaptation))
     card = _card_of(Path(path), _read_blob(Path(path))["card"])
     if not isinstance(city, City):
         from marl_amod.scenario import load_city
@@ -432,7 +432,7 @@ def load_policy(path: str | Path, city: City | str | None = None, selection: Sel
     if card.algorithm in ("meta", "meta-bc"):  # a recurrent meta-policy: adapt to the city first (no gradient step)
         from marl_amod.algos import meta
 
-        return meta.load_policy(path, city)
+        return meta.load_policy(path, city, adaptation=adaptation)
     actor, card = load_actor(path, city)
     chosen = _selection(selection if selection is not None else card.get("selection"))
     selector = QSelector(load_critic(path)[0], city, chosen) if chosen is not None and chosen.candidates else None

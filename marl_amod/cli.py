@@ -289,20 +289,19 @@ def fqe(
 ) -> None:
     """Score policies from a dataset alone (fitted Q evaluation): each one's episode profit, estimated with no env episode, beside the logged behaviour's estimate and its logged return."""
     from marl_amod import fqe as F
+    from marl_amod.checkpoints import read_card
     from marl_amod.datasets import OfflineDataset
 
     _use_data_dir(data_dir)
     if output is not None:
         output = check_destination(output, what="--output")  # before the fits, not after them
-    from marl_amod.checkpoints import read_card
-
     for p in policy or []:  # every policy file read before the first fit, so a typo in the last does not wait for the others
         read_card(p)
-    settings = F.FQESettings(updates=updates, seed=seed)
-    logged = F.logged_returns(OfflineDataset.load(dataset))
-    rows = {"logged behaviour": F.estimate(None, dataset, scenario, settings).to_dict() | {"logged_return": float(logged.mean())}}
+    settings, loaded = F.FQESettings(updates=updates, seed=seed), OfflineDataset.load(dataset)
+    logged = F.logged_returns(loaded)
+    rows = {"logged behaviour": F.estimate(None, dataset, scenario, settings, loaded).to_dict() | {"logged_return": float(logged.mean())}}
     for p in policy or []:
-        rows[p] = F.estimate(p, dataset, scenario, settings).to_dict()
+        rows[p] = F.estimate(p, dataset, scenario, settings, loaded).to_dict()
     table = Table(title=f"FQE on {dataset} ({len(logged)} episodes; the decisions' profit, the first dispatch left out)")
     for col in ("policy", "FQE estimate", "logged return"):
         table.add_column(col, justify="left" if col == "policy" else "right")

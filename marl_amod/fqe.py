@@ -34,7 +34,7 @@ from marl_amod.algos import offline as O
 from marl_amod.datasets import OfflineDataset
 from marl_amod.errors import DataError
 from marl_amod.models import GNNQCritic
-from marl_amod.models.dense import DenseGraph
+from marl_amod.models.dense import DenseGraph, city_graph
 from marl_amod.scenario import City, load_city
 
 REWARD_SCALE = 1e-3  # a step earns a few thousand in Brooklyn; the critic regresses thousands of $
@@ -153,7 +153,7 @@ def policy_actions(path: str | Path, dataset: OfflineDataset, dataset_path: str 
     actor, card = load_actor(path, city)
     args = O.OfflineArgs(scenario=city.name, dataset=str(dataset_path), lookahead=card["lookahead"],
                          arrivals_now=bool(card.get("arrivals_now")), mode=card.get("mode", "centralised"))  # fmt: skip
-    data = O.Data(args, city)
+    data = O.Data(args, city, loaded=dataset)
     local, time = args.mode == "decentralised", bool(card.get("time_context"))
     graph = city_graph(city)
     batch = O.Batch(data.tensors)
@@ -162,15 +162,12 @@ def policy_actions(path: str | Path, dataset: OfflineDataset, dataset_path: str 
         return mean("next_"), mean("")[torch.as_tensor(first_rows(dataset))]
 
 
-def city_graph(city: City) -> DenseGraph:
-    return DenseGraph(torch.as_tensor(np.array(city.edge_index), dtype=torch.long), city.n_regions)
-
-
 def estimate(policy: str | Path | None, dataset_path: str | Path, city: City | str | None = None,
-             settings: FQESettings = FQESettings()) -> Estimate:  # fmt: skip
+             settings: FQESettings = FQESettings(), loaded: OfflineDataset | None = None) -> Estimate:  # fmt: skip
     """FQE's estimate of the episode profit of the policy file ``policy`` (None: the logged behaviour
-    itself) from the dataset ``dataset_path``, on ``city`` (default: the dataset's scenario by name)."""
-    dataset = OfflineDataset.load(dataset_path)
+    itself) from the dataset ``dataset_path`` (``loaded``: already read, as a caller scoring several
+    policies on it has it), on ``city`` (default: the dataset's scenario by name)."""
+    dataset = loaded if loaded is not None else OfflineDataset.load(dataset_path)
     city = city if isinstance(city, City) else load_city(city or dataset.meta["scenario"])
     actions = behaviour_actions(dataset) if policy is None else policy_actions(policy, dataset, dataset_path, city)
     return fit(transitions(dataset, *actions), city_graph(city), settings)

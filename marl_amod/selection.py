@@ -31,7 +31,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 
 from marl_amod.models import TwinQ
-from marl_amod.models.dense import DenseGraph
+from marl_amod.models.dense import city_graph
 from marl_amod.scenario import City
 
 
@@ -56,7 +56,7 @@ class QSelector:
 
     def __init__(self, critic: TwinQ, city: City, selection: Selection) -> None:
         self.critic, self.selection = critic.eval(), selection
-        self.graph = DenseGraph(torch.tensor(np.array(city.edge_index), dtype=torch.long), city.n_regions)
+        self.graph = city_graph(city)
 
     def candidates(self, features: np.ndarray, mean: np.ndarray) -> np.ndarray:
         """(K + 1, N): the mean first, then K draws from Dir(c * mean) seeded by the features."""

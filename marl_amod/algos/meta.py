@@ -97,7 +97,7 @@ from marl_amod.data import resolve
 from marl_amod.ensemble import Adaptation, PolicyEnsemble, is_ensemble, load_ensemble, read_spec
 from marl_amod.env.features import state_features
 from marl_amod.errors import ConfigError, DataError
-from marl_amod.models.dense import DenseGraph
+from marl_amod.models.dense import city_graph
 from marl_amod.models.distributions import dirichlet
 from marl_amod.models.gnn import Readout
 from marl_amod.models.recurrent import STAY_CONCENTRATION, RecurrentGNN
@@ -434,11 +434,6 @@ def skew_tasks(cities: list[str], variants: int, gammas: tuple[float, float], se
 # --------------------------------------------------------------------------------------------
 # The agent: a policy with memory on one city, B trials in lockstep
 # --------------------------------------------------------------------------------------------
-def city_graph(city: City) -> DenseGraph:
-    """The city graph in the dense form of the batched path."""
-    return DenseGraph(torch.tensor(np.array(city.edge_index), dtype=torch.long), city.n_regions)
-
-
 class MetaAgent:
     """The recurrent policy on one city for B trials in lockstep: its scale, graph, memory (B, N, H)
     and previous action / rewards. It acts on a :class:`BatchFleetSystem` of B episodes, or (B = 1)
@@ -668,7 +663,6 @@ def validate(model: RecurrentGNN, args: Args, cities: dict[str, City]) -> float:
             agent, system = MetaAgent(model, cities[name], args.lookahead, b), BatchFleetSystem(cities[name], b)
             sample = adapting(agent, args.adaptation)
             run_trials(agent, system, [[adapt_seed(args.eval_seed, k, j) for j in range(b)] for k in range(args.trial_episodes - 1)], sample)
-            agent.concentration = None
             last = run_trials(agent, system, [[np.random.SeedSequence([args.eval_seed, j]) for j in range(b)]], sample=False)
             scores.append(float(last.profits.mean()) / (cities[name].horizon * agent.scale.reward))
     return float(np.mean(scores))

@@ -128,9 +128,10 @@ class Batch(dict):
 class Data:
     """The dataset as float tensors (the global view, plus the local one for decentralised runs)."""
 
-    def __init__(self, args: OfflineArgs, city: City) -> None:
+    def __init__(self, args: OfflineArgs, city: City, loaded: OfflineDataset | None = None) -> None:
+        """``loaded``: ``args.dataset`` already read (its caller's copy, not read again)."""
         path = Path(args.dataset)
-        data = OfflineDataset.load(path)
+        data = loaded if loaded is not None else OfflineDataset.load(path)
         self.card = read_card(path) if path.with_suffix(".json").is_file() else {}
         meta = data.meta
         if meta["scenario"] != city.name or meta["n_agents"] != city.n_regions:

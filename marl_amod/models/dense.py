@@ -24,11 +24,15 @@ are real (:class:`~marl_amod.models.recurrent.RecurrentGNN` reads it).
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
+import numpy as np
 import torch
 from torch import nn
 from torch_geometric.nn import GCNConv, SAGEConv
+
+if TYPE_CHECKING:
+    from marl_amod.scenario import City
 
 ConvKind = Literal["gcn", "sage"]
 
@@ -101,6 +105,11 @@ class DenseGraph(_Operators):
         """The (N, N) operator of ``kind`` on this graph."""
         return graph_operator(kind, self.edge_index, self.n)
 
+
+
+def city_graph(city: City) -> DenseGraph:
+    """The city graph in the dense form of the batched path."""
+    return DenseGraph(torch.tensor(np.array(city.edge_index), dtype=torch.long), city.n_regions)
 
 class PaddedGraphs(_Operators):
     """C city graphs as one padded batch: pass it where :class:`DenseGraph` goes, with inputs
