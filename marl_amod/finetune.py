@@ -24,7 +24,7 @@ What the study reports, as the paper does:
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -34,7 +34,10 @@ from marl_amod.checkpoints import architecture_args, feature_args, load_actor, r
 from marl_amod.errors import ConfigError
 from marl_amod.evaluation import evaluate
 from marl_amod.files import write_json
-from marl_amod.scenario import load_city
+from marl_amod.scenario import City, load_city
+
+if TYPE_CHECKING:
+    from marl_amod.datasets import OfflineDataset
 
 RUNS = ("finetune", "scratch")
 METRICS = ("eval/profit", "train/revenue", "train/rebalancing_cost")
@@ -99,7 +102,7 @@ def finetune_curve(
     return out
 
 
-def standardised_returns(data: Any, gamma: float, reward_scale: float) -> np.ndarray:
+def standardised_returns(data: OfflineDataset, gamma: float, reward_scale: float) -> np.ndarray:
     """Each logged transition's discounted return to its episode's end (team reward x ``reward_scale``),
     standardised over the dataset: what A2C's critic regresses, batch by batch (``normalize_returns``)."""
     episode, step, reward = np.asarray(data.episode_ids), np.asarray(data.step_ids), np.asarray(data.team_rewards, dtype=np.float64)
@@ -111,7 +114,7 @@ def standardised_returns(data: Any, gamma: float, reward_scale: float) -> np.nda
     return (returns - returns.mean()) / (returns.std() + 1e-8)
 
 
-def pretrain_critic(args: a2c.Args, city: Any, dataset: str | Path, out: str | Path, updates: int = 2000, batch: int = 256,
+def pretrain_critic(args: a2c.Args, city: City, dataset: str | Path, out: str | Path, updates: int = 2000, batch: int = 256,
                     seed: int = 0) -> Path:  # fmt: skip
     """A critic of ``args``' shape regressed on the logged episodes' discounted returns (``gamma``,
     ``reward_scale``), standardised over the dataset as A2C standardises each batch's: the behaviour's

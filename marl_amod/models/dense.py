@@ -106,10 +106,10 @@ class DenseGraph(_Operators):
         return graph_operator(kind, self.edge_index, self.n)
 
 
-
 def city_graph(city: City) -> DenseGraph:
     """The city graph in the dense form of the batched path."""
     return DenseGraph(torch.tensor(np.array(city.edge_index), dtype=torch.long), city.n_regions)
+
 
 class PaddedGraphs(_Operators):
     """C city graphs as one padded batch: pass it where :class:`DenseGraph` goes, with inputs
