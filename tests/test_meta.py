@@ -17,6 +17,7 @@ from marl_amod.models.recurrent import RecurrentGNN
 from marl_amod.scenario import grid_city, load_city
 from marl_amod.system import FleetSystem
 from marl_amod.transfer import STRATEGIES, run_strategy
+from tests.conftest import needs_data
 
 
 def _city_yaml(tmp_path, name, **keys):
@@ -373,6 +374,11 @@ def test_a_hotspot_variant_is_another_city_its_name_rebuilds():
     for bad in ("synthetic~hotAx2", "synthetic~hot99x2", "synthetic~hot1x0"):
         with pytest.raises(ConfigError, match="hotspot"):
             meta.task_city(bad)
+
+
+@needs_data
+def test_hotspot_tasks_are_drawn_per_city_by_seed():
+    """``hotspot_tasks``: ``variants`` hotspot tasks of each city, the same for a seed, multipliers in range."""
     names = meta.hotspot_tasks(["synthetic", "porto"], 3, (2.0, 4.0), seed=0)
     assert names == meta.hotspot_tasks(["synthetic", "porto"], 3, (2.0, 4.0), seed=0) != meta.hotspot_tasks(["synthetic", "porto"], 3, (2.0, 4.0), seed=1)
     assert [meta.base_city(n) for n in names] == ["synthetic"] * 3 + ["porto"] * 3
@@ -399,6 +405,14 @@ def test_an_event_task_carries_its_event_in_the_draw_not_the_forecast_and_its_na
     for bad in ("synthetic~ev3+x2@0-5", "synthetic~ev3x2@5-5", "synthetic~ev99x2@0-5", "synthetic~ev3x2@0-5dr1x"):
         with pytest.raises(ConfigError, match="event"):
             meta.task_city(bad)
+    with pytest.raises(ConfigError, match="event_multipliers"):
+        meta.event_tasks(["synthetic"], 1, (0.5, 2.0), seed=0)
+
+
+@needs_data
+def test_event_tasks_surge_outside_the_busiest_regions_inside_the_horizon_by_seed():
+    """``event_tasks``: surges outside the two busiest regions, windows inside the horizon, drops at
+    the busiest, as a function of the seed, for each city."""
     names = meta.event_tasks(["synthetic", "porto"], 3, (3.0, 8.0), seed=0)
     assert names == meta.event_tasks(["synthetic", "porto"], 3, (3.0, 8.0), seed=0) != meta.event_tasks(["synthetic", "porto"], 3, (3.0, 8.0), seed=1)
     assert [meta.base_city(n) for n in names] == ["synthetic"] * 3 + ["porto"] * 3 and len(set(names)) == 6
@@ -409,8 +423,6 @@ def test_an_event_task_carries_its_event_in_the_draw_not_the_forecast_and_its_na
         assert len(surge["regions"]) == 2 and not busiest & set(surge["regions"]) and 3.0 <= surge["multiplier"] <= 8.0
         assert 6 <= surge["end"] - surge["start"] <= 10 and surge["end"] <= base.horizon
         assert all(set(d["regions"]) == busiest and 0.3 <= d["multiplier"] <= 0.8 for d in drop)
-    with pytest.raises(ConfigError, match="event_multipliers"):
-        meta.event_tasks(["synthetic"], 1, (0.5, 2.0), seed=0)
 
 
 def test_event_tasks_are_as_many_as_asked_or_refused(tmp_path):

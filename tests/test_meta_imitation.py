@@ -18,6 +18,7 @@ from marl_amod.errors import ConfigError, DataError
 from marl_amod.evaluation import evaluate
 from marl_amod.models.recurrent import RecurrentGNN
 from marl_amod.scenario import load_city
+from tests.conftest import needs_data
 
 
 def tiny_args(tasks: list[str], tmp_path, name: str = "run", **overrides) -> mi.Args:
@@ -573,6 +574,7 @@ def test_skew_and_sink_variants_are_tasks_with_demonstrations_of_their_own_and_a
     assert rec["transfer"]["source_city"] == "10 training cities + 2 hotspot variants + 2 skew variants + 2 sink variants"
 
 
+@needs_data
 def test_sink_tasks_are_a_function_of_the_seed_distinct_and_on_destinations_with_arrivals():
     names = meta.sink_tasks(["synthetic", "porto"], 2, (4.0, 8.0), seed=0)
     assert names == meta.sink_tasks(["synthetic", "porto"], 2, (4.0, 8.0), seed=0) != meta.sink_tasks(["synthetic", "porto"], 2, (4.0, 8.0), seed=1)

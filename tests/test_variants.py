@@ -17,6 +17,7 @@ from marl_amod.cli import app
 from marl_amod.errors import ConfigError
 from marl_amod.scenario import load_city
 from marl_amod.scenario.variants import base_city, event_task, hotspot, in_out_imbalance, sink, skew, split
+from tests.conftest import needs_data
 
 HOT = "synthetic~hot2x3"  # requests out of region 2 x3 against the rest, draw and forecast
 EVENT = "synthetic~ev3+7x20@2-8"  # requests out of regions 3 and 7 x20 over steps [2, 8), draw only
@@ -135,6 +136,7 @@ def _out_share(city) -> np.ndarray:
     return out * city.n_regions / out.sum()
 
 
+@needs_data
 def test_a_skew_variant_is_rebuilt_by_its_name_keeps_each_steps_total_and_skews_the_shares():
     """``<city>~skew<gamma>``: the name rebuilds the city bit for bit (gamma exactly, short), every
     step's total is kept in the draw and the forecast, gamma 1 is the city's demand itself, and
