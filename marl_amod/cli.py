@@ -546,6 +546,8 @@ def finetune_curve(
     """Offline -> online: fine-tune an offline policy with A2C next to A2C from scratch; plot and numbers."""
     from marl_amod import finetune
 
+    if fresh_critic and critic_dataset is not None:
+        raise ConfigError(f"--fresh-critic starts the critic untrained; --critic-dataset {critic_dataset} would pre-train it: give one of them")
     _use_data_dir(data_dir)
     with progress_bar() as bar:
         task = bar.add_task("A2C", total=episodes)

@@ -95,6 +95,14 @@ def test_cli_finetune_curve(tmp_path, offline_policy):
     assert (tmp_path / "o" / "finetune.json").is_file() and (tmp_path / "o" / "finetune.png").is_file()
 
 
+def test_cli_finetune_curve_refuses_a_fresh_critic_with_a_critic_dataset(tmp_path, offline_policy):
+    """The two options contradict each other: one was silently dropped before; now neither runs."""
+    res = CliRunner().invoke(app, ["finetune-curve", "--policy", offline_policy, "--episodes", "2", "--fresh-critic",
+                                   "--critic-dataset", str(tmp_path / "any.npz"), "--out", str(tmp_path / "o"), "--run-root", str(tmp_path / "r")])  # fmt: skip
+    assert isinstance(res.exception, ConfigError) and "--fresh-critic" in str(res.exception)
+    assert not (tmp_path / "r").exists() and not (tmp_path / "o").exists()
+
+
 def test_concentration_cap_keeps_the_mean_and_bounds_the_total():
     """The fine-tuning cap widens samples without moving what the deterministic policy plays."""
     import torch
