@@ -63,6 +63,13 @@
   (docs/meta/log.md, "The event tasks"). That error is the episodes' noise for two fixed
   policies only: two training seeds of one recipe differed by 8-9 times it on the events and skew variants (log.md, "A second
   training seed"), so compare a candidate against more than one run of the recipe it would replace.
+* ``trials``: what DAgger collected (``files``: run folders holding ``dagger/round*/<task>.npz``), by the
+  episode's place in its trial (1..K-1 adaptation, K scored): the share of the idle fleet the played action
+  sends elsewhere than MPC-F's label, at each task's busiest region (MPC-F's largest mean label share over the
+  trial) the share asked against the label's and the requests left unserved, the spread of the idle vehicles
+  there (sd over the trial's episodes, per step: coverage) and the episode's return (per-city units); then each
+  run's trials paired with the first run's where both played the same days (same seed), and the adaptation
+  episodes' misplaced share round by round (docs/meta/log.md, "What the DAgger trials hold").
 
     python benchmarks/meta_diagnostics.py gap [--policy policies/meta_rl_l1_cities.pt]
     python benchmarks/meta_diagnostics.py k --ks 0,1,3,10 [--validation]
@@ -78,6 +85,7 @@
     python benchmarks/meta_diagnostics.py compare A.json B.json
     python benchmarks/meta_diagnostics.py misread --cities nyc_brooklyn_event,porto~ev7+12x6@6-14dr1+2x0.5 --episodes 20 --policy policies/meta_rl_l1_whole_ensemble.yaml
     python benchmarks/meta_diagnostics.py rule --policy runs/ens/candidate.yaml --workers 2 [--reference policies/meta_rl_l1_whole_ensemble.yaml]
+    python benchmarks/meta_diagnostics.py trials runs/meta_bc_dagger_l1_whole_rep8 runs/meta_bc_dagger_l1_whole_mean8
     python benchmarks/meta_diagnostics.py recipes --first docs/meta/rule/cut01,docs/meta/rule/cut23 --second docs/meta/rule/replicate,docs/meta/rule/reference
 """
 
@@ -744,10 +752,54 @@ def misread(policy: str, names: list[str], episodes: int = 20, seed: int = 1000,
     return out
 
 
+def trial_measures(path: Path, lookahead: int = 6) -> dict[str, np.ndarray]:
+    """One DAgger trial file's measures by the episode's place in the trial (:func:`trials`)."""
+    d = np.load(path)
+    action, share, x = d["action"], d["share"], d["x"]  # (K, T, N), (K, T, N), (K, T, N, F)
+    hot = int(share.mean((0, 1)).argmax())
+    idle = x[..., hot, 0]
+    return {
+        "misplaced": 0.5 * np.abs(action - share).sum(-1).mean(-1),
+        "asked": action[..., hot].mean(-1), "label": share[..., hot].mean(-1),
+        "unserved": x[..., hot, 2 + 2 * lookahead].sum(-1), "spread": np.full(len(idle), idle.std(0).mean()),
+        "return": d["reward"].sum(-1), "seed": np.full(len(idle), int(d["seed"])),
+    }
+
+
+def trials(runs: list[str]) -> None:
+    """What each run's DAgger trials hold (module docstring); the first run is the one the others pair with."""
+    found: dict[str, dict[str, dict[str, np.ndarray]]] = {}
+    for run in runs:
+        files = sorted(Path(run).glob("dagger/round*/*.npz"))
+        if not files:
+            raise SystemExit(f"{run}: no DAgger trials (dagger/round*/<task>.npz)")
+        found[run] = {f"{f.parent.name}/{f.stem}": trial_measures(f) for f in files}
+    keys = ["misplaced", "asked", "label", "unserved", "spread", "return"]
+    print(f"{'run':44s} {'ep':>2s} " + " ".join(f"{k:>9s}" for k in keys), flush=True)
+    for run, got in found.items():
+        for e in range(len(next(iter(got.values()))["return"])):
+            row = [np.mean([m[k][e] for m in got.values()]) for k in keys]
+            print(f"{Path(run).name:44s} {e + 1:2d} " + " ".join(f"{v:9.4f}" for v in row), flush=True)
+    first = found[runs[0]]
+    for run, got in list(found.items())[1:]:
+        shared = [t for t in got if t in first and first[t]["seed"][0] == got[t]["seed"][0]]
+        if not shared:
+            print(f"{Path(run).name}: no trials on the same days as {Path(runs[0]).name}", flush=True)
+            continue
+        diff = np.array([got[t]["return"] - first[t]["return"] for t in shared])  # (trials, K)
+        text = ", ".join(f"ep {e + 1} {diff[:, e].mean():+.3f} ({sem(diff[:, e]):.3f})" for e in range(diff.shape[1]))
+        print(f"{Path(run).name} - {Path(runs[0]).name}, return over {len(shared)} paired trials: {text}", flush=True)
+    print("adaptation episodes' misplaced share, round by round:", flush=True)
+    for run, got in found.items():
+        rounds = sorted({t.split("/")[0] for t in got}, key=lambda r: int(r.removeprefix("round")))
+        text = " ".join(f"{np.mean([m['misplaced'][:-1].mean() for t, m in got.items() if t.startswith(r + '/')]):.3f}" for r in rounds)
+        print(f"{Path(run).name:44s} {text}", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hold", "steps", "hotspot", "transplant", "tasks", "compare", "rule", "recipes", "misread"])
-    parser.add_argument("files", nargs="*", help="compare: two tasks --out files (the second against the first)")
+    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hold", "steps", "hotspot", "transplant", "tasks", "compare", "rule", "recipes", "misread", "trials"])
+    parser.add_argument("files", nargs="*", help="compare: two tasks --out files (the second against the first); trials: run folders")
     parser.add_argument("--policy", default="policies/meta_rl_l1_cities.pt")
     parser.add_argument("--demos", default="runs/meta_demos")
     parser.add_argument("--ks", default="0,1,2,3,4,5,6,8,10")
@@ -799,6 +851,10 @@ def main() -> None:
     elif args.what == "misread":
         freeze = set().union(*windows_of(args.freeze).values()) if args.freeze else None  # every window given, not the first
         misread(args.policy, args.cities.split(","), args.episodes, k=args.k, freeze=freeze)
+    elif args.what == "trials":
+        if not args.files:
+            parser.error("trials needs run folders holding dagger/round*/<task>.npz")
+        trials(args.files)
     elif args.what == "compare":
         if not args.files:
             parser.error("compare needs tasks --out files: A.json B.json")
