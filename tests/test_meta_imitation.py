@@ -715,6 +715,28 @@ def test_the_dagger_trials_adaptation_episodes_are_played_as_the_policy_adapts(t
     assert (first and last) if adaptation == "mean" else not first
 
 
+def test_dagger_concentration_sets_how_widely_the_trials_adaptation_episodes_sample(tasks):
+    """``concentration``: the adaptation episodes sample around the policy's mean at c x N whatever
+    ``adaptation`` says (here the mean, which alone would not sample); the trial's last episode stays
+    the mean. The first decision's state is the same in every run (same demand seed), so its action
+    lies near the mean's at a high concentration and far from it at a low one."""
+    city = load_city(tasks[1])
+    torch.manual_seed(0)
+    model = RecurrentGNN(meta.n_task_features(2), hidden=8, stay_prior=True)
+    mean = mi.collect_city(city, 2, 0, 2, learner=model, trial_episodes=2, adaptation="mean")["action"]
+    off = {}
+    for c in (0.5, 1e5):
+        torch.manual_seed(1)
+        played = mi.collect_city(city, 2, 0, 2, learner=model, trial_episodes=2, adaptation="mean", concentration=c)["action"]
+        off[c] = 0.5 * np.abs(played[0, 0] - mean[0, 0]).sum()
+        torch.manual_seed(2)
+        again = mi.collect_city(city, 2, 0, 2, learner=model, trial_episodes=2, adaptation="mean", concentration=c)["action"]
+        assert not np.array_equal(played[0], again[0])  # sampled: another stream, other actions
+    assert off[1e5] < 0.01 < 0.1 < off[0.5]
+    with pytest.raises(ValueError, match="dagger_rounds"):
+        mi.Args(dagger_concentration=1.0)
+
+
 def test_a_policys_card_says_how_it_adapts_and_validation_adapts_so(tasks, tmp_path, monkeypatch):
     args = tiny_args(tasks, tmp_path, stay_prior=True, adaptation="mean")
     ALGOS["meta-bc"].train(args)

@@ -123,14 +123,15 @@ def expert_for(city: City) -> MPCForecast:
 def collect_city(
     city: City, episodes: int, seed: int, lookahead: int, learner: RecurrentGNN | None = None, trial_episodes: int = 1,
     seed_of: Callable[[int, int], np.random.SeedSequence] = demo_seed, shock_prob: float = 0.0, shock_labels: ShockLabels = "told",
-    shock_per_task: bool = False, adaptation: meta.Adaptation = "sampled",
+    shock_per_task: bool = False, adaptation: meta.Adaptation = "sampled", concentration: float | None = None,
 ) -> dict[str, np.ndarray]:
     """``episodes`` episodes of ``city`` labelled by MPC-Forecast (by MPC told the event on a city
     that carries one: :func:`expert_for`): the arrays of :class:`CityDemos`.
 
     Without ``learner`` MPC-F also drives (demonstrations). With it (DAgger) the recurrent policy
     drives, as it is deployed: trials of ``trial_episodes`` episodes with its memory carried, the
-    first ones played by ``adaptation`` (:func:`~marl_amod.algos.meta.adapt`), the last
+    first ones played by ``adaptation`` (:func:`~marl_amod.algos.meta.adapt`), or with ``concentration``
+    sampled around the mean at that total Dirichlet concentration x N (the regions), the last
     deterministic; MPC-F only labels the states it
     reaches. With ``shock_prob`` that share of the trials get a random demand shock
     (:func:`~marl_amod.algos.meta.random_shock`, the same in each of the trial's episodes), which
@@ -150,6 +151,8 @@ def collect_city(
             policy = MPCForecast() if shocked and shock_labels == "forecast" else expert_for(trial_city)
             agent = meta.MetaAgent(learner, trial_city, lookahead)
             adapts = meta.adapting(agent, adaptation)
+            if concentration is not None:
+                agent.concentration, adapts = concentration * n, True
         system.reset(seed_of(seed, e))
         policy.reset(system, np.random.default_rng(seed_of(seed, e)))
         if agent is not None:
@@ -198,6 +201,7 @@ def collect_demos(
     folder: str | Path, cities: list[str], episodes: int, seed: int, lookahead: int, learner: RecurrentGNN | None = None,
     trial_episodes: int = 1, seed_of: Callable[[int, int], np.random.SeedSequence] = demo_seed, shock_prob: float = 0.0,
     shock_labels: ShockLabels = "told", shock_per_task: bool = False, adaptation: meta.Adaptation = "sampled",
+    concentration: float | None = None,
 ) -> dict[str, float]:
     """Write ``folder/<task>.npz`` for each task (a city or a :func:`~marl_amod.algos.meta.task_city`
     variant) not yet there (resumable, split by task; a file there is checked, :func:`check_demo_file`; with
@@ -215,7 +219,7 @@ def collect_demos(
         else:
             start = time.perf_counter()
             arrays = collect_city(city, episodes, seed, lookahead, learner, trial_episodes, seed_of, shock_prob, shock_labels, shock_per_task,
-                                  adaptation)  # fmt: skip
+                                  adaptation, concentration)  # fmt: skip
             wall = time.perf_counter() - start
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_suffix(".tmp.npz")
@@ -455,6 +459,12 @@ class Args(meta.Args):
     """a DAgger trial is teacher-forced whole, its episodes in the order played (:func:`draw_trials`),
     instead of episode by episode among the city's demonstrations: the memory then trains on a
     shock repeated from one episode to the next, as it meets an event over its adaptation episodes"""
+    dagger_concentration: float | None = Field(None, gt=0)
+    """the DAgger trials' adaptation episodes sampled around the policy's mean at this total Dirichlet
+    concentration x N (the regions) instead of as ``adaptation`` says; validation and deployment keep
+    ``adaptation``. Why: the plain recipe's trials sample at its untrained level, which set how widely
+    they spread the hotspot's states (0.5 N to 10 N drawn by the seed: docs/meta/log.md, "What the DAgger
+    trials hold"); this sets that spread on purpose. None: as ``adaptation``"""
     dagger_shock_labels: ShockLabels = "told"
     """who labels the shocked DAgger trials: MPC told the shock (``told``, :class:`MPCToldTheShock`), or
     MPC-Forecast (``forecast``), which does not know it either, so its labels are moves the policy can
@@ -548,6 +558,8 @@ class Args(meta.Args):
         if self.dagger_whole_trials and (not self.dagger_rounds or self.dagger_episodes % self.trial_episodes):
             raise ValueError(f"dagger_whole_trials with dagger_rounds {self.dagger_rounds} and dagger_episodes {self.dagger_episodes}: "
                              f"whole trials need DAgger rounds of whole trials (dagger_episodes a multiple of trial_episodes {self.trial_episodes})")  # fmt: skip
+        if self.dagger_concentration is not None and not self.dagger_rounds:
+            raise ValueError(f"dagger_concentration {self.dagger_concentration} sets how DAgger trials sample: it needs dagger_rounds > 0")
         if self.dagger_shock_per_task and not (self.dagger_rounds and self.dagger_shock_prob):
             raise ValueError(f"dagger_shock_per_task with dagger_rounds {self.dagger_rounds} and dagger_shock_prob {self.dagger_shock_prob}: "
                              "no DAgger trial is shocked, so there is nothing to draw per task")  # fmt: skip
@@ -593,7 +605,7 @@ def dagger_round(args: Args, model: RecurrentGNN, k: int, data: dict[str, tuple[
         walls = collect_demos(folder, list(data), args.dagger_episodes, args.seed, args.lookahead, learner=model,
                               trial_episodes=args.trial_episodes, seed_of=functools.partial(dagger_seed, round=k), shock_prob=args.dagger_shock_prob,
                               shock_labels=args.dagger_shock_labels, shock_per_task=args.dagger_shock_per_task,
-                              adaptation=args.adaptation)  # fmt: skip
+                              adaptation=args.adaptation, concentration=args.dagger_concentration)  # fmt: skip
     for name in data:
         demos, graph = data[name]
         data[name] = (joined(demos, load_run_demos(folder, cities[name], args)), graph)
@@ -712,7 +724,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                             "cities, seed, hotspot and skew settings (hotspot_variants, hotspot_multipliers, hotspot_distinct_regions, "
                             "skew_variants, skew_gammas, sink_variants, sink_multipliers) and event settings (event_tasks, event_multipliers)")  # fmt: skip
         for key, drawn in (("hotspot_share", "variants"), ("event_share", "event tasks"), ("dagger_whole_trials", "DAgger trials"),
-                           ("dagger_shock_per_task", "DAgger shocks"), ("adaptation", "DAgger trials' adaptation episodes")):  # fmt: skip
+                           ("dagger_shock_per_task", "DAgger shocks"), ("adaptation", "DAgger trials' adaptation episodes"),
+                           ("dagger_concentration", "DAgger trials' adaptation episodes")):  # fmt: skip
             if st.get(key, Args.model_fields[key].default) != getattr(args, key):  # older states: as the defaults
                 raise DataError(f"{resume} drew its {drawn} with {key} {st.get(key)}; this config sets "
                                 f"{getattr(args, key)}: resume with the run's setting (the card names it)")  # fmt: skip
@@ -727,7 +740,8 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         C.save_state(C.state_path(args), algorithm="meta-bc", model=model.state_dict(), opt=opt.state_dict(), episode=step,
                      best_val=book.best.value, best_actor=book.best.state, wall_s=timer(), city_rng=rng.bit_generator.state, tasks=names,
                      hotspot_share=args.hotspot_share, event_share=args.event_share, dagger_whole_trials=args.dagger_whole_trials,
-                     dagger_shock_per_task=args.dagger_shock_per_task, adaptation=args.adaptation)  # fmt: skip
+                     dagger_shock_per_task=args.dagger_shock_per_task, adaptation=args.adaptation,
+                     dagger_concentration=args.dagger_concentration)  # fmt: skip
         return C.state_path(args), step
 
     dagger_wall = sum(dagger_round(args, model, k, data, cities) for k in range(1, started_rounds(args, step) + 1))  # resumed: read back
