@@ -192,16 +192,15 @@ def test_dagger_rounds_join_the_demonstrations_and_resume_from_disk(tasks, tmp_p
 
 def test_meta_bc_training_is_reproducible_by_seed(tasks, tmp_path):
     """The same config and seed give the same policy to the bit, DAgger trials (sampled adaptation, shocks,
-    whole trials) and validation included, whatever torch's global stream was before: the recipe's seeds
+    whole trials) and validation included, whatever torch's and numpy's global streams held before: the recipe's seeds
     are compared with each other, so a seed must mean one run (docs/meta/log.md, "What the DAgger trials hold")."""
     common = {"updates": 3, "eval_every": 2, "num_envs": 4, "stay_prior": True, "dagger_rounds": 1, "dagger_first": 1, "dagger_episodes": 4,
               "dagger_whole_trials": True, "dagger_shock_prob": 0.5, "demos": str(tmp_path / "demos"), "seed": 3}  # fmt: skip
     runs = []
     for name, outside in (("a", 0), ("b", 99)):
-        torch.manual_seed(outside)
+        torch.manual_seed(outside), np.random.seed(outside)  # the run seeds both itself
         ALGOS["meta-bc"].train(tiny_args(tasks, tmp_path, name, **common))
         runs.append(torch.load(tmp_path / f"{name}.pt", weights_only=False)["state_dict"])
-        np.random.default_rng(outside).random()  # numpy's global stream is not read either
     assert runs[0].keys() == runs[1].keys() and all(torch.equal(runs[0][k], runs[1][k]) for k in runs[0])
     for task in ("small", "large"):
         a, b = (np.load(tmp_path / n / "dagger" / "round1" / f"{task}.npz") for n in ("a", "b"))
@@ -738,8 +737,8 @@ def test_the_dagger_trials_adaptation_episodes_are_played_as_the_policy_adapts(t
 
 def test_dagger_concentration_sets_how_widely_the_trials_adaptation_episodes_sample(tasks):
     """``concentration``: the adaptation episodes sample around the policy's mean at c x N whatever
-    ``adaptation`` says (here the mean, which alone would not sample); the trial's last episode stays
-    the mean. The first decision's state is the same in every run (same demand seed), so its action
+    ``adaptation`` says (here the mean, which alone would not sample). The first decision's state is
+    the same in every run (same demand seed), so its action
     lies near the mean's at a high concentration and far from it at a low one."""
     city = load_city(tasks[1])
     torch.manual_seed(0)

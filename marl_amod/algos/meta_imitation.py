@@ -463,8 +463,9 @@ class Args(meta.Args):
     """the DAgger trials' adaptation episodes sampled around the policy's mean at this total Dirichlet
     concentration x N (the regions) instead of as ``adaptation`` says; validation and deployment keep
     ``adaptation``. Why: the plain recipe's trials sample at its untrained level, which set how widely
-    they spread the hotspot's states (0.5 N to 10 N drawn by the seed: docs/meta/log.md, "What the DAgger
-    trials hold"); this sets that spread on purpose. None: as ``adaptation``"""
+    they spread the hotspot's states (about 1 N to 5 N, drawn by the seed: docs/meta/log.md, "What the DAgger
+    trials hold"); this sets that spread on purpose (2 N, seeds 6 and 8: the rule said no, "DAgger trials
+    sampled at a set spread"). None: as ``adaptation``"""
     dagger_shock_labels: ShockLabels = "told"
     """who labels the shocked DAgger trials: MPC told the shock (``told``, :class:`MPCToldTheShock`), or
     MPC-Forecast (``forecast``), which does not know it either, so its labels are moves the policy can
