@@ -787,7 +787,8 @@ def trials(runs: list[str]) -> None:
             print(f"{Path(run).name}: no trials on the same days as {Path(runs[0]).name}", flush=True)
             continue
         diff = np.array([got[t]["return"] - first[t]["return"] for t in shared])  # (trials, K)
-        text = ", ".join(f"ep {e + 1} {diff[:, e].mean():+.3f} ({sem(diff[:, e]):.3f})" for e in range(diff.shape[1]))
+        se = diff.std(0, ddof=1) / np.sqrt(len(diff)) if len(diff) > 1 else np.full(diff.shape[1], np.nan)  # one trial: no error
+        text = ", ".join(f"ep {e + 1} {diff[:, e].mean():+.3f} ({se[e]:.3f})" for e in range(diff.shape[1]))
         print(f"{Path(run).name} - {Path(runs[0]).name}, return over {len(shared)} paired trials: {text}", flush=True)
     print("adaptation episodes' misplaced share, round by round:", flush=True)
     for run, got in found.items():

@@ -619,6 +619,36 @@ def test_hotspot_tasks_with_distinct_regions_move_the_hotspot():
         meta.hotspot_tasks(["synthetic"], n + 1, (2.0, 4.0), seed=0, distinct_regions=True)
 
 
+def test_trials_reads_a_dagger_trial_by_the_episodes_place_and_pairs_runs_on_the_same_days(tmp_path, capsys):
+    """benchmarks/meta_diagnostics.py trials: an action that is MPC-F's label misplaces nothing, a sampled
+    one half its L1 distance; the busiest region is the label's; coverage is the idle vehicles' spread
+    there over the trial's episodes; runs pair only where their trials share a seed (the same days)."""
+    import meta_diagnostics
+
+    k, t, n, f = 4, 3, 2, 16
+    share = np.tile(np.array([0.75, 0.25], dtype=np.float32), (k, t, 1))
+    action = share.copy()
+    action[:3] = [0.25, 0.75]  # the adaptation episodes ask the other way round: half the fleet misplaced
+    x = np.zeros((k, t, n, f), np.float32)
+    x[..., 0, 0] = np.arange(k)[:, None]  # idle at the busiest region: 0, 1, 2, 3 by episode
+    x[..., 0, 14] = 1.0  # unserved there (column 2 + 2 x lookahead 6), every step
+    for run, seed, gain in (("a", 1, 0.0), ("b", 1, 1.0), ("c", 2, 0.0)):
+        folder = tmp_path / run / "dagger" / "round1"
+        folder.mkdir(parents=True)
+        np.savez(folder / "porto.npz", x=x, share=share, action=action, reward=np.full((k, t), 1.0 + gain, np.float32), seed=np.array(seed))
+    m = meta_diagnostics.trial_measures(tmp_path / "a" / "dagger" / "round1" / "porto.npz")
+    np.testing.assert_allclose(m["misplaced"], [0.5, 0.5, 0.5, 0.0])
+    np.testing.assert_allclose(m["asked"], [0.25, 0.25, 0.25, 0.75])
+    np.testing.assert_allclose(m["label"], 0.75)
+    np.testing.assert_allclose(m["unserved"], 3.0)
+    np.testing.assert_allclose(m["spread"], np.std([0, 1, 2, 3]))
+    meta_diagnostics.trials([str(tmp_path / r) for r in "abc"])
+    out = capsys.readouterr().out
+    assert "b - a, return over 1 paired trials: ep 1 +3.000 (nan)" in out and "c: no trials on the same days as a" in out
+    with pytest.raises(SystemExit, match="no DAgger trials"):
+        meta_diagnostics.trials([str(tmp_path)])
+
+
 def test_compare_reads_the_standard_error_of_its_mean_over_the_episodes(tmp_path, capsys):
     """benchmarks/meta_diagnostics.py compare: the tasks are fixed and episode k of every task is
     drawn from the same seed, so the standard error of the mean difference is over the episodes (each
