@@ -63,6 +63,10 @@
   (docs/meta/log.md, "The event tasks"). That error is the episodes' noise for two fixed
   policies only: two training seeds of one recipe differed by 8-9 times it on the events and skew variants (log.md, "A second
   training seed"), so compare a candidate against more than one run of the recipe it would replace.
+* ``spread``: each rule set's mean for single training runs of one recipe (``files``: the folders of ``rule --policy
+  <one member .pt>`` runs) and its sd over them, written to ``docs/meta/rule/runs.json`` (``--out``); ``rule`` and
+  ``recipes`` then print each difference in those units beside the episodes' SE, which is for two fixed policies and
+  3-11 times smaller than the spread between runs (docs/meta/log.md, "How far apart one recipe's runs lie").
 * ``trials``: what DAgger collected (``files``: run folders holding ``dagger/round*/<task>.npz``), by the
   episode's place in its trial (1..K-1 adaptation, K scored): the share of the idle fleet the played action
   sends elsewhere than MPC-F's label, at each task's busiest region (MPC-F's largest mean label share over the
@@ -85,6 +89,7 @@
     python benchmarks/meta_diagnostics.py compare A.json B.json
     python benchmarks/meta_diagnostics.py misread --cities nyc_brooklyn_event,porto~ev7+12x6@6-14dr1+2x0.5 --episodes 20 --policy policies/meta_rl_l1_whole_ensemble.yaml
     python benchmarks/meta_diagnostics.py rule --policy runs/ens/candidate.yaml --workers 2 [--reference policies/meta_rl_l1_whole_ensemble.yaml]
+    python benchmarks/meta_diagnostics.py spread runs/rule_seed0 runs/rule_seed1 runs/rule_rep4 runs/rule_rep5 runs/rule_rep6 runs/rule_rep6_again runs/rule_rep8
     python benchmarks/meta_diagnostics.py trials runs/meta_bc_dagger_l1_whole_rep8 runs/meta_bc_dagger_l1_whole_mean8
     python benchmarks/meta_diagnostics.py recipes --first docs/meta/rule/cut01,docs/meta/rule/cut23 --second docs/meta/rule/replicate,docs/meta/rule/reference
 """
@@ -487,15 +492,50 @@ def rule_rows(reference: dict[str, dict[str, Any]], candidate: dict[str, dict[st
     return rows
 
 
-def print_rule_table(rows: list[dict[str, Any]], reference: str, candidate: str) -> bool:
-    """:func:`rule_rows` as a markdown table; whether every set passes."""
-    print(f"| rule set | {reference} | {candidate} | difference (SE by episode) | passes |\n|---|---|---|---|---|")
+def print_rule_table(rows: list[dict[str, Any]], reference: str, candidate: str, spread: dict[str, float] | None = None) -> bool:
+    """:func:`rule_rows` as a markdown table; whether every set passes. With ``spread`` (each set's sd between
+    single training runs of one recipe: :func:`runs_spread`) a column puts each difference in those units: the
+    SE beside it is the episodes' only, for two fixed policies."""
+    extra = (" difference / runs' sd |", "---|") if spread else ("", "")
+    print(f"| rule set | {reference} | {candidate} | difference (SE by episode) | passes |{extra[0]}\n|---|---|---|---|---|{extra[1]}")
     for r in rows:
         unit = "%" if r["what"] == "gap" else ""
         fmt = (lambda v: f"{v:.3f}%") if r["what"] == "gap" else (lambda v: f"{v:,.0f}")
+        in_runs = f" {r['diff'] / spread[r['set']]:+.1f} |" if spread else ""
         print(f"| {r['set']} ({'gap to MPC-F' if r['what'] == 'gap' else 'profit'}) | {fmt(r['reference'])} | {fmt(r['candidate'])} "
-              f"| {r['diff']:+.3f}{unit} ({r['se']:.3f}) | {'yes' if r['passes'] else '**no**'} |")  # fmt: skip
+              f"| {r['diff']:+.3f}{unit} ({r['se']:.3f}) | {'yes' if r['passes'] else '**no**'} |{in_runs}")  # fmt: skip
+    if spread:
+        print(f"runs' sd: each set's sd over the single runs in {RUN_SPREAD.name} (a pair of runs spreads about 1/sqrt(2) of it)")
     return all(r["passes"] for r in rows)
+
+
+RUN_SPREAD = Path(__file__).resolve().parent.parent / "docs" / "meta" / "rule" / "runs.json"  # the tables' recipe, run by run
+
+
+def spread(rule_dirs: list[str], out: str | Path = RUN_SPREAD) -> dict[str, Any]:
+    """Each rule set's mean for single training runs of one recipe (``rule_dirs``: ``rule --policy <one .pt>``
+    folders, their ``candidate_<set>.json``), written to ``out`` with each set's sd over the runs: how far
+    one recipe's runs lie apart, the unit :func:`print_rule_table` reads differences in."""
+    runs = {}
+    for folder in rule_dirs:
+        records = {name: json.loads(rule_file(folder, "candidate", name).read_text()) for name in RULE_SETS}
+        runs[str(folder)] = {"policy": records[next(iter(RULE_SETS))]["policy"],
+                             **{name: float(per_episode(r, RULE_SETS[name][1], RULE_SETS[name][0]).mean()) for name, r in records.items()}}  # fmt: skip
+    if len(runs) < 2:
+        raise SystemExit("spread needs the rule folders of at least two single runs")
+    sd = {name: float(np.std([r[name] for r in runs.values()], ddof=1)) for name in RULE_SETS}
+    summary = {"runs": runs, "sd": sd}
+    Path(out).write_text(json.dumps(summary, indent=1))
+    print("| rule set | " + " | ".join(Path(f).name for f in runs) + " | sd |\n|---|" + "---|" * (len(runs) + 1))
+    for name in RULE_SETS:
+        print(f"| {name} | " + " | ".join(f"{r[name]:.3f}" for r in runs.values()) + f" | {sd[name]:.3f} |")
+    print(f"wrote {out}")
+    return summary
+
+
+def runs_spread(path: Path = RUN_SPREAD) -> dict[str, float] | None:
+    """Each rule set's sd between single runs (:func:`spread`), if it has been measured."""
+    return json.loads(path.read_text())["sd"] if path.is_file() else None
 
 
 def recipes(first: list[str], second: list[str]) -> bool:
@@ -506,7 +546,7 @@ def recipes(first: list[str], second: list[str]) -> bool:
     def pooled(prefixes: list[str]) -> dict[str, dict[str, Any]]:
         return {name: averaged([json.loads(rule_file(Path(p).parent, Path(p).name, name).read_text()) for p in prefixes]) for name in RULE_SETS}
 
-    return print_rule_table(rule_rows(pooled(first), pooled(second)), " + ".join(first), " + ".join(second))
+    return print_rule_table(rule_rows(pooled(first), pooled(second)), " + ".join(first), " + ".join(second), runs_spread())
 
 
 def rule_record(out_dir: str | Path, label: str, name: str, policy: str, episodes: int) -> dict[str, Any] | None:
@@ -553,7 +593,7 @@ def rule(policy: str, reference: str, out_dir: str, episodes: int = 20, workers:
         for name in RULE_SETS:
             recs["reference"][name] = averaged([recs["reference"][name], json.loads(rule_file(RULE_RECORDS, "replicate", name).read_text())])
         print(f"reference: {reference} and its recipe's other pair averaged")
-    verdict = print_rule_table(rule_rows(recs["reference"], recs["candidate"]), reference, policy)
+    verdict = print_rule_table(rule_rows(recs["reference"], recs["candidate"]), reference, policy, runs_spread())
     print(f"verdict: {'the candidate replaces the reference' if verdict else 'no: the reference stays'}")
     return verdict
 
@@ -799,8 +839,8 @@ def trials(runs: list[str]) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hold", "steps", "hotspot", "transplant", "tasks", "compare", "rule", "recipes", "misread", "trials"])
-    parser.add_argument("files", nargs="*", help="compare: two tasks --out files (the second against the first); trials: run folders")
+    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hold", "steps", "hotspot", "transplant", "tasks", "compare", "rule", "recipes", "misread", "trials", "spread"])
+    parser.add_argument("files", nargs="*", help="compare: two tasks --out files (the second against the first); trials: run folders; spread: rule folders of single runs")
     parser.add_argument("--policy", default="policies/meta_rl_l1_cities.pt")
     parser.add_argument("--demos", default="runs/meta_demos")
     parser.add_argument("--ks", default="0,1,2,3,4,5,6,8,10")
@@ -852,6 +892,8 @@ def main() -> None:
     elif args.what == "misread":
         freeze = set().union(*windows_of(args.freeze).values()) if args.freeze else None  # every window given, not the first
         misread(args.policy, args.cities.split(","), args.episodes, k=args.k, freeze=freeze)
+    elif args.what == "spread":
+        spread(args.files, args.out or RUN_SPREAD)
     elif args.what == "trials":
         if not args.files:
             parser.error("trials needs run folders holding dagger/round*/<task>.npz")

@@ -649,6 +649,35 @@ def test_trials_reads_a_dagger_trial_by_the_episodes_place_and_pairs_runs_on_the
         meta_diagnostics.trials([str(tmp_path)])
 
 
+def test_spread_measures_how_far_single_runs_lie_apart_and_the_rule_reads_differences_in_it(tmp_path, capsys):
+    """benchmarks/meta_diagnostics.py spread: each rule set's mean for every single run and its sd over the
+    runs, written once; the rule's table then divides each difference by it (its verdict unchanged)."""
+    import json
+
+    import meta_diagnostics as md
+
+    folders = []
+    for i, gain in enumerate((0.0, 2.0, 4.0)):  # three runs: profits 100, 102, 104 against MPC-F's 110
+        folder = tmp_path / f"rule{i}"
+        folder.mkdir()
+        for name, (_, tasks_) in md.RULE_SETS.items():
+            record = {"policy": f"run{i}.pt", "tasks": {t: {"policy": [100.0 + gain] * 2, "mpc-forecast": [110.0] * 2} for t in tasks_}}
+            md.rule_file(folder, "candidate", name).write_text(json.dumps(record))
+        folders.append(str(folder))
+    out = tmp_path / "runs.json"
+    summary = md.spread(folders, out)
+    assert summary["runs"][folders[1]]["policy"] == "run1.pt"
+    assert summary["sd"]["training-city events"] == pytest.approx(2.0)  # profits 100, 102, 104
+    assert summary["sd"]["shaped set"] == pytest.approx(np.std([100 / 11, 80 / 11, 60 / 11], ddof=1))  # gaps 9.09, 7.27, 5.45%
+    assert md.runs_spread(out) == summary["sd"] and md.runs_spread(tmp_path / "none.json") is None
+    rows = [{"set": "training-city events", "what": "profit", "reference": 100.0, "candidate": 104.0, "diff": 4.0, "se": 0.1, "passes": True}]
+    capsys.readouterr()
+    assert md.print_rule_table(rows, "a", "b", summary["sd"])
+    assert "| +4.000 (0.100) | yes | +2.0 |" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="at least two"):
+        md.spread(folders[:1], out)
+
+
 def test_compare_reads_the_standard_error_of_its_mean_over_the_episodes(tmp_path, capsys):
     """benchmarks/meta_diagnostics.py compare: the tasks are fixed and episode k of every task is
     drawn from the same seed, so the standard error of the mean difference is over the episodes (each
@@ -806,7 +835,7 @@ def test_rule_judges_a_candidate_by_every_set_from_the_files_it_finds(tmp_path, 
         write("candidate", "cand.yaml", worse)
         assert md.rule("cand.yaml", "ref.yaml", str(tmp_path), episodes=3) is False
         row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith(f"| {worse}"))
-        assert row.endswith("**no** |")
+        assert "| **no** |" in row  # (then the difference in runs' sd when docs/meta/rule/runs.json is there)
     rows = md.rule_rows(*({name: json.loads(md.rule_file(tmp_path, label, name).read_text()) for name in md.RULE_SETS}
                           for label in ("reference", "candidate")))  # fmt: skip
     skew = next(r for r in rows if r["set"] == "skew variants 2.7")
