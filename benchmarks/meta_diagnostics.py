@@ -792,48 +792,50 @@ def misread(policy: str, names: list[str], episodes: int = 20, seed: int = 1000,
     return out
 
 
-def trial_measures(path: Path, lookahead: int = 6) -> dict[str, np.ndarray]:
-    """One DAgger trial file's measures by the episode's place in the trial (:func:`trials`)."""
+def trial_measures(path: Path) -> tuple[int, dict[str, np.ndarray]]:
+    """One DAgger trial file's collection seed (its days) and measures by the episode's place in the trial
+    (:func:`trials`); the unserved column is found from the file's own look-ahead."""
     d = np.load(path)
     action, share, x = d["action"], d["share"], d["x"]  # (K, T, N), (K, T, N), (K, T, N, F)
     hot = int(share.mean((0, 1)).argmax())
     idle = x[..., hot, 0]
-    return {
+    return int(d["seed"]), {
         "misplaced": 0.5 * np.abs(action - share).sum(-1).mean(-1),
         "asked": action[..., hot].mean(-1), "label": share[..., hot].mean(-1),
-        "unserved": x[..., hot, 2 + 2 * lookahead].sum(-1), "spread": np.full(len(idle), idle.std(0).mean()),
-        "return": d["reward"].sum(-1), "seed": np.full(len(idle), int(d["seed"])),
+        "unserved": x[..., hot, 2 + 2 * int(d["lookahead"])].sum(-1),
+        "spread": np.full(len(idle), idle.std(0).mean()),  # one value a trial, repeated so every column reads by episode
+        "return": d["reward"].sum(-1),
     }
 
 
 def trials(runs: list[str]) -> None:
     """What each run's DAgger trials hold (module docstring); the first run is the one the others pair with."""
-    found: dict[str, dict[str, dict[str, np.ndarray]]] = {}
+    found: dict[str, dict[tuple[int, str], tuple[int, dict[str, np.ndarray]]]] = {}  # run -> (round, task) -> (seed, measures)
     for run in runs:
         files = sorted(Path(run).glob("dagger/round*/*.npz"))
         if not files:
             raise SystemExit(f"{run}: no DAgger trials (dagger/round*/<task>.npz)")
-        found[run] = {f"{f.parent.name}/{f.stem}": trial_measures(f) for f in files}
+        found[run] = {(int(f.parent.name.removeprefix("round")), f.stem): trial_measures(f) for f in files}
     keys = ["misplaced", "asked", "label", "unserved", "spread", "return"]
     print(f"{'run':44s} {'ep':>2s} " + " ".join(f"{k:>9s}" for k in keys), flush=True)
     for run, got in found.items():
-        for e in range(len(next(iter(got.values()))["return"])):
-            row = [np.mean([m[k][e] for m in got.values()]) for k in keys]
+        for e in range(len(next(iter(got.values()))[1]["return"])):
+            row = [np.mean([m[k][e] for _, m in got.values()]) for k in keys]
             print(f"{Path(run).name:44s} {e + 1:2d} " + " ".join(f"{v:9.4f}" for v in row), flush=True)
     first = found[runs[0]]
     for run, got in list(found.items())[1:]:
-        shared = [t for t in got if t in first and first[t]["seed"][0] == got[t]["seed"][0]]
+        shared = [t for t in got if t in first and first[t][0] == got[t][0]]
         if not shared:
             print(f"{Path(run).name}: no trials on the same days as {Path(runs[0]).name}", flush=True)
             continue
-        diff = np.array([got[t]["return"] - first[t]["return"] for t in shared])  # (trials, K)
+        diff = np.array([got[t][1]["return"] - first[t][1]["return"] for t in shared])  # (trials, K)
         se = diff.std(0, ddof=1) / np.sqrt(len(diff)) if len(diff) > 1 else np.full(diff.shape[1], np.nan)  # one trial: no error
         text = ", ".join(f"ep {e + 1} {diff[:, e].mean():+.3f} ({se[e]:.3f})" for e in range(diff.shape[1]))
         print(f"{Path(run).name} - {Path(runs[0]).name}, return over {len(shared)} paired trials: {text}", flush=True)
     print("adaptation episodes' misplaced share, round by round:", flush=True)
     for run, got in found.items():
-        rounds = sorted({t.split("/")[0] for t in got}, key=lambda r: int(r.removeprefix("round")))
-        text = " ".join(f"{np.mean([m['misplaced'][:-1].mean() for t, m in got.items() if t.startswith(r + '/')]):.3f}" for r in rounds)
+        rounds = sorted({r for r, _ in got})
+        text = " ".join(f"{np.mean([m['misplaced'][:-1].mean() for (r, _), (_, m) in got.items() if r == k]):.3f}" for k in rounds)
         print(f"{Path(run).name:44s} {text}", flush=True)
 
 

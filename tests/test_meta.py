@@ -635,8 +635,10 @@ def test_trials_reads_a_dagger_trial_by_the_episodes_place_and_pairs_runs_on_the
     for run, seed, gain in (("a", 1, 0.0), ("b", 1, 1.0), ("c", 2, 0.0)):
         folder = tmp_path / run / "dagger" / "round1"
         folder.mkdir(parents=True)
-        np.savez(folder / "porto.npz", x=x, share=share, action=action, reward=np.full((k, t), 1.0 + gain, np.float32), seed=np.array(seed))
-    m = meta_diagnostics.trial_measures(tmp_path / "a" / "dagger" / "round1" / "porto.npz")
+        np.savez(folder / "porto.npz", x=x, share=share, action=action, reward=np.full((k, t), 1.0 + gain, np.float32), seed=np.array(seed),
+                 lookahead=np.array(6))
+    seed, m = meta_diagnostics.trial_measures(tmp_path / "a" / "dagger" / "round1" / "porto.npz")
+    assert seed == 1
     np.testing.assert_allclose(m["misplaced"], [0.5, 0.5, 0.5, 0.0])
     np.testing.assert_allclose(m["asked"], [0.25, 0.25, 0.25, 0.75])
     np.testing.assert_allclose(m["label"], 0.75)
