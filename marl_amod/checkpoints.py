@@ -419,10 +419,19 @@ def load_policy(
     (:mod:`marl_amod.selection`); ``{"candidates": 0, ...}`` turns a card's selection off.
     An ensemble file (:mod:`marl_amod.ensemble`) gives its members' mean, each member loaded so
     (its meta-policies adapting by the file's ``adaptation`` where it names one)."""
-    from marl_amod.ensemble import is_ensemble, load_ensemble, read_spec
+    from marl_amod.ensemble import is_ensemble, load_ensemble, read_members, read_spec
 
     if is_ensemble(path):
-        adaptation = read_spec(path).adaptation or adaptation  # write_ensemble refuses it where a member is no meta-policy
+        spec = read_spec(path)
+        adaptation = spec.adaptation or adaptation  # write_ensemble refuses it (and together) where a member is no meta-policy
+        if spec.together:  # meta-policies adapting as one (the city, by default, the first member's)
+            from marl_amod.algos import meta
+            from marl_amod.scenario import load_city
+
+            if not isinstance(city, City):
+                first = read_members(path)[0]
+                city = load_city(city if city is not None else training_scenario(_card_of(first, _read_blob(first)["card"])))
+            return meta.load_policy(path, city, adaptation=adaptation)
         return load_ensemble(path, lambda member: load_policy(member, city, selection, adaptation))
     card = _card_of(Path(path), _read_blob(Path(path))["card"])
     if not isinstance(city, City):

@@ -689,11 +689,13 @@ def ensemble(
     out: Annotated[Path, typer.Option(help="the ensemble file (.yaml); its card goes beside it (.md)")],
     adaptation: Annotated[str | None, typer.Option(help="meta-policies only: how they act in their adaptation episodes: "
                                                         "sampled (as trained), mean, prior-concentration (marl_amod.algos.meta.adapt)")] = None,
+    together: Annotated[bool, typer.Option(help="meta-policies only: adapt as the ensemble, K adaptation episodes in all instead of K each "
+                                                "(marl_amod.algos.meta.adapt_together)")] = False,
 ) -> None:
     """Write an ensemble of policies (their desired distributions averaged) and its card; it then loads wherever a checkpoint does, e.g. ``marl-amod evaluate --policy X.yaml``."""
     from marl_amod.ensemble import write_ensemble
 
-    path = write_ensemble(out, list(members), adaptation)  # type: ignore[arg-type]  # checked there
+    path = write_ensemble(out, list(members), adaptation, together)  # type: ignore[arg-type]  # checked there
     console.print(f"wrote {path} ({len(members)} members) and {path.with_suffix('.md')}")
 
 

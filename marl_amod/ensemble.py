@@ -10,13 +10,16 @@ them that loads wherever a checkpoint does (``make_policy``, ``marl-amod evaluat
     # policies/meta_rl_l1_ensemble.yaml
     members: [meta_rl_l1_cities.pt, seeds/meta_rl_l1_cities_seed1.pt]
     adaptation: mean   # optional, meta-policies only: how they act in their adaptation episodes
+    together: true     # optional, meta-policies only: they adapt as one (K episodes in all, not K each)
 
 ``marl-amod ensemble MEMBER.pt MEMBER.pt --out X.yaml`` writes the file and its card (``X.md``:
 each member's card in a row). Member paths are relative to the file. A member that reads its own
 last action (a meta-policy) is told the ensemble's action instead
 (:meth:`~marl_amod.baselines.base.WeightPolicy.executed`), so its next step sees the fleet the
 ensemble made. Each meta-policy adapts to the city alone, so an ensemble of m of them plays m
-times its K adaptation episodes there.
+times its K adaptation episodes there; with ``together`` they adapt as the ensemble they will be
+(:func:`marl_amod.algos.meta.adapt_together`): K episodes in all, each member's memory reading the
+path the ensemble drove, which is the path it then acts on.
 """
 
 from __future__ import annotations
@@ -41,11 +44,13 @@ Adaptation = Literal["sampled", "mean", "prior-concentration"]
 
 class EnsembleFile(BaseModel):
     """What an ensemble file holds: two or more policy files (relative to it) and, for meta-policies,
-    how they adapt (None: as each was trained, sampled)."""
+    how they act while adapting (None: as each was trained, sampled) and whether they adapt
+    together (K episodes in all, played by the ensemble) or each alone (K each)."""
 
     model_config = ConfigDict(extra="forbid")
     members: list[str] = Field(min_length=2)
     adaptation: Adaptation | None = None
+    together: bool = False
 
 
 def is_ensemble(path: str | Path) -> bool:
@@ -120,10 +125,10 @@ def load_ensemble(path: str | Path, load_member: Callable[[Path], WeightPolicy])
     return PolicyEnsemble([load_member(m) for m in read_members(path)], name=Path(path).stem)
 
 
-def write_ensemble(out: str | Path, members: list[str | Path], adaptation: Adaptation | None = None) -> Path:
+def write_ensemble(out: str | Path, members: list[str | Path], adaptation: Adaptation | None = None, together: bool = False) -> Path:
     """Write the ensemble file ``out`` (.yaml) of the checkpoints ``members`` (paths relative to it)
     and its card ``out.md``; each member is read first, so a file that is not a policy fails here
-    (and ``adaptation`` is refused unless every member is a meta-policy)."""
+    (and ``adaptation`` or ``together`` is refused unless every member is a meta-policy)."""
     from marl_amod.checkpoints import read_card
     from marl_amod.files import atomic_write
 
@@ -131,23 +136,27 @@ def write_ensemble(out: str | Path, members: list[str | Path], adaptation: Adapt
     if out.suffix not in ENSEMBLE_SUFFIXES:
         raise ConfigError(f"ensemble {out}: name it .yaml")
     try:
-        EnsembleFile(members=[str(m) for m in members], adaptation=adaptation)
+        EnsembleFile(members=[str(m) for m in members], adaptation=adaptation, together=together)
     except ValidationError as exc:
         raise ConfigError(f"ensemble {out}: {pydantic_problems(exc)}") from None
     cards = [read_card(m) for m in members]
-    if adaptation is not None and (others := [str(m) for m, c in zip(members, cards, strict=True) if c["algorithm"] not in ("meta", "meta-bc")]):
-        raise ConfigError(f"ensemble {out}: adaptation is how meta-policies adapt; {', '.join(others)} are not meta-policies")
+    others = [str(m) for m, c in zip(members, cards, strict=True) if c["algorithm"] not in ("meta", "meta-bc")]
+    for asked, what in ((adaptation is not None, "adaptation is how meta-policies act while they adapt"), (together, "together is how meta-policies adapt")):
+        if asked and others:
+            raise ConfigError(f"ensemble {out}: {what}; {', '.join(others)} are not meta-policies")
     relative = [Path(os.path.relpath(Path(m).resolve(), out.resolve().parent)).as_posix() for m in members]
-    atomic_write(out, "members:\n" + "".join(f"  - {r}\n" for r in relative) + (f"adaptation: {adaptation}\n" if adaptation else ""))
+    atomic_write(out, "members:\n" + "".join(f"  - {r}\n" for r in relative) + (f"adaptation: {adaptation}\n" if adaptation else "")
+                 + ("together: true\n" if together else ""))  # fmt: skip
     read_members(out)  # what loading will check, checked now
-    atomic_write(out.with_suffix(".md"), ensemble_markdown(out, [str(m) for m in members], cards, adaptation))
+    atomic_write(out.with_suffix(".md"), ensemble_markdown(out, [str(m) for m in members], cards, adaptation, together))
     return out
 
 
-def ensemble_markdown(path: Path, members: list[str], cards: list[dict[str, Any]], adaptation: Adaptation | None = None) -> str:
+def ensemble_markdown(path: Path, members: list[str], cards: list[dict[str, Any]], adaptation: Adaptation | None = None, together: bool = False) -> str:
     """The card of an ensemble: its members' cards side by side, training wall time summed."""
     fields = ("algorithm", "seed", "config", "updates", "training_wall_s", "eval_streams", "profit_mean")
     adapts = f" Its meta-policies act by `{adaptation}` in their adaptation episodes." if adaptation else ""
+    adapts += " They adapt together: the ensemble plays K adaptation episodes in all, not K each." if together else ""
     lines = [f"# Policy ensemble `{path.stem}`", "", f"The mean of {len(members)} policies' desired distributions (`marl_amod.ensemble`).{adapts}", "",
              "| member | " + " | ".join(fields) + " |", "|---" * (len(fields) + 1) + "|"]  # fmt: skip
     for member, card in zip(members, cards, strict=True):
@@ -157,6 +166,6 @@ def ensemble_markdown(path: Path, members: list[str], cards: list[dict[str, Any]
     longest = max(float(c.get("training_wall_s") or 0.0) for c in cards)
     lines += ["", f"Training: {wall / 60:,.1f} min in all; {longest / 60:,.1f} min for the longest member (the wall time when the members "
               "train side by side, one core each).", "",
-              f"Make: `marl-amod ensemble {' '.join(members)} --out {path}{f' --adaptation {adaptation}' if adaptation else ''}`", "",
+              f"Make: `marl-amod ensemble {' '.join(members)} --out {path}{f' --adaptation {adaptation}' if adaptation else ''}{' --together' if together else ''}`", "",
               f"Evaluate: `marl-amod evaluate --scenario {cards[0]['scenario']} --policy {path} --episodes 10`", ""]  # fmt: skip
     return "\n".join(lines)

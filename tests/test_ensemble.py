@@ -206,3 +206,47 @@ def test_an_ensemble_file_says_how_its_meta_members_adapt(tmp_path, members):
     actor = str(Path("policies", "a2c_gnn_synthetic.pt").resolve())
     with pytest.raises(ConfigError, match="not meta-policies"):
         write_ensemble(tmp_path / "c.yaml", [members[0], actor], "mean")
+
+
+def test_meta_members_adapted_together_play_k_episodes_in_all_on_the_ensembles_path(tmp_path, members):
+    """Together: one copy twice adapts as that copy alone (playing its mean, the mean of two equal
+    actions is the action); two members each end up told the same executed action, their memories
+    differ from those adapted alone, the same seed repeats them, and the row counts K episodes, not 2K."""
+    city = load_city("synthetic")
+    model, card = meta.load_meta(members[0])
+    twice = meta.adapt_together([(model, card["lookahead"])] * 2, city, 2, seed=0, adaptations=["mean", "mean"])
+    alone = meta.load_policy(members[0], city, 2, seed=0, adaptation="mean").adapted
+    for policy in twice:
+        torch.testing.assert_close(policy.adapted, alone, rtol=1e-5, atol=1e-6)
+
+    pair = _write(tmp_path / "together.yaml", f"members: [{members[0]}, {members[1]}]\ntogether: true\n")
+    together, again = (meta.load_policy(pair, city, 2, seed=0) for _ in range(2))
+    assert isinstance(together, PolicyEnsemble) and [m.name for m in together.members] == ["m0", "m1"]
+    torch.testing.assert_close(together.members[0].agent.prev_action, together.members[1].agent.prev_action)  # both told the mean
+    for t, a in zip(together.members, again.members, strict=True):
+        torch.testing.assert_close(t.adapted, a.adapted)  # reproducible by seed
+    by_mean = meta.load_policy(pair, city, 2, seed=0, adaptation="mean")  # deterministic play: alone, each would drive its own path
+    for t, m in zip(by_mean.members, members, strict=True):
+        assert not torch.allclose(t.adapted, meta.load_policy(m, city, 2, seed=0, adaptation="mean").adapted, atol=1e-4)
+    other = meta.load_policy(pair, city, 2, seed=1)
+    assert not torch.allclose(other.members[0].adapted, together.members[0].adapted, atol=1e-4)
+    assert np.isfinite(evaluate(make_policy(pair, city), city, episodes=1)["metrics"]["profit"]["mean"])  # via checkpoints too
+    row = run_strategy("meta-rl", "synthetic", episodes=1, policy=pair, adapt_episodes=2)["transfer"]
+    assert row["target_episodes"] == 2
+
+
+def test_the_ensemble_command_writes_together_and_refuses_it_for_other_policies(tmp_path, members):
+    from typer.testing import CliRunner
+
+    from marl_amod.cli import app
+
+    out = tmp_path / "pair.yaml"
+    result = CliRunner().invoke(app, ["ensemble", str(members[0]), str(members[1]), "--out", str(out), "--together"])
+    assert result.exit_code == 0, result.output
+    assert "together: true" in out.read_text() and "--together" in out.with_suffix(".md").read_text()
+    assert "adapt together" in out.with_suffix(".md").read_text()
+    actor = str(Path("policies", "a2c_gnn_synthetic.pt").resolve())
+    with pytest.raises(ConfigError, match="together is how meta-policies adapt"):
+        write_ensemble(tmp_path / "c.yaml", [members[0], actor], together=True)
+    with pytest.raises(ConfigError, match="together"):  # a file that says it for a non-bool
+        make_policy(_write(tmp_path / "bad.yaml", f"members: [{members[0]}, {members[1]}]\ntogether: sometimes\n"), load_city("synthetic"))

@@ -94,7 +94,7 @@ from marl_amod.algos.rollout import train_seed
 from marl_amod.baselines.base import WeightPolicy
 from marl_amod.batch_system import BatchFleetSystem
 from marl_amod.data import resolve
-from marl_amod.ensemble import Adaptation, PolicyEnsemble, is_ensemble, load_ensemble, read_spec
+from marl_amod.ensemble import Adaptation, PolicyEnsemble, is_ensemble, load_ensemble, read_members, read_spec
 from marl_amod.env.features import state_features
 from marl_amod.errors import ConfigError, DataError
 from marl_amod.models.dense import city_graph
@@ -918,6 +918,35 @@ def adapt(model: RecurrentGNN, city: City, episodes: int, lookahead: int, seed: 
     return MetaPolicy(agent)
 
 
+@torch.no_grad()
+def adapt_together(models: list[tuple[RecurrentGNN, int]], city: City, episodes: int, seed: int = 0,
+                   adaptations: list[Adaptation] | None = None) -> list[MetaPolicy]:
+    """Adapt several meta-policies (model, look-ahead) as the ensemble they will act as: ``episodes``
+    episodes in ``city`` in all, each step the mean of their actions (each sampled as its
+    ``adaptations`` says, default "sampled") executed, each member's memory reading that executed
+    action and the rewards it earned. Why: adapted alone, a member's memory describes the path it
+    drove alone, and it then acts on the ensemble's path; together, it adapts on that path, and an
+    ensemble of m members plays K episodes in the target, not m x K (docs/meta/log.md, "Members
+    adapted together")."""
+    agents = [MetaAgent(model.eval(), city, lookahead) for model, lookahead in models]
+    samples = [adapting(agent, a) for agent, a in zip(agents, adaptations or ["sampled"] * len(agents), strict=True)]
+    system, n = BatchFleetSystem(city, 1), city.n_regions
+    with torch.random.fork_rng(devices=[]):  # the same stream as adapt: the same file, city and seed adapt alike
+        torch.manual_seed(int(np.random.SeedSequence([seed, 4243, 7]).generate_state(1)[0]))
+        for k in range(episodes):
+            system.reset([adapt_seed(seed, k)])
+            for agent in agents:
+                agent.new_episode()
+            while not system.done:
+                shares = [agent.act(system, sample)[0] for agent, sample in zip(agents, samples, strict=True)]
+                executed = np.mean([w / w.sum(-1, keepdims=True) for w in shares], axis=0)  # (1, N)
+                out = system.step(system.targets_from_weights(executed))
+                for agent in agents:
+                    agent.prev_action = torch.as_tensor(executed * n, dtype=torch.float32)
+                    agent.observe(out.region_reward)
+    return [MetaPolicy(agent) for agent in agents]
+
+
 META_ALGOS = ("meta", "meta-bc")  # the cards of a recurrent meta-policy: RL², or its MPC-F imitation
 
 
@@ -955,7 +984,10 @@ def load_policy(path: str | Path, city: City, episodes: int | None = None, seed:
     :func:`marl_amod.evaluation.evaluate`; an ensemble file (:mod:`marl_amod.ensemble`) of them, each
     member adapted alone, by the file's ``adaptation`` where it names one."""
     if is_ensemble(path):
-        adaptation = read_spec(path).adaptation or adaptation
+        spec = read_spec(path)
+        adaptation = spec.adaptation or adaptation
+        if spec.together:
+            return load_together(path, city, episodes, seed, adaptation)
         return load_ensemble(path, lambda member: load_policy(member, city, episodes, seed, adaptation))
     model, card = load_meta(path)
     k = card["args"]["trial_episodes"] - 1 if episodes is None else episodes
@@ -963,3 +995,20 @@ def load_policy(path: str | Path, city: City, episodes: int | None = None, seed:
     policy = adapt(model, city, k, card["lookahead"], seed=seed, adaptation=adaptation)
     policy.name = Path(path).stem
     return policy
+
+
+def load_together(path: str | Path, city: City, episodes: int | None = None, seed: int = 0, adaptation: Adaptation | None = None) -> PolicyEnsemble:
+    """The ensemble file ``path`` of meta-policies adapted together to ``city`` (:func:`adapt_together`;
+    ``episodes`` in all, default: the members' trial length minus one, which must agree)."""
+    loaded = [(member, *load_meta(member)) for member in read_members(path)]
+    if episodes is None:
+        lengths = {card["args"]["trial_episodes"] - 1 for _, _, card in loaded}
+        if len(lengths) > 1:
+            raise ConfigError(f"ensemble {path}: its members were trained for {sorted(lengths)} adaptation episodes; "
+                              "adapting together needs one number (give the episodes)")  # fmt: skip
+        episodes = lengths.pop()
+    adaptations = [adaptation or card["args"].get("adaptation", "sampled") for _, _, card in loaded]
+    policies = adapt_together([(model, card["lookahead"]) for _, model, card in loaded], city, episodes, seed, adaptations)
+    for policy, (member, _, _) in zip(policies, loaded, strict=True):
+        policy.name = Path(member).stem
+    return PolicyEnsemble(list(policies), name=Path(path).stem)
