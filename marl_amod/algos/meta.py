@@ -982,7 +982,8 @@ def load_policy(path: str | Path, city: City, episodes: int | None = None, seed:
     trial length it was trained with, minus one; acting by ``adaptation`` there, default: as its
     card's ``adaptation`` says, "sampled" on older cards: :func:`adapt`), ready for
     :func:`marl_amod.evaluation.evaluate`; an ensemble file (:mod:`marl_amod.ensemble`) of them, each
-    member adapted alone, by the file's ``adaptation`` where it names one."""
+    member adapted alone (or, where the file says ``together``, all of them as one: :func:`load_together`),
+    by the file's ``adaptation`` where it names one."""
     if is_ensemble(path):
         spec = read_spec(path)
         adaptation = spec.adaptation or adaptation
