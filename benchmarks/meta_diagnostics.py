@@ -67,6 +67,10 @@
   <one member .pt>`` runs) and its sd over them, written to ``docs/meta/rule/runs.json`` (``--out``); ``rule`` and
   ``recipes`` then print each difference in those units beside the episodes' SE, which is for two fixed policies and
   3-11 times smaller than the spread between runs (docs/meta/log.md, "How far apart one recipe's runs lie").
+* ``runs``: two recipes by their single runs (``--first``, ``--second``: comma-separated rule folders of single runs,
+  as ``spread`` reads them): each set's mean over each recipe's runs and the difference, its standard error from the
+  first recipe's spread between runs (sd x sqrt(1/n1 + 1/n2)); how an arm is read against the plain recipe once it
+  has more than one pair (docs/meta/log.md, "The prior arm, a second pair"). It decides nothing.
 * ``trials``: what DAgger collected (``files``: run folders holding ``dagger/round*/<task>.npz``), by the
   episode's place in its trial (1..K-1 adaptation, K scored): the share of the idle fleet the played action
   sends elsewhere than MPC-F's label, at each task's busiest region (MPC-F's largest mean label share over the
@@ -512,15 +516,18 @@ def print_rule_table(rows: list[dict[str, Any]], reference: str, candidate: str,
 RUN_SPREAD = Path(__file__).resolve().parent.parent / "docs" / "meta" / "rule" / "runs.json"  # the tables' recipe, run by run
 
 
+def run_means(folder: str | Path) -> dict[str, Any]:
+    """One single run's mean on each rule set (its ``rule --policy <one .pt>`` folder's ``candidate_<set>.json``)."""
+    records = {name: json.loads(rule_file(folder, "candidate", name).read_text()) for name in RULE_SETS}
+    return {"policy": records[next(iter(RULE_SETS))]["policy"],
+            **{name: float(per_episode(r, RULE_SETS[name][1], RULE_SETS[name][0]).mean()) for name, r in records.items()}}  # fmt: skip
+
+
 def spread(rule_dirs: list[str], out: str | Path = RUN_SPREAD) -> dict[str, Any]:
     """Each rule set's mean for single training runs of one recipe (``rule_dirs``: ``rule --policy <one .pt>``
     folders, their ``candidate_<set>.json``), written to ``out`` with each set's sd over the runs: how far
     one recipe's runs lie apart, the unit :func:`print_rule_table` reads differences in."""
-    runs = {}
-    for folder in rule_dirs:
-        records = {name: json.loads(rule_file(folder, "candidate", name).read_text()) for name in RULE_SETS}
-        runs[str(folder)] = {"policy": records[next(iter(RULE_SETS))]["policy"],
-                             **{name: float(per_episode(r, RULE_SETS[name][1], RULE_SETS[name][0]).mean()) for name, r in records.items()}}  # fmt: skip
+    runs = {str(folder): run_means(folder) for folder in rule_dirs}
     if len(runs) < 2:
         raise SystemExit("spread needs the rule folders of at least two single runs")
     sd = {name: float(np.std([r[name] for r in runs.values()], ddof=1)) for name in RULE_SETS}
@@ -531,6 +538,30 @@ def spread(rule_dirs: list[str], out: str | Path = RUN_SPREAD) -> dict[str, Any]
         print(f"| {name} | " + " | ".join(f"{r[name]:.3f}" for r in runs.values()) + f" | {sd[name]:.3f} |")
     print(f"wrote {out}")
     return summary
+
+
+def arm_runs(first: list[str], second: list[str]) -> list[dict[str, Any]]:
+    """Two recipes by their single runs (rule folders, as :func:`spread` reads them), deciding nothing:
+    each set's mean over each recipe's runs, the difference (second - first) and its standard error
+    sd x sqrt(1/n1 + 1/n2), sd the first recipe's spread between runs (the yardstick: the first is the
+    recipe with the most runs, the plain one), and the difference in those SEs."""
+    if len(first) < 2 or not second:
+        raise SystemExit("runs needs at least two single runs of the first recipe (the yardstick) and one of the second")
+    a, b = ([run_means(f) for f in group] for group in (first, second))
+    rows = []
+    for name, (what, _) in RULE_SETS.items():
+        x, y = np.array([r[name] for r in a]), np.array([r[name] for r in b])
+        se = float(x.std(ddof=1) * np.sqrt(1 / len(x) + 1 / len(y)))
+        rows.append({"set": name, "what": what, "first": float(x.mean()), "second": float(y.mean()), "diff": float(y.mean() - x.mean()),
+                     "se": se, "z": float((y.mean() - x.mean()) / se) if se > 0 else float("nan"),
+                     "second_runs": [float(v) for v in y]})  # fmt: skip
+    print(f"| rule set | first: {len(a)} runs | second: {len(b)} runs | each run of the second | difference (SE from the first's spread) | in SEs |\n|---|---|---|---|---|---|")
+    for r in rows:
+        fmt = (lambda v: f"{v:.3f}%") if r["what"] == "gap" else (lambda v: f"{v:,.0f}")
+        print(f"| {r['set']} | {fmt(r['first'])} | {fmt(r['second'])} | {' / '.join(fmt(v) for v in r['second_runs'])} "
+              f"| {r['diff']:+.3f} ({r['se']:.3f}) | {r['z']:+.1f} |")  # fmt: skip
+    print("a gap is better lower, a profit higher; SE = the first recipe's sd between runs x sqrt(1/n1 + 1/n2)")
+    return rows
 
 
 def runs_spread(path: Path = RUN_SPREAD) -> dict[str, float] | None:
@@ -841,7 +872,7 @@ def trials(runs: list[str]) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hold", "steps", "hotspot", "transplant", "tasks", "compare", "rule", "recipes", "misread", "trials", "spread"])
+    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hold", "steps", "hotspot", "transplant", "tasks", "compare", "rule", "recipes", "misread", "trials", "spread", "runs"])
     parser.add_argument("files", nargs="*", help="compare: two tasks --out files (the second against the first); trials: run folders; spread: rule folders of single runs")
     parser.add_argument("--policy", default="policies/meta_rl_l1_cities.pt")
     parser.add_argument("--demos", default="runs/meta_demos")
@@ -856,8 +887,9 @@ def main() -> None:
     parser.add_argument("--reference", default=META_POLICY, help="rule: the policy the candidate (--policy) must beat (default: the tables' meta-rl)")
     parser.add_argument("--rule-dir", default="runs/rule", help="rule: where each set's tasks files go (reused when they hold the same policy)")
     parser.add_argument("--workers", type=int, default=1, help="rule, tasks: processes the tasks run over (one core each)")
-    parser.add_argument("--first", default="", help="recipes: the first recipe's record prefixes, comma-separated (docs/meta/rule/cut01,docs/meta/rule/cut23)")
-    parser.add_argument("--second", default="", help="recipes: the second recipe's record prefixes, comma-separated")
+    parser.add_argument("--first", default="", help="recipes: the first recipe's record prefixes, comma-separated (docs/meta/rule/cut01,docs/meta/rule/cut23); "
+                                                    "runs: its single runs' rule folders")
+    parser.add_argument("--second", default="", help="recipes: the second recipe's record prefixes, comma-separated; runs: its single runs' rule folders")
     parser.add_argument("--rule-episodes", type=int, default=20, help="rule: validation episodes per task")
     parser.add_argument("--last", type=int, default=3, help="hold: the episode's last steps held")
     parser.add_argument("--windows", default="0-5,6-11,12-14,15-16,17-18", help="steps: the step windows MPC-F plays in (inclusive)")
@@ -896,6 +928,10 @@ def main() -> None:
         misread(args.policy, args.cities.split(","), args.episodes, k=args.k, freeze=freeze)
     elif args.what == "spread":
         spread(args.files, args.out or RUN_SPREAD)
+    elif args.what == "runs":
+        if not (args.first and args.second):
+            parser.error("runs needs --first and --second: comma-separated rule folders of single runs")
+        arm_runs(args.first.split(","), args.second.split(","))
     elif args.what == "trials":
         if not args.files:
             parser.error("trials needs run folders holding dagger/round*/<task>.npz")

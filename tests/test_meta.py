@@ -971,3 +971,31 @@ def test_the_pairs_figure_reads_every_pair_and_its_tables_row_is_the_tables(tmp_
     from marl_amod.plots import save_figure
 
     assert save_figure(mp.figure(rows, mp.event_references()), tmp_path / "pairs.png").stat().st_size > 10_000
+
+
+def test_runs_reads_a_recipe_against_another_in_the_first_recipes_spread_between_runs(tmp_path, capsys):
+    """benchmarks/meta_diagnostics.py runs: each set's mean over each recipe's single runs, the difference,
+    and its SE sd_first x sqrt(1/n1 + 1/n2); fewer than two runs of the yardstick is refused."""
+    import json
+
+    import meta_diagnostics as md
+
+    def folder(name: str, profit: float) -> str:
+        path = tmp_path / name
+        path.mkdir()
+        for set_name, (_, tasks_) in md.RULE_SETS.items():
+            record = {"policy": f"{name}.pt", "tasks": {t: {"policy": [profit] * 2, "mpc-forecast": [110.0] * 2} for t in tasks_}}
+            md.rule_file(path, "candidate", set_name).write_text(json.dumps(record))
+        return str(path)
+
+    plain = [folder(f"p{i}", p) for i, p in enumerate((100.0, 102.0, 104.0))]  # sd 2
+    arm = [folder(f"a{i}", p) for i, p in enumerate((105.0, 107.0))]
+    rows = {r["set"]: r for r in md.arm_runs(plain, arm)}
+    events = rows["training-city events"]
+    assert (events["first"], events["second"], events["diff"]) == pytest.approx((102.0, 106.0, 4.0))
+    assert events["se"] == pytest.approx(2.0 * np.sqrt(1 / 3 + 1 / 2)) and events["z"] == pytest.approx(4.0 / events["se"])
+    shaped = rows["shaped set"]  # gaps: 100 * (1 - profit / 110)
+    assert shaped["diff"] == pytest.approx(100 * (102.0 - 106.0) / 110) and shaped["second_runs"] == pytest.approx([100 * (1 - p / 110) for p in (105, 107)])
+    assert "| training-city events | 102 | 106 | 105 / 107 | +4.000 (1.826) | +2.2 |" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="at least two"):
+        md.arm_runs(plain[:1], arm)
