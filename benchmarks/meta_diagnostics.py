@@ -544,23 +544,27 @@ def arm_runs(first: list[str], second: list[str]) -> list[dict[str, Any]]:
     """Two recipes by their single runs (rule folders, as :func:`spread` reads them), deciding nothing:
     each set's mean over each recipe's runs, the difference (second - first) and its standard error
     sd x sqrt(1/n1 + 1/n2), sd the first recipe's spread between runs (the yardstick: the first is the
-    recipe with the most runs, the plain one), and the difference in those SEs."""
+    recipe with the most runs, the plain one), and the difference in those SEs; beside it, in Welch's SE
+    from both recipes' spreads, since an arm's runs may lie further apart than the plain recipe's."""
     if len(first) < 2 or not second:
         raise SystemExit("runs needs at least two single runs of the first recipe (the yardstick) and one of the second")
     a, b = ([run_means(f) for f in group] for group in (first, second))
     rows = []
     for name, (what, _) in RULE_SETS.items():
         x, y = np.array([r[name] for r in a]), np.array([r[name] for r in b])
-        se = float(x.std(ddof=1) * np.sqrt(1 / len(x) + 1 / len(y)))
-        rows.append({"set": name, "what": what, "first": float(x.mean()), "second": float(y.mean()), "diff": float(y.mean() - x.mean()),
-                     "se": se, "z": float((y.mean() - x.mean()) / se) if se > 0 else float("nan"),
+        diff, se = float(y.mean() - x.mean()), float(x.std(ddof=1) * np.sqrt(1 / len(x) + 1 / len(y)))
+        welch = float(np.sqrt(x.var(ddof=1) / len(x) + y.var(ddof=1) / len(y))) if len(y) > 1 else float("nan")
+        rows.append({"set": name, "what": what, "first": float(x.mean()), "second": float(y.mean()), "diff": diff, "se": se,
+                     "z": diff / se if se > 0 else float("nan"), "welch_se": welch, "welch_z": diff / welch if welch > 0 else float("nan"),
                      "second_runs": [float(v) for v in y]})  # fmt: skip
-    print(f"| rule set | first: {len(a)} runs | second: {len(b)} runs | each run of the second | difference (SE from the first's spread) | in SEs |\n|---|---|---|---|---|---|")
+    print(f"| rule set | first: {len(a)} runs | second: {len(b)} runs | each run of the second | difference (SE from the first's spread) | in SEs "
+          "| in SEs from both spreads |\n|---|---|---|---|---|---|---|")  # fmt: skip
     for r in rows:
         fmt = (lambda v: f"{v:.3f}%") if r["what"] == "gap" else (lambda v: f"{v:,.0f}")
         print(f"| {r['set']} | {fmt(r['first'])} | {fmt(r['second'])} | {' / '.join(fmt(v) for v in r['second_runs'])} "
-              f"| {r['diff']:+.3f} ({r['se']:.3f}) | {r['z']:+.1f} |")  # fmt: skip
-    print("a gap is better lower, a profit higher; SE = the first recipe's sd between runs x sqrt(1/n1 + 1/n2)")
+              f"| {r['diff']:+.3f} ({r['se']:.3f}) | {r['z']:+.1f} | {r['welch_z']:+.1f} |")  # fmt: skip
+    print("a gap is better lower, a profit higher; SE = the first recipe's sd between runs x sqrt(1/n1 + 1/n2); "
+          "from both spreads: Welch's, sqrt(sd1^2/n1 + sd2^2/n2), where the second has two runs or more")
     return rows
 
 

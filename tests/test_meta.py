@@ -996,6 +996,8 @@ def test_runs_reads_a_recipe_against_another_in_the_first_recipes_spread_between
     assert events["se"] == pytest.approx(2.0 * np.sqrt(1 / 3 + 1 / 2)) and events["z"] == pytest.approx(4.0 / events["se"])
     shaped = rows["shaped set"]  # gaps: 100 * (1 - profit / 110)
     assert shaped["diff"] == pytest.approx(100 * (102.0 - 106.0) / 110) and shaped["second_runs"] == pytest.approx([100 * (1 - p / 110) for p in (105, 107)])
-    assert "| training-city events | 102 | 106 | 105 / 107 | +4.000 (1.826) | +2.2 |" in capsys.readouterr().out
+    assert events["welch_se"] == pytest.approx(np.sqrt(4 / 3 + 2 / 2))  # sds 2 and sqrt(2)
+    assert "| training-city events | 102 | 106 | 105 / 107 | +4.000 (1.826) | +2.2 | +2.6 |" in capsys.readouterr().out
+    assert np.isnan(md.arm_runs(plain, arm[:1])[0]["welch_se"])  # one run of the second: no spread of its own
     with pytest.raises(SystemExit, match="at least two"):
         md.arm_runs(plain[:1], arm)
