@@ -71,6 +71,10 @@
   as ``spread`` reads them): each set's mean over each recipe's runs and the difference, its standard error from the
   first recipe's spread between runs (sd x sqrt(1/n1 + 1/n2)); how an arm is read against the plain recipe once it
   has more than one pair (docs/meta/log.md, "The prior arm, a second pair"). It decides nothing.
+* ``track``: whether the rule's sets rank runs as the held-out cities do (``--first``: rule folders of single runs,
+  ``--second``: each run's ``transfer-table --strategy meta-rl`` folder, same order): Spearman's rank correlation
+  per set and held-out measure, signed so +1 agrees (docs/meta/log.md, "Which rule sets track the held-out cities").
+  It decides nothing, and it must not choose a proxy: read on the test cities, it only says which sets to distrust.
 * ``trials``: what DAgger collected (``files``: run folders holding ``dagger/round*/<task>.npz``), by the
   episode's place in its trial (1..K-1 adaptation, K scored): the share of the idle fleet the played action
   sends elsewhere than MPC-F's label, at each task's busiest region (MPC-F's largest mean label share over the
@@ -568,6 +572,44 @@ def arm_runs(first: list[str], second: list[str]) -> list[dict[str, Any]]:
     return rows
 
 
+def heldout_measures(folder: str | Path) -> dict[str, tuple[str, float]]:
+    """The meta-rl row of a ``transfer-table`` output folder (``intercity.json``, ``event.json``): each held-out city's
+    ("gap", gap to MPC-Oracle in %) and the event's ("profit", profit)."""
+    intercity, event = (json.loads((Path(folder) / f"{study}.json").read_text())["targets"] for study in ("intercity", "event"))
+    gaps = {city: ("gap", 100 * (1 - rows["meta-rl"]["metrics"]["profit"]["mean"] / rows["mpc-oracle"]["metrics"]["profit"]["mean"]))
+            for city, rows in intercity.items()}  # fmt: skip
+    return gaps | {city: ("profit", rows["meta-rl"]["metrics"]["profit"]["mean"]) for city, rows in event.items()}
+
+
+def track(rule_dirs: list[str], heldout_dirs: list[str]) -> dict[str, dict[str, tuple[float, float]]]:
+    """Whether the rule's sets track the held-out cities, over many runs (deciding nothing): run i's rule folder
+    (``rule_dirs[i]``, as :func:`spread` reads it) beside its held-out measures (``heldout_dirs[i]``, a
+    ``transfer-table --strategy meta-rl`` folder); per set and held-out measure, Spearman's rank correlation
+    and its p-value, each signed so that +1 means the set ranks the runs as the held-out measure does (a
+    lower gap, a higher profit, better on both)."""
+    from scipy.stats import spearmanr
+
+    if len(rule_dirs) != len(heldout_dirs) or len(rule_dirs) < 4:
+        raise SystemExit(f"track needs one held-out folder per rule folder, four runs or more (got {len(rule_dirs)} and {len(heldout_dirs)})")
+    def worse_up(what: str, values: list[float]) -> np.ndarray:  # a gap as it is, a profit negated: higher is worse for both
+        return np.array(values) * (1 if what == "gap" else -1)
+
+    sets, held = [run_means(f) for f in rule_dirs], [heldout_measures(f) for f in heldout_dirs]
+    measures = list(held[0])
+    table = {}
+    for name, (what, _) in RULE_SETS.items():
+        x = worse_up(what, [r[name] for r in sets])
+        table[name] = {}
+        for m in measures:
+            rho, p = spearmanr(x, worse_up(held[0][m][0], [h[m][1] for h in held]))
+            table[name][m] = (float(rho), float(p))
+    print(f"Spearman's rank correlation over {len(sets)} runs, +1: the set ranks the runs as the held-out measure does\n"
+          "| rule set | " + " | ".join(measures) + " |\n|---|" + "---|" * len(measures))  # fmt: skip
+    for name, row in table.items():
+        print(f"| {name} | " + " | ".join(f"{rho:+.2f} (p {p:.3f})" for rho, p in row.values()) + " |")
+    return table
+
+
 def runs_spread(path: Path = RUN_SPREAD) -> dict[str, float] | None:
     """Each rule set's sd between single runs (:func:`spread`), if it has been measured."""
     return json.loads(path.read_text())["sd"] if path.is_file() else None
@@ -876,7 +918,7 @@ def trials(runs: list[str]) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hold", "steps", "hotspot", "transplant", "tasks", "compare", "rule", "recipes", "misread", "trials", "spread", "runs"])
+    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hold", "steps", "hotspot", "transplant", "tasks", "compare", "rule", "recipes", "misread", "trials", "spread", "runs", "track"])
     parser.add_argument("files", nargs="*", help="compare: two tasks --out files (the second against the first); trials: run folders; spread: rule folders of single runs")
     parser.add_argument("--policy", default="policies/meta_rl_l1_cities.pt")
     parser.add_argument("--demos", default="runs/meta_demos")
@@ -893,7 +935,8 @@ def main() -> None:
     parser.add_argument("--workers", type=int, default=1, help="rule, tasks: processes the tasks run over (one core each)")
     parser.add_argument("--first", default="", help="recipes: the first recipe's record prefixes, comma-separated (docs/meta/rule/cut01,docs/meta/rule/cut23); "
                                                     "runs: its single runs' rule folders")
-    parser.add_argument("--second", default="", help="recipes: the second recipe's record prefixes, comma-separated; runs: its single runs' rule folders")
+    parser.add_argument("--second", default="", help="recipes: the second recipe's record prefixes, comma-separated; runs: its single runs' rule folders; "
+                                                     "track: the runs' transfer-table folders")
     parser.add_argument("--rule-episodes", type=int, default=20, help="rule: validation episodes per task")
     parser.add_argument("--last", type=int, default=3, help="hold: the episode's last steps held")
     parser.add_argument("--windows", default="0-5,6-11,12-14,15-16,17-18", help="steps: the step windows MPC-F plays in (inclusive)")
@@ -932,6 +975,10 @@ def main() -> None:
         misread(args.policy, args.cities.split(","), args.episodes, k=args.k, freeze=freeze)
     elif args.what == "spread":
         spread(args.files, args.out or RUN_SPREAD)
+    elif args.what == "track":
+        if not (args.first and args.second):
+            parser.error("track needs --first (rule folders of single runs) and --second (their transfer-table folders), comma-separated, in the same order")
+        track(args.first.split(","), args.second.split(","))
     elif args.what == "runs":
         if not (args.first and args.second):
             parser.error("runs needs --first and --second: comma-separated rule folders of single runs")

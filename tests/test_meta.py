@@ -1001,3 +1001,32 @@ def test_runs_reads_a_recipe_against_another_in_the_first_recipes_spread_between
     assert np.isnan(md.arm_runs(plain, arm[:1])[0]["welch_se"])  # one run of the second: no spread of its own
     with pytest.raises(SystemExit, match="at least two"):
         md.arm_runs(plain[:1], arm)
+
+
+def test_track_ranks_runs_by_each_rule_set_against_the_held_out_cities(tmp_path, capsys):
+    """benchmarks/meta_diagnostics.py track: per rule set and held-out measure, Spearman's rank correlation over
+    runs, signed so +1 agrees (a lower gap or a higher profit better on both); mismatched inputs are refused."""
+    import json
+
+    import meta_diagnostics as md
+
+    rules, held = [], []
+    for i, profit in enumerate((100.0, 101.0, 103.0, 106.0)):  # rule sets: profits rise with i, so run 3 is best on every set
+        rule = tmp_path / f"rule{i}"
+        rule.mkdir()
+        for name, (_, tasks_) in md.RULE_SETS.items():
+            md.rule_file(rule, "candidate", name).write_text(json.dumps({"policy": f"r{i}.pt", "tasks": {t: {"policy": [profit], "mpc-forecast": [110.0]} for t in tasks_}}))
+        ho = tmp_path / f"ho{i}"
+        ho.mkdir()
+        row = lambda meta_profit, oracle=200.0: {"meta-rl": {"metrics": {"profit": {"mean": meta_profit}}}, "mpc-oracle": {"metrics": {"profit": {"mean": oracle}}}}  # noqa: E731
+        # city a: the runs' order (best last); city b: the reverse; the event: the runs' order
+        (ho / "intercity.json").write_text(json.dumps({"targets": {"a": row(150.0 + i), "b": row(160.0 - i)}}))
+        (ho / "event.json").write_text(json.dumps({"targets": {"a_event": row(50.0 + i)}}))
+        rules.append(str(rule)), held.append(str(ho))
+    table = md.track(rules, held)
+    for name in md.RULE_SETS:
+        assert table[name]["a"][0] == pytest.approx(1.0) and table[name]["b"][0] == pytest.approx(-1.0)
+        assert table[name]["a_event"][0] == pytest.approx(1.0)
+    assert "| shaped set | +1.00" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="one held-out folder per rule folder"):
+        md.track(rules, held[:3])
