@@ -591,6 +591,7 @@ def track(rule_dirs: list[str], heldout_dirs: list[str]) -> dict[str, dict[str, 
 
     if len(rule_dirs) != len(heldout_dirs) or len(rule_dirs) < 4:
         raise SystemExit(f"track needs one held-out folder per rule folder, four runs or more (got {len(rule_dirs)} and {len(heldout_dirs)})")
+
     def worse_up(what: str, values: list[float]) -> np.ndarray:  # a gap as it is, a profit negated: higher is worse for both
         return np.array(values) * (1 if what == "gap" else -1)
 
@@ -934,7 +935,7 @@ def main() -> None:
     parser.add_argument("--rule-dir", default="runs/rule", help="rule: where each set's tasks files go (reused when they hold the same policy)")
     parser.add_argument("--workers", type=int, default=1, help="rule, tasks: processes the tasks run over (one core each)")
     parser.add_argument("--first", default="", help="recipes: the first recipe's record prefixes, comma-separated (docs/meta/rule/cut01,docs/meta/rule/cut23); "
-                                                    "runs: its single runs' rule folders")
+                                                    "runs, track: its single runs' rule folders")
     parser.add_argument("--second", default="", help="recipes: the second recipe's record prefixes, comma-separated; runs: its single runs' rule folders; "
                                                      "track: the runs' transfer-table folders")
     parser.add_argument("--rule-episodes", type=int, default=20, help="rule: validation episodes per task")
