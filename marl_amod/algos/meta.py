@@ -74,6 +74,7 @@ the memory those left: a handful of episodes and no gradient step.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import itertools
 import warnings
@@ -466,6 +467,11 @@ class MetaAgent:
         y = y.detach()
         self.prev_action = y * n  # mean 1 per region in every city
         return y.numpy().astype(np.float64), dist.log_prob(y), dist.entropy(), v
+
+    def executed(self, shares: np.ndarray) -> None:
+        """Record the shares of the idle fleet the fleet actually took ((B, N), or (N,) for B = 1) as the
+        previous action, in the units :meth:`act` records its own: an ensemble's member is told the mean."""
+        self.prev_action = torch.as_tensor(shares * self.city.n_regions, dtype=torch.float32).reshape(self.num_trials, self.city.n_regions)
 
     def observe(self, region_reward: np.ndarray) -> np.ndarray:
         """Feed the step's per-region rewards back (money, (B, N)) in per-city units; returns the
@@ -893,7 +899,27 @@ class MetaPolicy(WeightPolicy):
         return self.agent.act(system, sample=False)[0][0]
 
     def executed(self, weights: np.ndarray) -> None:
-        self.agent.prev_action = torch.as_tensor(weights * len(weights), dtype=torch.float32)[None]  # as act() records its own
+        self.agent.executed(weights)
+
+
+@contextlib.contextmanager
+def adaptation_stream(seed: int) -> Iterator[None]:
+    """Torch's random stream for adaptation episodes, drawn from ``seed`` and restored after. Why: the
+    adaptation samples its actions; from a stream of the seed, not torch's global one, the same policy
+    file(s), city and seed always adapt to the same memory (and report the same numbers)."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(np.random.SeedSequence([seed, 4243, 7]).generate_state(1)[0]))
+        yield
+
+
+def trained_adaptation_episodes(card: dict[str, Any]) -> int:
+    """K a meta-policy adapts for by default: the trial length it was trained with, minus the scored episode."""
+    return card["args"]["trial_episodes"] - 1
+
+
+def trained_adaptation(card: dict[str, Any], override: Adaptation | None = None) -> Adaptation:
+    """How a meta-policy acts while adapting: ``override`` if given, else as its card says ("sampled" on older cards)."""
+    return override or card["args"].get("adaptation", "sampled")
 
 
 @torch.no_grad()
@@ -909,10 +935,7 @@ def adapt(model: RecurrentGNN, city: City, episodes: int, lookahead: int, seed: 
     model.eval()
     agent = MetaAgent(model, city, lookahead)
     sample = adapting(agent, adaptation)
-    # the adaptation samples its actions: draw them from a stream of the seed, not torch's global one,
-    # so the same policy file, city and seed always adapt to the same memory (and report the same numbers)
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(int(np.random.SeedSequence([seed, 4243, 7]).generate_state(1)[0]))
+    with adaptation_stream(seed):
         if episodes:  # K = 0: zero-shot, the memory of a new trial
             run_trials(agent, BatchFleetSystem(city, 1), [[adapt_seed(seed, k)] for k in range(episodes)], sample=sample)
     return MetaPolicy(agent)
@@ -930,9 +953,8 @@ def adapt_together(models: list[tuple[RecurrentGNN, int]], city: City, episodes:
     adapted together")."""
     agents = [MetaAgent(model.eval(), city, lookahead) for model, lookahead in models]
     samples = [adapting(agent, a) for agent, a in zip(agents, adaptations or ["sampled"] * len(agents), strict=True)]
-    system, n = BatchFleetSystem(city, 1), city.n_regions
-    with torch.random.fork_rng(devices=[]):  # the same stream as adapt: the same file, city and seed adapt alike
-        torch.manual_seed(int(np.random.SeedSequence([seed, 4243, 7]).generate_state(1)[0]))
+    system = BatchFleetSystem(city, 1)
+    with adaptation_stream(seed):  # as adapt: the same files, city and seed adapt alike
         for k in range(episodes):
             system.reset([adapt_seed(seed, k)])
             for agent in agents:
@@ -942,7 +964,7 @@ def adapt_together(models: list[tuple[RecurrentGNN, int]], city: City, episodes:
                 executed = np.mean([w / w.sum(-1, keepdims=True) for w in shares], axis=0)  # (1, N)
                 out = system.step(system.targets_from_weights(executed))
                 for agent in agents:
-                    agent.prev_action = torch.as_tensor(executed * n, dtype=torch.float32)
+                    agent.executed(executed)
                     agent.observe(out.region_reward)
     return [MetaPolicy(agent) for agent in agents]
 
@@ -991,8 +1013,8 @@ def load_policy(path: str | Path, city: City, episodes: int | None = None, seed:
             return load_together(path, city, episodes, seed, adaptation)
         return load_ensemble(path, lambda member: load_policy(member, city, episodes, seed, adaptation))
     model, card = load_meta(path)
-    k = card["args"]["trial_episodes"] - 1 if episodes is None else episodes
-    adaptation = adaptation or card["args"].get("adaptation", "sampled")
+    k = trained_adaptation_episodes(card) if episodes is None else episodes
+    adaptation = trained_adaptation(card, adaptation)
     policy = adapt(model, city, k, card["lookahead"], seed=seed, adaptation=adaptation)
     policy.name = Path(path).stem
     return policy
@@ -1003,12 +1025,12 @@ def load_together(path: str | Path, city: City, episodes: int | None = None, see
     ``episodes`` in all, default: the members' trial length minus one, which must agree)."""
     loaded = [(member, *load_meta(member)) for member in read_members(path)]
     if episodes is None:
-        lengths = {card["args"]["trial_episodes"] - 1 for _, _, card in loaded}
+        lengths = {trained_adaptation_episodes(card) for _, _, card in loaded}
         if len(lengths) > 1:
             raise ConfigError(f"ensemble {path}: its members were trained for {sorted(lengths)} adaptation episodes; "
                               "adapting together needs one number (give the episodes)")  # fmt: skip
         episodes = lengths.pop()
-    adaptations = [adaptation or card["args"].get("adaptation", "sampled") for _, _, card in loaded]
+    adaptations = [trained_adaptation(card, adaptation) for _, _, card in loaded]
     policies = adapt_together([(model, card["lookahead"]) for _, model, card in loaded], city, episodes, seed, adaptations)
     for policy, (member, _, _) in zip(policies, loaded, strict=True):
         policy.name = Path(member).stem
