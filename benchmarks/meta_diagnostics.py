@@ -111,6 +111,7 @@ import multiprocessing
 from collections.abc import Callable, Collection, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -500,6 +501,11 @@ def rule_rows(reference: dict[str, dict[str, Any]], candidate: dict[str, dict[st
     return rows
 
 
+def set_value(what: str, value: float) -> str:
+    """A rule set's value as its tables print it: a gap in % to three places, a profit in whole dollars."""
+    return f"{value:.3f}%" if what == "gap" else f"{value:,.0f}"
+
+
 def print_rule_table(rows: list[dict[str, Any]], reference: str, candidate: str, spread: dict[str, float] | None = None) -> bool:
     """:func:`rule_rows` as a markdown table; whether every set passes. With ``spread`` (each set's sd between
     single training runs of one recipe: :func:`runs_spread`) a column puts each difference in those units: the
@@ -508,7 +514,7 @@ def print_rule_table(rows: list[dict[str, Any]], reference: str, candidate: str,
     print(f"| rule set | {reference} | {candidate} | difference (SE by episode) | passes |{extra[0]}\n|---|---|---|---|---|{extra[1]}")
     for r in rows:
         unit = "%" if r["what"] == "gap" else ""
-        fmt = (lambda v: f"{v:.3f}%") if r["what"] == "gap" else (lambda v: f"{v:,.0f}")
+        fmt = partial(set_value, r["what"])
         in_runs = f" {r['diff'] / spread[r['set']]:+.1f} |" if spread else ""
         print(f"| {r['set']} ({'gap to MPC-F' if r['what'] == 'gap' else 'profit'}) | {fmt(r['reference'])} | {fmt(r['candidate'])} "
               f"| {r['diff']:+.3f}{unit} ({r['se']:.3f}) | {'yes' if r['passes'] else '**no**'} |{in_runs}")  # fmt: skip
@@ -564,7 +570,7 @@ def arm_runs(first: list[str], second: list[str]) -> list[dict[str, Any]]:
     print(f"| rule set | first: {len(a)} runs | second: {len(b)} runs | each run of the second | difference (SE from the first's spread) | in SEs "
           "| in SEs from both spreads |\n|---|---|---|---|---|---|---|")  # fmt: skip
     for r in rows:
-        fmt = (lambda v: f"{v:.3f}%") if r["what"] == "gap" else (lambda v: f"{v:,.0f}")
+        fmt = partial(set_value, r["what"])
         print(f"| {r['set']} | {fmt(r['first'])} | {fmt(r['second'])} | {' / '.join(fmt(v) for v in r['second_runs'])} "
               f"| {r['diff']:+.3f} ({r['se']:.3f}) | {r['z']:+.1f} | {r['welch_z']:+.1f} |")  # fmt: skip
     print("a gap is better lower, a profit higher; SE = the first recipe's sd between runs x sqrt(1/n1 + 1/n2); "
