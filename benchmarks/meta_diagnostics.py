@@ -74,7 +74,8 @@
 * ``track``: whether the rule's sets rank runs as the held-out cities do (``--first``: rule folders of single runs,
   ``--second``: each run's ``transfer-table --strategy meta-rl`` folder, same order): Spearman's rank correlation
   per set and held-out measure, signed so +1 agrees (docs/meta/log.md, "Which rule sets track the held-out cities").
-  It decides nothing, and it must not choose a proxy: read on the test cities, it only says which sets to distrust.
+  ``--cities``: each set read on those cities' tasks only (the cities a recipe left out of training, apart from those
+  it trained on). It decides nothing, and it must not choose a proxy: read on the test cities, it only says which sets to distrust.
 * ``trials``: what DAgger collected (``files``: run folders holding ``dagger/round*/<task>.npz``), by the
   episode's place in its trial (1..K-1 adaptation, K scored): the share of the idle fleet the played action
   sends elsewhere than MPC-F's label, at each task's busiest region (MPC-F's largest mean label share over the
@@ -126,6 +127,7 @@ from marl_amod.batch_system import BatchFleetSystem
 from marl_amod.evaluation import evaluate
 from marl_amod.models.dense import DenseGraph
 from marl_amod.scenario import City, load_city
+from marl_amod.scenario.variants import base_city
 from marl_amod.system import FleetSystem, StepOutcome
 from marl_amod.transfer import META_POLICY, STUDIES, run_strategy
 
@@ -526,11 +528,19 @@ def print_rule_table(rows: list[dict[str, Any]], reference: str, candidate: str,
 RUN_SPREAD = Path(__file__).resolve().parent.parent / "docs" / "meta" / "rule" / "runs.json"  # the tables' recipe, run by run
 
 
-def run_means(folder: str | Path) -> dict[str, Any]:
-    """One single run's mean on each rule set (its ``rule --policy <one .pt>`` folder's ``candidate_<set>.json``)."""
+def set_tasks(name: str, cities: list[str] | None = None) -> list[str]:
+    """Rule set ``name``'s tasks, or those on ``cities`` only (by the city each task varies): a set read on the
+    cities a run never trained on, apart from those it did."""
+    tasks_ = RULE_SETS[name][1]
+    return tasks_ if cities is None else [t for t in tasks_ if base_city(t) in cities]
+
+
+def run_means(folder: str | Path, cities: list[str] | None = None) -> dict[str, Any]:
+    """One single run's mean on each rule set (its ``rule --policy <one .pt>`` folder's ``candidate_<set>.json``),
+    each set restricted to ``cities``' tasks when given."""
     records = {name: json.loads(rule_file(folder, "candidate", name).read_text()) for name in RULE_SETS}
     return {"policy": records[next(iter(RULE_SETS))]["policy"],
-            **{name: float(per_episode(r, RULE_SETS[name][1], RULE_SETS[name][0]).mean()) for name, r in records.items()}}  # fmt: skip
+            **{name: float(per_episode(r, set_tasks(name, cities), RULE_SETS[name][0]).mean()) for name, r in records.items()}}  # fmt: skip
 
 
 def spread(rule_dirs: list[str], out: str | Path = RUN_SPREAD) -> dict[str, Any]:
@@ -587,12 +597,13 @@ def heldout_measures(folder: str | Path) -> dict[str, tuple[str, float]]:
     return gaps | {city: ("profit", rows["meta-rl"]["metrics"]["profit"]["mean"]) for city, rows in event.items()}
 
 
-def track(rule_dirs: list[str], heldout_dirs: list[str]) -> dict[str, dict[str, tuple[float, float]]]:
+def track(rule_dirs: list[str], heldout_dirs: list[str], cities: list[str] | None = None) -> dict[str, dict[str, tuple[float, float]]]:
     """Whether the rule's sets track the held-out cities, over many runs (deciding nothing): run i's rule folder
     (``rule_dirs[i]``, as :func:`spread` reads it) beside its held-out measures (``heldout_dirs[i]``, a
     ``transfer-table --strategy meta-rl`` folder); per set and held-out measure, Spearman's rank correlation
     and its p-value, each signed so that +1 means the set ranks the runs as the held-out measure does (a
-    lower gap, a higher profit, better on both)."""
+    lower gap, a higher profit, better on both). ``cities``: each set read on those cities' tasks only (e.g. the
+    cities a recipe left out of training)."""
     from scipy.stats import spearmanr
 
     if len(rule_dirs) != len(heldout_dirs) or len(rule_dirs) < 4:
@@ -601,7 +612,9 @@ def track(rule_dirs: list[str], heldout_dirs: list[str]) -> dict[str, dict[str, 
     def worse_up(what: str, values: list[float]) -> np.ndarray:  # a gap as it is, a profit negated: higher is worse for both
         return np.array(values) * (1 if what == "gap" else -1)
 
-    sets, held = [run_means(f) for f in rule_dirs], [heldout_measures(f) for f in heldout_dirs]
+    if cities is not None and (empty := [name for name in RULE_SETS if not set_tasks(name, cities)]):
+        raise SystemExit(f"track --cities {','.join(cities)}: no task of {', '.join(empty)} is on those cities")
+    sets, held = [run_means(f, cities) for f in rule_dirs], [heldout_measures(f) for f in heldout_dirs]
     measures = list(held[0])
     table = {}
     for name, (what, _) in RULE_SETS.items():
@@ -610,7 +623,8 @@ def track(rule_dirs: list[str], heldout_dirs: list[str]) -> dict[str, dict[str, 
         for m in measures:
             rho, p = spearmanr(x, worse_up(held[0][m][0], [h[m][1] for h in held]))
             table[name][m] = (float(rho), float(p))
-    print(f"Spearman's rank correlation over {len(sets)} runs, +1: the set ranks the runs as the held-out measure does\n"
+    print(f"Spearman's rank correlation over {len(sets)} runs{' (each set on ' + ', '.join(cities) + ' only)' if cities else ''}, "
+          "+1: the set ranks the runs as the held-out measure does\n"
           "| rule set | " + " | ".join(measures) + " |\n|---|" + "---|" * len(measures))  # fmt: skip
     for name, row in table.items():
         print(f"| {name} | " + " | ".join(f"{rho:+.2f} (p {p:.3f})" for rho, p in row.values()) + " |")
@@ -932,7 +946,8 @@ def main() -> None:
     parser.add_argument("--ks", default="0,1,2,3,4,5,6,8,10")
     parser.add_argument("--episodes", type=int, default=8, help="heldout: episodes per city and side (a multiple of 4); hotspot: validation episodes (0: none)")
     parser.add_argument("--multiplier", type=float, default=None, help="hotspot: also each city with its busiest region x this")
-    parser.add_argument("--cities", default=",".join([*VAL_CITIES, *meta.HELD_OUT]), help="heldout, where: the cities")
+    parser.add_argument("--cities", help="heldout, where: the cities (default: the validation and held-out cities); "
+                                         "track: each set read on these cities' tasks only (default: all)")
     parser.add_argument("--validation", action="store_true", help="k: the training cities' validation return instead")
     parser.add_argument("--out", default=None, help="tasks: the JSON of per-episode profits")
     parser.add_argument("--mpc-from", default=None, help="tasks: reuse MPC-F's profits from this earlier --out")
@@ -951,6 +966,7 @@ def main() -> None:
     parser.add_argument("--own", action="store_true", help="hotspot: also on the states the policy reaches itself (8 episodes, labelled by MPC-F)")
     parser.add_argument("--freeze", default=None, help="misread: steps (inclusive windows, e.g. 6-13 or 0-5,14-19) at which the memory does not move while adapting")
     args = parser.parse_args()
+    only_on, args.cities = args.cities, args.cities or ",".join([*VAL_CITIES, *meta.HELD_OUT])  # track reads only what was asked
     torch.manual_seed(0)  # the policy's sampled adaptation episodes (gap, heldout, hotspot --own): a rerun repeats them
     ks = [int(k) for k in args.ks.split(",")]
     if args.what == "gap":
@@ -985,7 +1001,7 @@ def main() -> None:
     elif args.what == "track":
         if not (args.first and args.second):
             parser.error("track needs --first (rule folders of single runs) and --second (their transfer-table folders), comma-separated, in the same order")
-        track(args.first.split(","), args.second.split(","))
+        track(args.first.split(","), args.second.split(","), only_on.split(",") if only_on else None)
     elif args.what == "runs":
         if not (args.first and args.second):
             parser.error("runs needs --first and --second: comma-separated rule folders of single runs")

@@ -1030,3 +1030,34 @@ def test_track_ranks_runs_by_each_rule_set_against_the_held_out_cities(tmp_path,
     assert "| shaped set | +1.00" in capsys.readouterr().out
     with pytest.raises(SystemExit, match="one held-out folder per rule folder"):
         md.track(rules, held[:3])
+
+
+def test_track_reads_each_rule_set_on_the_cities_asked_only(tmp_path, capsys):
+    """track --cities: each set's mean over those cities' tasks only (the cities a recipe never trained on), so runs
+    ranked one way on porto and the other way elsewhere correlate +1 or -1 by the cities read; none there: refused."""
+    import json
+
+    import meta_diagnostics as md
+
+    rules, held = [], []
+    for i in range(4):  # porto's tasks: profits rise with i (run 3 best); every other city's fall, and outweigh porto's
+        rule = tmp_path / f"rule{i}"
+        rule.mkdir()
+        for name, (_, tasks_) in md.RULE_SETS.items():
+            profit = {t: 100.0 + i if t.startswith("porto~") else 100.0 - 3 * i for t in tasks_}
+            md.rule_file(rule, "candidate", name).write_text(
+                json.dumps({"policy": f"r{i}.pt", "tasks": {t: {"policy": [profit[t]], "mpc-forecast": [110.0]} for t in tasks_}}))
+        ho = tmp_path / f"ho{i}"
+        ho.mkdir()
+        row = {"meta-rl": {"metrics": {"profit": {"mean": 150.0 + i}}}, "mpc-oracle": {"metrics": {"profit": {"mean": 200.0}}}}
+        (ho / "intercity.json").write_text(json.dumps({"targets": {"a": row}}))
+        (ho / "event.json").write_text(json.dumps({"targets": {"a_event": row}}))
+        rules.append(str(rule)), held.append(str(ho))
+    on_porto, on_all, elsewhere = md.track(rules, held, ["porto"]), md.track(rules, held), md.track(rules, held, ["washington_dc", "nyc_man_north"])
+    for name in md.RULE_SETS:
+        assert on_porto[name]["a"][0] == pytest.approx(1.0) and on_all[name]["a"][0] == pytest.approx(-1.0), name
+        assert elsewhere[name]["a"][0] == pytest.approx(-1.0), name
+    assert md.set_tasks("skew variants 2.7", ["porto", "washington_dc"]) == ["porto~skew2.7", "washington_dc~skew2.7"]
+    assert "(each set on porto only)" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="no task of"):
+        md.track(rules, held, ["rome"])
