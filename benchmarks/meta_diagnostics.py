@@ -731,6 +731,9 @@ def where(policy: str, cities: list[str], episodes: int = 10, seed: int = 1000, 
         print("  by region (largest first): " + ", ".join(f"r{i} {gap.sum(0)[i]:.0f}" for i in order[:6]))
         print("  share asked (mean over steps) meta / MPC-F / idle fleet ratio, those regions: " + ", ".join(
             f"r{i} {m['share'][:, i].mean():.3f}/{f['share'][:, i].mean():.3f}" for i in order[:6]))
+        over = m["share"].mean(0) - f["share"].mean(0)  # where the mass MPC-F puts elsewhere went
+        print("  asked most above MPC-F (mean share meta / MPC-F): " + ", ".join(
+            f"r{i} {m['share'][:, i].mean():.3f}/{f['share'][:, i].mean():.3f}" for i in np.argsort(-over)[:4]))
         l1 = 0.5 * np.abs(m["share"] - f["share"]).sum(1)
         print("  half L1 between the mean shares asked, by step: " + " ".join(f"{v:.2f}" for v in l1), flush=True)
 
