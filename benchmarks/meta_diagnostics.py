@@ -74,8 +74,8 @@
 * ``track``: whether the rule's sets rank runs as the held-out cities do (``--first``: rule folders of single runs,
   ``--second``: each run's ``transfer-table --strategy meta-rl`` folder, same order): Spearman's rank correlation
   per set and held-out measure, signed so +1 agrees (docs/meta/log.md, "Which rule sets track the held-out cities").
-  ``--cities``: each set read on those cities' tasks only (the cities a recipe left out of training, apart from those
-  it trained on). It decides nothing, and it must not choose a proxy: read on the test cities, it only says which sets to distrust.
+  ``--cities``: each set read on those cities' tasks only (the cities a recipe left out of training), and on the rule's
+  other cities' apart; ``--plot``: the tables as heatmaps. It decides nothing, and it must not choose a proxy: read on the test cities, it only says which sets to distrust.
 * ``trials``: what DAgger collected (``files``: run folders holding ``dagger/round*/<task>.npz``), by the
   episode's place in its trial (1..K-1 adaptation, K scored): the share of the idle fleet the played action
   sends elsewhere than MPC-F's label, at each task's busiest region (MPC-F's largest mean label share over the
@@ -631,6 +631,25 @@ def track(rule_dirs: list[str], heldout_dirs: list[str], cities: list[str] | Non
     return table
 
 
+def track_figure(panels: dict[str, dict[str, dict[str, tuple[float, float]]]]):  # noqa: ANN201 - a matplotlib Figure
+    """:func:`track`'s tables side by side (e.g. the cities a recipe never trained on, and those it did): one
+    heatmap per table, rule sets by held-out measures, +1 (the set ranks runs as the measure does) in blue."""
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels) + 2.6, 4.6), sharey=True, squeeze=False, layout="constrained")
+    for ax, (title, table) in zip(axes[0], panels.items(), strict=True):
+        sets, measures = list(table), list(next(iter(table.values())))
+        rho = np.array([[table[name][m][0] for m in measures] for name in sets])
+        image = ax.imshow(rho, cmap="RdBu", vmin=-1, vmax=1, aspect="auto")
+        for (i, j), value in np.ndenumerate(rho):
+            ax.text(j, i, f"{value:+.2f}", ha="center", va="center", fontsize=8, color="white" if abs(value) > 0.6 else "black")
+        ax.set_xticks(range(len(measures)), [m.replace("_", " ").replace("shenzhen downtown", "SZ") for m in measures], rotation=25, ha="right")
+        ax.set_yticks(range(len(sets)), sets)
+        ax.set_title(title.replace(",", ", "), fontsize=10)
+    fig.colorbar(image, ax=axes[0].tolist(), label="Spearman's rho (+1: ranks runs as the held-out city)", shrink=0.9)
+    return fig
+
+
 def runs_spread(path: Path = RUN_SPREAD) -> dict[str, float] | None:
     """Each rule set's sd between single runs (:func:`spread`), if it has been measured."""
     return json.loads(path.read_text())["sd"] if path.is_file() else None
@@ -953,6 +972,7 @@ def main() -> None:
                                          "track: each set read on these cities' tasks only (default: all)")
     parser.add_argument("--validation", action="store_true", help="k: the training cities' validation return instead")
     parser.add_argument("--out", default=None, help="tasks: the JSON of per-episode profits")
+    parser.add_argument("--plot", default=None, help="track: a heatmap of the correlations (PNG), beside them the rule's other cities' with --cities")
     parser.add_argument("--mpc-from", default=None, help="tasks: reuse MPC-F's profits from this earlier --out")
     parser.add_argument("--k", type=int, default=3, help="tasks: the policy's adaptation episodes before each scored one")
     parser.add_argument("--reference", default=META_POLICY, help="rule: the policy the candidate (--policy) must beat (default: the tables' meta-rl)")
@@ -1004,7 +1024,14 @@ def main() -> None:
     elif args.what == "track":
         if not (args.first and args.second):
             parser.error("track needs --first (rule folders of single runs) and --second (their transfer-table folders), comma-separated, in the same order")
-        track(args.first.split(","), args.second.split(","), only_on.split(",") if only_on else None)
+        rule_dirs, heldout_dirs = args.first.split(","), args.second.split(",")
+        panels = {f"each set on {only_on}" if only_on else "every task of each set": track(rule_dirs, heldout_dirs, only_on.split(",") if only_on else None)}
+        if only_on and (rest := [c for c in VAL_CITIES if c not in only_on.split(",")]):  # the rule's other cities, beside them
+            panels[f"each set on {','.join(rest)}"] = track(rule_dirs, heldout_dirs, rest)
+        if args.plot:
+            from marl_amod.plots import figure_destination, save_figure
+
+            print(f"wrote {save_figure(track_figure(panels), figure_destination(args.plot))}")
     elif args.what == "runs":
         if not (args.first and args.second):
             parser.error("runs needs --first and --second: comma-separated rule folders of single runs")

@@ -1061,3 +1061,8 @@ def test_track_reads_each_rule_set_on_the_cities_asked_only(tmp_path, capsys):
     assert "(each set on porto only)" in capsys.readouterr().out
     with pytest.raises(SystemExit, match="no task of"):
         md.track(rules, held, ["rome"])
+    from marl_amod.plots import save_figure
+
+    fig = md.track_figure({"on porto": on_porto, "elsewhere": elsewhere})
+    assert len(fig.axes) == 3 and save_figure(fig, tmp_path / "track.png").stat().st_size > 10_000  # two heatmaps and their colour bar
+    assert fig.axes[0].images[0].get_array()[0, 0] == pytest.approx(1.0) and fig.axes[1].images[0].get_array()[0, 0] == pytest.approx(-1.0)
