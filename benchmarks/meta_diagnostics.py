@@ -750,7 +750,7 @@ def where(policy: str, cities: list[str], episodes: int = 10, seed: int = 1000, 
         print("  by region (largest first): " + ", ".join(f"r{i} {gap.sum(0)[i]:.0f}" for i in order[:6]))
         print("  share asked (mean over steps) meta / MPC-F / idle fleet ratio, those regions: " + ", ".join(
             f"r{i} {m['share'][:, i].mean():.3f}/{f['share'][:, i].mean():.3f}" for i in order[:6]))
-        over = m["share"].mean(0) - f["share"].mean(0)  # where the mass MPC-F puts elsewhere went
+        over = m["share"].mean(0) - f["share"].mean(0)  # the regions the policy sends to instead of MPC-F's
         print("  asked most above MPC-F (mean share meta / MPC-F): " + ", ".join(
             f"r{i} {m['share'][:, i].mean():.3f}/{f['share'][:, i].mean():.3f}" for i in np.argsort(-over)[:4]))
         l1 = 0.5 * np.abs(m["share"] - f["share"]).sum(1)
@@ -1025,13 +1025,19 @@ def main() -> None:
         if not (args.first and args.second):
             parser.error("track needs --first (rule folders of single runs) and --second (their transfer-table folders), comma-separated, in the same order")
         rule_dirs, heldout_dirs = args.first.split(","), args.second.split(",")
+        if args.plot:  # a bad figure name fails before the tables, not after
+            from marl_amod.errors import OutputError
+            from marl_amod.plots import figure_destination, save_figure
+
+            try:
+                plot = figure_destination(args.plot)
+            except OutputError as exc:
+                parser.error(str(exc))
         panels = {f"each set on {only_on}" if only_on else "every task of each set": track(rule_dirs, heldout_dirs, only_on.split(",") if only_on else None)}
         if only_on and (rest := [c for c in VAL_CITIES if c not in only_on.split(",")]):  # the rule's other cities, beside them
             panels[f"each set on {','.join(rest)}"] = track(rule_dirs, heldout_dirs, rest)
         if args.plot:
-            from marl_amod.plots import figure_destination, save_figure
-
-            print(f"wrote {save_figure(track_figure(panels), figure_destination(args.plot))}")
+            print(f"wrote {save_figure(track_figure(panels), plot)}")
     elif args.what == "runs":
         if not (args.first and args.second):
             parser.error("runs needs --first and --second: comma-separated rule folders of single runs")
