@@ -96,6 +96,8 @@ def meta_used(cards: list[dict[str, Any]]) -> dict[str, Any]:
     """What the meta-policies of ``cards`` (one, or an ensemble's members) trained on, summed: the
     tasks beside the cities, MPC-F demonstrations and DAgger episodes, and RL episodes (none when
     every member only imitated)."""
+    from marl_amod.algos.meta import TRAIN_CITIES
+
     # (card key, what the table calls them, the card key of their episodes each): the tasks beside the cities
     kinds = [("hotspot_variants", "hotspot variants", "episodes_per_variant"), ("skew_variants", "skew variants", "episodes_per_skew_variant"),
              ("sink_variants", "sink variants", "episodes_per_sink_variant"), ("event_tasks", "event tasks", "episodes_per_event_task")]  # fmt: skip
@@ -104,7 +106,8 @@ def meta_used(cards: list[dict[str, Any]]) -> dict[str, Any]:
         warm = card.get("warm_start") or {}
         demos = warm.get("demonstrations") or card.get("demonstrations")
         extra = {key: (demos or {}).get(key, []) for key, _, _ in kinds}
-        sources.append("10 training cities" + "".join(f" + {len(extra[key])} {label}" for key, label, _ in kinds if extra[key]))
+        cities = len((card.get("args") or {}).get("cities", TRAIN_CITIES))  # cards from before cities could be chosen: the default ten
+        sources.append(f"{cities} training cities" + "".join(f" + {len(extra[key])} {label}" for key, label, _ in kinds if extra[key]))
         if demos:  # trained from an imitation of MPC-Forecast on the same cities
             demonstrations += demos["episodes_per_city"] * len(demos["cities"]) + sum(demos.get(each, 0) * len(extra[key]) for key, _, each in kinds)
         rounds = [d for d in (card.get("dagger"), warm.get("dagger")) if d]  # its own DAgger rounds and its start's

@@ -122,7 +122,7 @@ def test_imitation_ships_a_meta_policy_that_warm_starts_rl2(tasks, tmp_path):
     rec = run_strategy("meta-rl", "synthetic", episodes=1, meta_policy=str(tmp_path / "rl.pt"), adapt_episodes=1)
     assert rec["transfer"]["demonstrations"] == 4
     rec["normalised_score"] = 0.0
-    assert "10 training cities (8) + 4 MPC-F demos" in study_markdown({"targets": {"synthetic": {"meta-rl": rec}}})
+    assert "2 training cities (8) + 4 MPC-F demos" in study_markdown({"targets": {"synthetic": {"meta-rl": rec}}})
     log = (tmp_path / "rl" / "log.csv").read_text()
     assert "eval/scaled_return" in log
     with pytest.raises(DataError, match="hidden 8"):
@@ -176,7 +176,7 @@ def test_dagger_rounds_join_the_demonstrations_and_resume_from_disk(tasks, tmp_p
     rec = run_strategy("meta-rl", "synthetic", episodes=1, meta_policy=str(tmp_path / "bc2.pt"), adapt_episodes=0)
     assert rec["transfer"]["target_episodes"] == 0 and np.isfinite(rec["metrics"]["profit"]["mean"])
     rec["normalised_score"] = 0.0  # (its 1 round + the start's 2) x 2 episodes x 2 cities
-    assert "| 10 training cities + 4 MPC-F demos + 12 DAgger |" in study_markdown({"targets": {"synthetic": {"meta-rl": rec}}})
+    assert "| 2 training cities + 4 MPC-F demos + 12 DAgger |" in study_markdown({"targets": {"synthetic": {"meta-rl": rec}}})
     # and once more, with the place features, a fleet readout and the first run's DAgger rounds joined
     last = more.model_copy(update={"init_actor": str(tmp_path / "bc2.pt"), "run_dir": str(tmp_path / "bc3"), "dagger_rounds": 0,
                                    "place_features": True, "readout": "mean-max", "more_demos": [str(rounds / f"round{k}") for k in (1, 2)],
@@ -391,7 +391,7 @@ def test_hotspot_variants_are_tasks_with_demonstrations_and_dagger_rounds_of_the
 
     rec = run_strategy("meta-rl", "synthetic", episodes=1, meta_policy=str(tmp_path / "bc.pt"), adapt_episodes=0)
     assert rec["transfer"]["demonstrations"] == 2 * 2 + 2 * 4 and rec["transfer"]["dagger_episodes"] == 1 * 2 * 4
-    assert rec["transfer"]["source_city"] == "10 training cities + 2 hotspot variants"
+    assert rec["transfer"]["source_city"] == "2 training cities + 2 hotspot variants"
     with pytest.raises(DataError, match="held-out"):
         mi.collect_demos(tmp_path / "demos", ["nyc_brooklyn~hot5x2"], episodes=1, seed=0, lookahead=6)
 
@@ -591,7 +591,7 @@ def test_skew_and_sink_variants_are_tasks_with_demonstrations_of_their_own_and_a
 
     rec = run_strategy("meta-rl", "synthetic", episodes=1, meta_policy=str(tmp_path / "bc.pt"), adapt_episodes=0)
     assert rec["transfer"]["demonstrations"] == 2 * 2 + 2 * 2 + 2 * 3 + 2 * 4
-    assert rec["transfer"]["source_city"] == "10 training cities + 2 hotspot variants + 2 skew variants + 2 sink variants"
+    assert rec["transfer"]["source_city"] == "2 training cities + 2 hotspot variants + 2 skew variants + 2 sink variants"
 
 
 @needs_data
