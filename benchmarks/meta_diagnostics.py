@@ -748,11 +748,11 @@ def where(policy: str, cities: list[str], episodes: int = 10, seed: int = 1000, 
         print("  rebalancing cost, meta - MPC-F, by step: " + " ".join(f"{g:.0f}" for g in (m["reb cost"] - f["reb cost"]).sum(1)))
         order = np.argsort(-gap.sum(0))
         print("  by region (largest first): " + ", ".join(f"r{i} {gap.sum(0)[i]:.0f}" for i in order[:6]))
+        asked, mpc = m["share"].mean(0), f["share"].mean(0)  # (N,) the mean share of the idle fleet each region is asked
         print("  share asked (mean over steps) meta / MPC-F / idle fleet ratio, those regions: " + ", ".join(
-            f"r{i} {m['share'][:, i].mean():.3f}/{f['share'][:, i].mean():.3f}" for i in order[:6]))
-        over = m["share"].mean(0) - f["share"].mean(0)  # the regions the policy sends to instead of MPC-F's
-        print("  asked most above MPC-F (mean share meta / MPC-F): " + ", ".join(
-            f"r{i} {m['share'][:, i].mean():.3f}/{f['share'][:, i].mean():.3f}" for i in np.argsort(-over)[:4]))
+            f"r{i} {asked[i]:.3f}/{mpc[i]:.3f}" for i in order[:6]))
+        print("  asked most above MPC-F (mean share meta / MPC-F): " + ", ".join(  # the regions the policy sends to instead of MPC-F's
+            f"r{i} {asked[i]:.3f}/{mpc[i]:.3f}" for i in np.argsort(mpc - asked)[:4]))
         l1 = 0.5 * np.abs(m["share"] - f["share"]).sum(1)
         print("  half L1 between the mean shares asked, by step: " + " ".join(f"{v:.2f}" for v in l1), flush=True)
 
@@ -1033,8 +1033,9 @@ def main() -> None:
                 plot = figure_destination(args.plot)
             except OutputError as exc:
                 parser.error(str(exc))
-        panels = {f"each set on {only_on}" if only_on else "every task of each set": track(rule_dirs, heldout_dirs, only_on.split(",") if only_on else None)}
-        if only_on and (rest := [c for c in VAL_CITIES if c not in only_on.split(",")]):  # the rule's other cities, beside them
+        only = only_on.split(",") if only_on else None
+        panels = {f"each set on {only_on}" if only else "every task of each set": track(rule_dirs, heldout_dirs, only)}
+        if only and (rest := [c for c in VAL_CITIES if c not in only]):  # the rule's other cities, beside them
             panels[f"each set on {','.join(rest)}"] = track(rule_dirs, heldout_dirs, rest)
         if args.plot:
             print(f"wrote {save_figure(track_figure(panels), plot)}")

@@ -166,12 +166,12 @@ def run_strategy(
         used.update(source=policy, source_city=card["scenario"], source_episodes=card.get("episodes_trained"), target_episodes=k,
                     validation_episodes=2 * FINE_TUNE_VALIDATION)
     else:
-        from marl_amod.algos.meta import load_meta, load_policy, trained_adaptation_episodes
+        from marl_amod.algos.meta import load_policy, trained_adaptation_episodes
         from marl_amod.ensemble import is_ensemble, read_members, read_spec
 
         meta_policy = policy or meta_policy
         members = read_members(meta_policy) if is_ensemble(meta_policy) else [meta_policy]
-        cards = [load_meta(m)[1] for m in members]
+        cards = [_card(m) for m in members]  # the cards alone: load_policy builds the models
         k = trained_adaptation_episodes(cards[0]) if adapt_episodes is None else adapt_episodes
         pol = load_policy(meta_policy, city, k, seed)
         together = is_ensemble(meta_policy) and read_spec(meta_policy).together  # adapted as one: K in all, else K each

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -973,23 +976,41 @@ def test_the_pairs_figure_reads_every_pair_and_its_tables_row_is_the_tables(tmp_
     assert save_figure(mp.figure(rows, mp.event_references()), tmp_path / "pairs.png").stat().st_size > 10_000
 
 
-def test_runs_reads_a_recipe_against_another_in_the_first_recipes_spread_between_runs(tmp_path, capsys):
-    """benchmarks/meta_diagnostics.py runs: each set's mean over each recipe's single runs, the difference,
-    and its SE sd_first x sqrt(1/n1 + 1/n2); fewer than two runs of the yardstick is refused."""
+def _rule_folder(folder: Path, profit_of: Callable[[str], float], episodes: int = 1) -> str:
+    """A single run's ``rule`` folder as meta_diagnostics reads it: each set's candidate record, every task at
+    ``profit_of(task)`` in each of ``episodes`` episodes against MPC-F's 110."""
     import json
 
     import meta_diagnostics as md
 
-    def folder(name: str, profit: float) -> str:
-        path = tmp_path / name
-        path.mkdir()
-        for set_name, (_, tasks_) in md.RULE_SETS.items():
-            record = {"policy": f"{name}.pt", "tasks": {t: {"policy": [profit] * 2, "mpc-forecast": [110.0] * 2} for t in tasks_}}
-            md.rule_file(path, "candidate", set_name).write_text(json.dumps(record))
-        return str(path)
+    folder.mkdir()
+    for name, (_, tasks_) in md.RULE_SETS.items():
+        record = {"policy": f"{folder.name}.pt", "tasks": {t: {"policy": [profit_of(t)] * episodes, "mpc-forecast": [110.0] * episodes} for t in tasks_}}
+        md.rule_file(folder, "candidate", name).write_text(json.dumps(record))
+    return str(folder)
 
-    plain = [folder(f"p{i}", p) for i, p in enumerate((100.0, 102.0, 104.0))]  # sd 2
-    arm = [folder(f"a{i}", p) for i, p in enumerate((105.0, 107.0))]
+
+def _heldout_folder(folder: Path, intercity: dict[str, float], event: dict[str, float]) -> str:
+    """A ``transfer-table`` folder with only the meta-rl profits given (MPC-Oracle at 200 in every target)."""
+    import json
+
+    def rows(profits: dict[str, float]) -> dict[str, Any]:
+        return {"targets": {city: {"meta-rl": {"metrics": {"profit": {"mean": p}}}, "mpc-oracle": {"metrics": {"profit": {"mean": 200.0}}}}
+                            for city, p in profits.items()}}  # fmt: skip
+
+    folder.mkdir()
+    (folder / "intercity.json").write_text(json.dumps(rows(intercity)))
+    (folder / "event.json").write_text(json.dumps(rows(event)))
+    return str(folder)
+
+
+def test_runs_reads_a_recipe_against_another_in_the_first_recipes_spread_between_runs(tmp_path, capsys):
+    """benchmarks/meta_diagnostics.py runs: each set's mean over each recipe's single runs, the difference,
+    and its SE sd_first x sqrt(1/n1 + 1/n2); fewer than two runs of the yardstick is refused."""
+    import meta_diagnostics as md
+
+    plain = [_rule_folder(tmp_path / f"p{i}", lambda t, p=p: p, episodes=2) for i, p in enumerate((100.0, 102.0, 104.0))]  # sd 2
+    arm = [_rule_folder(tmp_path / f"a{i}", lambda t, p=p: p, episodes=2) for i, p in enumerate((105.0, 107.0))]
     rows = {r["set"]: r for r in md.arm_runs(plain, arm)}
     events = rows["training-city events"]
     assert (events["first"], events["second"], events["diff"]) == pytest.approx((102.0, 106.0, 4.0))
@@ -1006,23 +1027,12 @@ def test_runs_reads_a_recipe_against_another_in_the_first_recipes_spread_between
 def test_track_ranks_runs_by_each_rule_set_against_the_held_out_cities(tmp_path, capsys):
     """benchmarks/meta_diagnostics.py track: per rule set and held-out measure, Spearman's rank correlation over
     runs, signed so +1 agrees (a lower gap or a higher profit better on both); mismatched inputs are refused."""
-    import json
-
     import meta_diagnostics as md
 
-    rules, held = [], []
-    for i, profit in enumerate((100.0, 101.0, 103.0, 106.0)):  # rule sets: profits rise with i, so run 3 is best on every set
-        rule = tmp_path / f"rule{i}"
-        rule.mkdir()
-        for name, (_, tasks_) in md.RULE_SETS.items():
-            md.rule_file(rule, "candidate", name).write_text(json.dumps({"policy": f"r{i}.pt", "tasks": {t: {"policy": [profit], "mpc-forecast": [110.0]} for t in tasks_}}))
-        ho = tmp_path / f"ho{i}"
-        ho.mkdir()
-        row = lambda meta_profit, oracle=200.0: {"meta-rl": {"metrics": {"profit": {"mean": meta_profit}}}, "mpc-oracle": {"metrics": {"profit": {"mean": oracle}}}}  # noqa: E731
-        # city a: the runs' order (best last); city b: the reverse; the event: the runs' order
-        (ho / "intercity.json").write_text(json.dumps({"targets": {"a": row(150.0 + i), "b": row(160.0 - i)}}))
-        (ho / "event.json").write_text(json.dumps({"targets": {"a_event": row(50.0 + i)}}))
-        rules.append(str(rule)), held.append(str(ho))
+    # rule sets: profits rise with i, so run 3 is best on every set; held out, city a: the runs' order (best last),
+    # city b: the reverse, the event: the runs' order
+    rules = [_rule_folder(tmp_path / f"rule{i}", lambda t, p=p: p) for i, p in enumerate((100.0, 101.0, 103.0, 106.0))]
+    held = [_heldout_folder(tmp_path / f"ho{i}", {"a": 150.0 + i, "b": 160.0 - i}, {"a_event": 50.0 + i}) for i in range(4)]
     table = md.track(rules, held)
     for name in md.RULE_SETS:
         assert table[name]["a"][0] == pytest.approx(1.0) and table[name]["b"][0] == pytest.approx(-1.0)
@@ -1035,24 +1045,11 @@ def test_track_ranks_runs_by_each_rule_set_against_the_held_out_cities(tmp_path,
 def test_track_reads_each_rule_set_on_the_cities_asked_only(tmp_path, capsys):
     """track --cities: each set's mean over those cities' tasks only (the cities a recipe never trained on), so runs
     ranked one way on porto and the other way elsewhere correlate +1 or -1 by the cities read; none there: refused."""
-    import json
-
     import meta_diagnostics as md
 
-    rules, held = [], []
-    for i in range(4):  # porto's tasks: profits rise with i (run 3 best); every other city's fall, and outweigh porto's
-        rule = tmp_path / f"rule{i}"
-        rule.mkdir()
-        for name, (_, tasks_) in md.RULE_SETS.items():
-            profit = {t: 100.0 + i if t.startswith("porto~") else 100.0 - 3 * i for t in tasks_}
-            md.rule_file(rule, "candidate", name).write_text(
-                json.dumps({"policy": f"r{i}.pt", "tasks": {t: {"policy": [profit[t]], "mpc-forecast": [110.0]} for t in tasks_}}))
-        ho = tmp_path / f"ho{i}"
-        ho.mkdir()
-        row = {"meta-rl": {"metrics": {"profit": {"mean": 150.0 + i}}}, "mpc-oracle": {"metrics": {"profit": {"mean": 200.0}}}}
-        (ho / "intercity.json").write_text(json.dumps({"targets": {"a": row}}))
-        (ho / "event.json").write_text(json.dumps({"targets": {"a_event": row}}))
-        rules.append(str(rule)), held.append(str(ho))
+    # porto's tasks: profits rise with i (run 3 best); every other city's fall, and outweigh porto's
+    rules = [_rule_folder(tmp_path / f"rule{i}", lambda t, i=i: 100.0 + i if t.startswith("porto~") else 100.0 - 3 * i) for i in range(4)]
+    held = [_heldout_folder(tmp_path / f"ho{i}", {"a": 150.0 + i}, {"a_event": 150.0 + i}) for i in range(4)]
     on_porto, on_all, elsewhere = md.track(rules, held, ["porto"]), md.track(rules, held), md.track(rules, held, ["washington_dc", "nyc_man_north"])
     for name in md.RULE_SETS:
         assert on_porto[name]["a"][0] == pytest.approx(1.0) and on_all[name]["a"][0] == pytest.approx(-1.0), name
