@@ -53,6 +53,10 @@
   whether the memory misreads the event or drifts with any adaptation; with ``--freeze 6-13`` the
   memory does not move at those steps while adapting, to find where the misreading is written
   (docs/meta/log.md, "What the memory does on the event").
+* ``told``: what knowing an event is worth (``--cities``, default the Brooklyn event; report episodes, seed 0): MPC-Forecast,
+  MPC told the event, MPC-Oracle, the meta-policy as deployed and with the event in its forecast inputs, each paired with
+  MPC-Forecast; the largest gain an adaptation could bring a policy that plays MPC-Forecast's plan, and whether the
+  meta-policy acts on the demand it is shown (docs/meta/log.md, "What knowing the event is worth").
 * ``tasks``: each episode's profit of the policy (K = ``--k``, 3 as deployed) and of MPC-Forecast (not
   told an event task's event) on training-city tasks (hotspot variants ``<city>~hot<r>x<m>``, skew variants ``<city>~skew<gamma>``,
   event tasks ``<city>~ev...``: ``meta.task_city``), validation episodes (seed 1000), written to
@@ -97,6 +101,7 @@
     python benchmarks/meta_diagnostics.py tasks --cities porto~hot1x2.5,porto~ev7+12x6@6-14dr1+2x0.5 --episodes 20 --out A.json
     python benchmarks/meta_diagnostics.py compare A.json B.json
     python benchmarks/meta_diagnostics.py misread --cities nyc_brooklyn_event,porto~ev7+12x6@6-14dr1+2x0.5 --episodes 20 --policy policies/meta_rl_l1_whole_ensemble.yaml
+    python benchmarks/meta_diagnostics.py told --episodes 10 --policy policies/meta_rl_l1_whole_ensemble.yaml
     python benchmarks/meta_diagnostics.py rule --policy runs/ens/candidate.yaml --workers 2 [--reference policies/meta_rl_l1_whole_ensemble.yaml]
     python benchmarks/meta_diagnostics.py spread runs/rule_seed0 runs/rule_seed1 runs/rule_rep4 runs/rule_rep5 runs/rule_rep6 runs/rule_rep6_again runs/rule_rep8
     python benchmarks/meta_diagnostics.py trials runs/meta_bc_dagger_l1_whole_rep8 runs/meta_bc_dagger_l1_whole_mean8
@@ -865,6 +870,39 @@ def usual_day(city: City) -> City:
     return replace(city, name=f"{city.name} (usual day)", demand_rate=city.forecast_rate, meta={k: v for k, v in city.meta.items() if k != "events"})
 
 
+def announced(city: City) -> City:
+    """``city`` with its events in the forecast too: every forecast reader (MPC-Forecast, a policy's look-ahead
+    columns) sees the day's expected demand, event included; the draw is unchanged (:func:`usual_day`'s converse)."""
+    return replace(city, forecast_rate=np.asarray(city.demand_rate).copy())
+
+
+def told(policy: str, names: list[str], episodes: int = 10, seed: int = 0, k: int = 3) -> dict[str, dict[str, np.ndarray]]:
+    """What knowing an event is worth, on each evented scenario or task's episodes (``seed`` 0: the tables'):
+    MPC-Forecast, MPC told the event (:class:`~marl_amod.algos.meta_imitation.MPCToldTheShock`: it plans on the
+    day's expected demand), MPC-Oracle, the meta-policy as deployed and with the event in its inputs
+    (:func:`announced`, adapted there too), each paired with MPC-Forecast by episode (docs/meta/log.md,
+    "What knowing the event is worth")."""
+    out: dict[str, dict[str, np.ndarray]] = {}
+    for name in names:
+        city = meta.task_city(name)
+        if not city.meta.get("events"):
+            raise SystemExit(f"told: {name} has no event (an event task <city>~ev... or a scenario with events:)")
+        shown = announced(city)
+        players = {"mpc-forecast": (MPCForecast(), city), "mpc told the event": (mi.MPCToldTheShock(), city), "mpc-oracle": (MPCOracle(), city),
+                   "meta-rl": (meta.load_policy(policy, city, k, seed=seed), city),
+                   "meta-rl, the event in its inputs": (meta.load_policy(policy, shown, k, seed=seed), shown)}  # fmt: skip
+        rows = {label: np.array([m["profit"] for m in evaluate(pol, on, episodes, seed)["per_episode"]]) for label, (pol, on) in players.items()}
+        out[name] = rows
+        print(f"{name}: profit, and paired with MPC-Forecast by episode (SE)")
+        for label, p in rows.items():
+            d = p - rows["mpc-forecast"]
+            print(f"  {label:34s} {p.mean():10,.0f}  {d.mean():+8,.0f} ({sem(d) if label != 'mpc-forecast' else 0:.0f})", flush=True)
+        d = rows["meta-rl, the event in its inputs"] - rows["meta-rl"]
+        print(f"  the event in the meta-policy's inputs is worth {d.mean():+,.0f} (SE {sem(d):.0f}); "
+              f"told MPC-F gains {np.mean(rows['mpc told the event'] - rows['mpc-forecast']):+,.0f}")
+    return out
+
+
 @contextlib.contextmanager
 def memory_frozen(steps: Collection[int] | None) -> Iterator[None]:
     """Inside it, a meta agent's memory does not move at the control steps ``steps`` (it acts as usual):
@@ -961,12 +999,12 @@ def trials(runs: list[str]) -> None:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hold", "steps", "hotspot", "transplant", "tasks", "compare", "rule", "recipes", "misread", "trials", "spread", "runs", "track"])
+    parser.add_argument("what", choices=["gap", "k", "event", "heldout", "where", "hold", "steps", "hotspot", "transplant", "tasks", "compare", "rule", "recipes", "misread", "told", "trials", "spread", "runs", "track"])
     parser.add_argument("files", nargs="*", help="compare: two tasks --out files (the second against the first); trials: run folders; spread: rule folders of single runs")
     parser.add_argument("--policy", default="policies/meta_rl_l1_cities.pt")
     parser.add_argument("--demos", default="runs/meta_demos")
     parser.add_argument("--ks", default="0,1,2,3,4,5,6,8,10")
-    parser.add_argument("--episodes", type=int, default=8, help="heldout: episodes per city and side (a multiple of 4); hotspot: validation episodes (0: none)")
+    parser.add_argument("--episodes", type=int, default=8, help="heldout: episodes per city and side (a multiple of 4); hotspot: validation episodes (0: none); told: report episodes (the tables: 10)")
     parser.add_argument("--multiplier", type=float, default=None, help="hotspot: also each city with its busiest region x this")
     parser.add_argument("--cities", help="heldout, where: the cities (default: the validation and held-out cities); "
                                          "track: each set read on these cities' tasks only (default: all)")
@@ -1019,6 +1057,8 @@ def main() -> None:
     elif args.what == "misread":
         freeze = set().union(*windows_of(args.freeze).values()) if args.freeze else None  # every window given, not the first
         misread(args.policy, args.cities.split(","), args.episodes, k=args.k, freeze=freeze)
+    elif args.what == "told":
+        told(args.policy, args.cities.split(",") if only_on else ["nyc_brooklyn_event"], args.episodes, k=args.k)
     elif args.what == "spread":
         spread(args.files, args.out or RUN_SPREAD)
     elif args.what == "track":

@@ -1063,3 +1063,31 @@ def test_track_reads_each_rule_set_on_the_cities_asked_only(tmp_path, capsys):
     fig = md.track_figure({"on porto": on_porto, "elsewhere": elsewhere})
     assert len(fig.axes) == 3 and save_figure(fig, tmp_path / "track.png").stat().st_size > 10_000  # two heatmaps and their colour bar
     assert fig.axes[0].images[0].get_array()[0, 0] == pytest.approx(1.0) and fig.axes[1].images[0].get_array()[0, 0] == pytest.approx(-1.0)
+
+
+def test_told_shows_the_event_to_every_forecast_reader_and_refuses_a_day_without_one(monkeypatch, capsys):
+    """benchmarks/meta_diagnostics.py told: the announced day is the evented day with the draw's expected demand as
+    its forecast (the usual day's converse), so MPC-Forecast planning on it is MPC told the event, episode by
+    episode; the meta-policy adapts on the announced day too; a day without an event has nothing to tell."""
+    import meta_diagnostics as md
+
+    from marl_amod.algos.meta_imitation import MPCToldTheShock
+    from marl_amod.evaluation import evaluate
+
+    evented = meta.task_city("synthetic~ev3x4@0-5")
+    shown = md.announced(evented)
+    np.testing.assert_array_equal(shown.forecast_rate, evented.demand_rate)
+    np.testing.assert_array_equal(shown.demand_rate, evented.demand_rate)
+    assert not np.array_equal(evented.forecast_rate, evented.demand_rate)  # the event was not in the forecast
+    profit = lambda pol, city: [m["profit"] for m in evaluate(pol, city, 2, 0)["per_episode"]]  # noqa: E731
+    assert profit("mpc-forecast", shown) == profit(MPCToldTheShock(), evented) != profit("mpc-forecast", evented)
+    adapted_on = []
+    monkeypatch.setattr(md.meta, "load_policy", lambda policy, city, k, seed=0: adapted_on.append(city) or "equal-distribution")
+    rows = md.told("unused.pt", ["synthetic~ev3x4@0-5"], episodes=2)["synthetic~ev3x4@0-5"]
+    assert len(adapted_on) == 2  # as deployed, then on the announced day
+    np.testing.assert_array_equal(adapted_on[1].forecast_rate, adapted_on[1].demand_rate)
+    assert not np.array_equal(adapted_on[0].forecast_rate, adapted_on[0].demand_rate)
+    assert rows["mpc told the event"].tolist() == profit(MPCToldTheShock(), evented)
+    assert "the event in the meta-policy's inputs is worth" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="has no event"):
+        md.told("unused.pt", ["synthetic"], episodes=1)
