@@ -16,7 +16,7 @@ draws, alternating, so the machine's load hits all alike (the ratios are what to
 
 It also prints the largest difference of the losses over the timed updates (float rounding).
 
-    python benchmarks/meta_update.py [--config configs/meta/bc_dagger_l1.yaml] [--updates 20] [--hidden 64 128] [--num-envs 16 4]
+    python benchmarks/meta_update.py [--config configs/meta/bc_dagger_l1.yaml] [--updates 20] [--hidden 64 128] [--num-envs 16 4] [--threads 2]
 
 Every row of the table is one (hidden units, trials per city) setting; the config's by default.
 """
@@ -63,13 +63,14 @@ def main() -> None:
     p.add_argument("--updates", type=int, default=20, help="timed updates per path (after 2 warm-up ones each)")
     p.add_argument("--hidden", type=int, nargs="+", default=None, help="hidden units to compare (default: the config's)")
     p.add_argument("--num-envs", type=int, nargs="+", default=None, help="trials per city to compare (default: the config's)")
+    p.add_argument("--threads", type=int, default=1, help="torch threads (a meta config's threads: one run alone may use both cores)")
     opts = p.parse_args()
     _, args = load_config(opts.config, {k: v.args for k, v in ALGOS.items()})
-    torch.set_num_threads(1)
+    torch.set_num_threads(opts.threads)
     cities = {name: load_city(name) for name in args.cities}
     data = mi.load_all(args, cities)
     print(f"{opts.config}: {args.cities_per_update} cities x {args.num_envs} trials x {args.trial_episodes} episodes per update, "
-          f"regions {sorted(c.n_regions for c in cities.values())}, {torch.get_num_threads()} torch thread")  # fmt: skip
+          f"regions {sorted(c.n_regions for c in cities.values())}, {torch.get_num_threads()} torch thread(s)")  # fmt: skip
     print("| hidden | trials per city | per city (s/update) | padded (s/update) | padded, heads on the concatenation (s/update) "
           "| padded vs per city | split heads vs concatenation | max loss difference |")  # fmt: skip
     print("|---|---|---|---|---|---|---|---|")
