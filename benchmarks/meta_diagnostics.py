@@ -896,7 +896,7 @@ def told(policy: str, names: list[str], episodes: int = 10, seed: int = 0, k: in
         print(f"{name}: profit, and paired with MPC-Forecast by episode (SE)")
         for label, p in rows.items():
             d = p - rows["mpc-forecast"]
-            print(f"  {label:34s} {p.mean():10,.0f}  {d.mean():+8,.0f} ({sem(d) if label != 'mpc-forecast' else 0:.0f})", flush=True)
+            print(f"  {label:34s} {p.mean():10,.0f}  {d.mean():+8,.0f} ({sem(d):.0f})", flush=True)
         d = rows["meta-rl, the event in its inputs"] - rows["meta-rl"]
         print(f"  the event in the meta-policy's inputs is worth {d.mean():+,.0f} (SE {sem(d):.0f}); "
               f"told MPC-F gains {np.mean(rows['mpc told the event'] - rows['mpc-forecast']):+,.0f}")

@@ -65,6 +65,8 @@ def main() -> None:
     p.add_argument("--num-envs", type=int, nargs="+", default=None, help="trials per city to compare (default: the config's)")
     p.add_argument("--threads", type=int, default=1, help="torch threads (a meta config's threads: one run alone may use both cores)")
     opts = p.parse_args()
+    if opts.threads < 1:
+        p.error(f"--threads {opts.threads}: at least one thread")
     _, args = load_config(opts.config, {k: v.args for k, v in ALGOS.items()})
     torch.set_num_threads(opts.threads)
     cities = {name: load_city(name) for name in args.cities}
