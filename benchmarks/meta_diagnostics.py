@@ -1058,7 +1058,7 @@ def main() -> None:
         freeze = set().union(*windows_of(args.freeze).values()) if args.freeze else None  # every window given, not the first
         misread(args.policy, args.cities.split(","), args.episodes, k=args.k, freeze=freeze)
     elif args.what == "told":
-        told(args.policy, args.cities.split(",") if only_on else ["nyc_brooklyn_event"], args.episodes, k=args.k)
+        told(args.policy, only_on.split(",") if only_on else ["nyc_brooklyn_event"], args.episodes, k=args.k)
     elif args.what == "spread":
         spread(args.files, args.out or RUN_SPREAD)
     elif args.what == "track":

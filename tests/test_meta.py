@@ -1080,14 +1080,15 @@ def test_told_shows_the_event_to_every_forecast_reader_and_refuses_a_day_without
     np.testing.assert_array_equal(shown.demand_rate, evented.demand_rate)
     assert not np.array_equal(evented.forecast_rate, evented.demand_rate)  # the event was not in the forecast
     profit = lambda pol, city: [m["profit"] for m in evaluate(pol, city, 2, 0)["per_episode"]]  # noqa: E731
-    assert profit("mpc-forecast", shown) == profit(MPCToldTheShock(), evented) != profit("mpc-forecast", evented)
+    told_profit = profit(MPCToldTheShock(), evented)
+    assert profit("mpc-forecast", shown) == told_profit != profit("mpc-forecast", evented)
     adapted_on = []
     monkeypatch.setattr(md.meta, "load_policy", lambda policy, city, k, seed=0: adapted_on.append(city) or "equal-distribution")
     rows = md.told("unused.pt", ["synthetic~ev3x4@0-5"], episodes=2)["synthetic~ev3x4@0-5"]
     assert len(adapted_on) == 2  # as deployed, then on the announced day
     np.testing.assert_array_equal(adapted_on[1].forecast_rate, adapted_on[1].demand_rate)
     assert not np.array_equal(adapted_on[0].forecast_rate, adapted_on[0].demand_rate)
-    assert rows["mpc told the event"].tolist() == profit(MPCToldTheShock(), evented)
+    assert rows["mpc told the event"].tolist() == told_profit
     assert "the event in the meta-policy's inputs is worth" in capsys.readouterr().out
     with pytest.raises(SystemExit, match="has no event"):
         md.told("unused.pt", ["synthetic"], episodes=1)
