@@ -12,9 +12,12 @@ draws, alternating, so the machine's load hits all alike (the ratios are what to
 * ``padded``: ``padded=True``, one padded batch (the default, ``pad_cities: true``);
 * ``padded, heads on the concatenation``: the same, with the model's heads run on the readout's
   full output (:func:`~marl_amod.models.recurrent.concatenated_heads`, the fleet summary copied to
-  every region) instead of split (the model's own ``_heads``: the summary's columns once per graph).
+  every region) instead of split (the model's own ``_heads``: the summary's columns once per graph);
+* ``padded, bf16``: the padded form under bf16 autocast (a meta config's ``bf16: true``): pays on a
+  CPU with AMX or AVX512-BF16 (this one: ``torch.backends.cpu.get_cpu_capability()`` is printed).
 
-It also prints the largest difference of the losses over the timed updates (float rounding).
+It also prints the largest difference of the float32 losses over the timed updates (float rounding), and
+the largest relative difference of the bf16 loss to them.
 
     python benchmarks/meta_update.py [--config configs/meta/bc_dagger_l1.yaml] [--updates 20] [--hidden 64 128] [--num-envs 16 4] [--threads 2]
 
@@ -41,14 +44,16 @@ from marl_amod.models import recurrent  # noqa: E402
 from marl_amod.scenario import load_city  # noqa: E402
 
 SPLIT_HEADS = recurrent._heads
-FORMS = {"per city": (False, SPLIT_HEADS), "padded": (True, SPLIT_HEADS), "padded, heads on the concatenation": (True, recurrent.concatenated_heads)}
+FORMS = {"per city": (False, SPLIT_HEADS, False), "padded": (True, SPLIT_HEADS, False),
+         "padded, heads on the concatenation": (True, recurrent.concatenated_heads, False), "padded, bf16": (True, SPLIT_HEADS, True)}
 
 
 def timed_update(form: str, model: meta.RecurrentGNN, opt: torch.optim.Optimizer, draws: list, args: mi.Args) -> tuple[float, float]:
     """(seconds, loss) of one whole update as training does it, in one of the ``FORMS``."""
-    padded, recurrent._heads = FORMS[form]
+    padded, recurrent._heads, bf16 = FORMS[form]
     start = time.perf_counter()
-    ce, vl = mi.cities_losses(model, draws, args.gamma, padded, args.fit)
+    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+        ce, vl = mi.cities_losses(model, draws, args.gamma, padded, args.fit)
     loss = ce + args.value_coef * vl
     opt.zero_grad()
     loss.backward()
@@ -72,10 +77,11 @@ def main() -> None:
     cities = {name: load_city(name) for name in args.cities}
     data = mi.load_all(args, cities)
     print(f"{opts.config}: {args.cities_per_update} cities x {args.num_envs} trials x {args.trial_episodes} episodes per update, "
-          f"regions {sorted(c.n_regions for c in cities.values())}, {torch.get_num_threads()} torch thread(s)")  # fmt: skip
+          f"regions {sorted(c.n_regions for c in cities.values())}, {torch.get_num_threads()} torch thread(s), CPU capability {torch.backends.cpu.get_cpu_capability()}")  # fmt: skip
     print("| hidden | trials per city | per city (s/update) | padded (s/update) | padded, heads on the concatenation (s/update) "
-          "| padded vs per city | split heads vs concatenation | max loss difference |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|---|")
+          "| padded, bf16 (s/update) | padded vs per city | split heads vs concatenation | bf16 vs float32 "
+          "| max loss difference | bf16's max relative loss difference |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
     for hidden, num_envs in itertools.product(opts.hidden or [args.hidden], opts.num_envs or [args.num_envs]):
         run = args.model_copy(update={"hidden": hidden, "num_envs": num_envs})
         torch.manual_seed(0)
@@ -83,7 +89,7 @@ def main() -> None:
         opt = torch.optim.Adam(model.parameters(), lr=0.0)  # lr 0: every form sees the same weights every update
         rng = np.random.default_rng(0)
         times: dict[str, list[float]] = {form: [] for form in FORMS}
-        diff = 0.0
+        diff = bf16_diff = 0.0
         for i in range(opts.updates + 2):
             draws = []
             for _ in range(run.cities_per_update):
@@ -93,11 +99,12 @@ def main() -> None:
             if i >= 2:
                 for form, (seconds, _) in timed.items():
                     times[form].append(seconds)
-                losses = [loss for _, loss in timed.values()]
+                losses = [loss for form, (_, loss) in timed.items() if not FORMS[form][2]]
                 diff = max(diff, max(losses) - min(losses))
-        per_city, padded, concatenated = (np.median(times[form]) for form in FORMS)
-        print(f"| {hidden} | {num_envs} | {per_city:.3f} | {padded:.3f} | {concatenated:.3f} | {per_city / padded:.2f}x "
-              f"| {concatenated / padded:.2f}x | {diff:.1e} |", flush=True)  # fmt: skip
+                bf16_diff = max(bf16_diff, abs(timed["padded, bf16"][1] / timed["padded"][1] - 1))
+        per_city, padded, concatenated, bf16 = (np.median(times[form]) for form in FORMS)
+        print(f"| {hidden} | {num_envs} | {per_city:.3f} | {padded:.3f} | {concatenated:.3f} | {bf16:.3f} | {per_city / padded:.2f}x "
+              f"| {concatenated / padded:.2f}x | {padded / bf16:.2f}x | {diff:.1e} | {bf16_diff:.1e} |", flush=True)  # fmt: skip
     recurrent._heads = SPLIT_HEADS
 
 

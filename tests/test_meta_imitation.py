@@ -8,6 +8,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from marl_amod.algos import meta
 from marl_amod.algos import meta_imitation as mi
@@ -543,6 +544,37 @@ def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp
         torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-4)
     with pytest.raises(ValueError, match="same"):
         mi.Trials.padded([mi.Trials.of_city(demos[0], draws[0][1]), mi.Trials.of_city(short, draws[3][1])])
+
+
+def test_bf16_autocast_keeps_the_memory_and_what_the_losses_read_in_float32(tasks, tmp_path):
+    """``bf16: true`` runs the teacher-forced pass under bf16 autocast: only the products are bf16.
+    The memory carried across the trial's steps, the Dirichlet means and the values come out float32,
+    and the losses and gradients stay those of float32 to bf16's rounding (a policy trained so plays
+    as one trained in float32); a short run trains and saves float32 weights."""
+    mi.collect_demos(tmp_path / "d", tasks, episodes=3, seed=0, lookahead=6)
+    cities = [load_city(t) for t in tasks]
+    demos = [mi.load_demos(tmp_path / "d", c, 6, structure=True, place=True) for c in cities]
+    rng = np.random.default_rng(0)
+    draws = [(d, rng.integers(3, size=(2, 4)), meta.city_graph(c)) for d, c in zip(demos, cities, strict=True)]
+    torch.manual_seed(0)
+    model = RecurrentGNN(meta.n_task_features(6, structure=True, place=True), hidden=16, stay_prior=True, readout="mean-max")
+    fit = mi.Fit(imitation="l1", shortfall=2.0)
+
+    def loss_and_grads(bf16: bool) -> list[torch.Tensor]:
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            ce, vl = mi.cities_losses(model, draws, gamma=0.97, fit=fit)
+            means, values = mi.teacher_forced(model, mi.Trials.of_city(demos[0], draws[0][1]), draws[0][2])
+        assert ce.dtype == vl.dtype == means.dtype == values.dtype == torch.float32
+        return [ce, vl, torch.cat([g.flatten() for g in torch.autograd.grad(ce + 0.5 * vl, list(model.parameters()))])]
+
+    ce, vl, grad = loss_and_grads(False)
+    ce16, vl16, grad16 = loss_and_grads(True)
+    torch.testing.assert_close(ce16, ce, rtol=1e-2, atol=0)
+    torch.testing.assert_close(vl16, vl, rtol=2e-2, atol=0)
+    assert F.cosine_similarity(grad16, grad, dim=0) > 0.99 and not torch.equal(grad16, grad)  # bf16 did run, and near float32
+    out = ALGOS["meta-bc"].train(tiny_args(tasks, tmp_path, "bf", bf16=True))
+    assert out["card"]["updates"] > 0
+    assert all(v.dtype == torch.float32 for v in torch.load(out["policy"], weights_only=False)["state_dict"].values())
 
 
 def test_a_resume_refuses_a_config_that_names_other_tasks(tasks, tmp_path):

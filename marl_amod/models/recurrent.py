@@ -111,7 +111,9 @@ class RecurrentGNN(nn.Module):
         team = prev_reward.reshape(*lead, 1, 1).expand(*lead, n, 1)
         inputs = torch.cat([x, prev_action.unsqueeze(-1), prev_region_reward.unsqueeze(-1), team], dim=-1)  # (..., N, F + 3)
         flat = self.encode(inputs).reshape(-1, self.hidden)
-        memory = self.memory(flat, memory.reshape(-1, self.hidden)).reshape(*lead, n, self.hidden)  # (..., N, H)
+        # float32 out of the GRU and the heads (no-ops in float32): under bf16 autocast only the products are bf16,
+        # the memory carried across a trial's steps and what the prior and losses read keep float32's precision
+        memory = self.memory(flat, memory.reshape(-1, self.hidden)).float().reshape(*lead, n, self.hidden)  # (..., N, H)
         mask = graph.mask if isinstance(graph, PaddedGraphs) else None  # (C, 1, N): the real regions
         if isinstance(graph, DenseGraph | PaddedGraphs):
             mixed = graph.conv(self.conv, memory)
@@ -120,7 +122,7 @@ class RecurrentGNN(nn.Module):
             mixed = self.conv(memory.reshape(-1, self.hidden), edges).reshape(*lead, n, self.hidden)
         z = torch.cat([memory, F.relu(mixed)], dim=-1)  # (..., N, 2H): own memory, neighbours' memories
         fleet = self.readout.summary(z, mask) if self.readout is not None else None  # (..., 1, kH): the whole fleet's
-        actor, per_region = (out.squeeze(-1) for out in _heads(z, fleet, (self.actor, self.critic)))  # (..., N) each
+        actor, per_region = (out.squeeze(-1).float() for out in _heads(z, fleet, (self.actor, self.critic)))  # (..., N) each
         regions = n if mask is None else mask.sum(-1, keepdim=True)  # each city's own N
         if self.stay_prior:
             idle = x[..., 0]  # (..., N) idle vehicles per region, in per-city units
