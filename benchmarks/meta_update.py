@@ -13,7 +13,7 @@ draws, alternating, so the machine's load hits all alike (the ratios are what to
 * ``padded, heads on the concatenation``: the same, with the model's heads run on the readout's
   full output (:func:`~marl_amod.models.recurrent.concatenated_heads`, the fleet summary copied to
   every region) instead of split (the model's own ``_heads``: the summary's columns once per graph);
-* ``padded, bf16``: the padded form under bf16 autocast (a meta config's ``bf16: true``): pays on a
+* ``padded, bf16``: the padded form under bf16 autocast (a meta config's ``precision: bf16``): pays on a
   CPU with AMX or AVX512-BF16 (this one: ``torch.backends.cpu.get_cpu_capability()`` is printed).
 
 It also prints the largest difference of the float32 losses over the timed updates (float rounding), and

@@ -10,6 +10,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from marl_amod.algos import common as C
 from marl_amod.algos import meta
 from marl_amod.algos import meta_imitation as mi
 from marl_amod.algos import offline as O
@@ -547,7 +548,7 @@ def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp
 
 
 def test_bf16_autocast_keeps_the_memory_and_what_the_losses_read_in_float32(tasks, tmp_path):
-    """``bf16: true`` runs the teacher-forced pass under bf16 autocast: only the products are bf16.
+    """``precision: bf16`` runs the teacher-forced pass under bf16 autocast: only the products are bf16.
     The memory carried across the trial's steps, the Dirichlet means and the values come out float32,
     and the losses and gradients stay those of float32 to bf16's rounding (a policy trained so plays
     as one trained in float32); a short run trains and saves float32 weights."""
@@ -561,7 +562,7 @@ def test_bf16_autocast_keeps_the_memory_and_what_the_losses_read_in_float32(task
     fit = mi.Fit(imitation="l1", shortfall=2.0)
 
     def loss_and_grads(bf16: bool) -> list[torch.Tensor]:
-        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+        with C.autocast("bf16" if bf16 else "fp32")():
             ce, vl = mi.cities_losses(model, draws, gamma=0.97, fit=fit)
             means, values = mi.teacher_forced(model, mi.Trials.of_city(demos[0], draws[0][1]), draws[0][2])
         assert ce.dtype == vl.dtype == means.dtype == values.dtype == torch.float32
@@ -572,7 +573,7 @@ def test_bf16_autocast_keeps_the_memory_and_what_the_losses_read_in_float32(task
     torch.testing.assert_close(ce16, ce, rtol=1e-2, atol=0)
     torch.testing.assert_close(vl16, vl, rtol=2e-2, atol=0)
     assert F.cosine_similarity(grad16, grad, dim=0) > 0.99 and not torch.equal(grad16, grad)  # bf16 did run, and near float32
-    out = ALGOS["meta-bc"].train(tiny_args(tasks, tmp_path, "bf", bf16=True))
+    out = ALGOS["meta-bc"].train(tiny_args(tasks, tmp_path, "bf", precision="bf16"))
     assert out["card"]["updates"] > 0
     assert all(v.dtype == torch.float32 for v in torch.load(out["policy"], weights_only=False)["state_dict"].values())
 

@@ -13,7 +13,8 @@ import torch
 import yaml
 
 from marl_amod.algos import common as C
-from marl_amod.algos.sac import autocast, policy_sample
+from marl_amod.algos.common import autocast
+from marl_amod.algos.sac import policy_sample
 from marl_amod.errors import ConfigError
 from marl_amod.models import TwinQ
 from marl_amod.models.dense import DenseGraph

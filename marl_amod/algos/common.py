@@ -42,6 +42,22 @@ from marl_amod.selection import QSelector, Selection
 Progress = Callable[[int, int, dict], None]
 
 
+
+Precision = Literal["fp32", "bf16"]
+Autocast = Callable[[], contextlib.AbstractContextManager]
+
+
+def autocast(precision: Precision) -> Autocast:
+    """The context a gradient update's network passes run in: bfloat16 autocast on the CPU, or nothing.
+
+    A fresh context per pass: autocast caches the bf16 copies of the weights until its outermost
+    context exits, and weights that change between the passes of one update (SAC's critic) must be cast again.
+    """
+    if precision == "fp32":
+        return contextlib.nullcontext
+    return lambda: torch.autocast("cpu", dtype=torch.bfloat16)
+
+
 class RunArgs(CommonArgs):
     """What every native training run has, whatever the algorithm; each algorithm's ``Args`` extends it."""
 

@@ -538,14 +538,15 @@ class Args(meta.Args):
     (:func:`step_weights`): where MPC-F's cut horizon stops moving vehicles that could not pay back"""
     end_steps: int = Field(3, ge=1)
     """the steps at an episode's end that ``end_weight`` weighs"""
-    bf16: bool = False
-    """the teacher-forced passes of training (:func:`cities_losses`) in bfloat16 under
-    :func:`torch.autocast` on the CPU: the matrix products run in bf16, the weights, the optimiser,
-    the memory carried between steps and every output the losses read stay float32, and the policy
-    is float32 wherever it acts (DAgger rounds, validation, deployment). Why: at hidden 128 the
-    update is matrix products near the core's float32 peak, and a CPU with AMX or AVX512-BF16 runs
-    them faster in bf16: 1.52x an update at hidden 128, 1.08x at 64, the loss within 2e-5 relative
-    (``benchmarks/meta_update.py``, 2026-12-05); on a CPU without them it is slower, so measure first"""
+    precision: C.Precision = "fp32"
+    """arithmetic of the teacher-forced passes of training (:func:`cities_losses`). bf16: under
+    bfloat16 autocast on the CPU (:func:`~marl_amod.algos.common.autocast`, as SAC's ``precision``)
+    the matrix products run in bf16; the weights, the optimiser, the memory carried between steps
+    and every output the losses read stay float32, and the policy acts in float32 everywhere (DAgger
+    rounds, validation, deployment). Why: at hidden 128 the update is matrix products near the
+    core's float32 peak, and a CPU with AMX or AVX512-BF16 runs them faster in bf16: 1.52x an update
+    alone at hidden 128, 1.08x at 64, the loss within 4e-6 relative (``benchmarks/meta_update.py``,
+    2026-12-05); 1.3x with two runs side by side. On a CPU without those units it is slower: measure first"""
     pad_cities: bool = True
     """an update's cities padded into one batch (the same losses to float rounding): 1.12-1.16x
     faster at hidden 64 x 16 trials per city, 1.4-1.8x at 4 trials (``benchmarks/meta_update.py``);
@@ -755,6 +756,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
 
     dagger_wall = sum(dagger_round(args, model, k, data, cities) for k in range(1, started_rounds(args, step) + 1))  # resumed: read back
     last = min(args.updates, args.stop_after or args.updates)
+    amp = C.autocast(args.precision)
     with C.interruptible(save):
         while step < last:
             if k := round_due(args, step):
@@ -764,7 +766,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                 name = draw_run_task(args, names, len(plain), events, rng)
                 demos, graph = data[name]
                 draws.append((demos, draw_trials(demos, args, rng, dagger_from[name]), graph))
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=args.bf16):
+            with amp():
                 ce, vl = cities_losses(model, draws, args.gamma, args.pad_cities, args.fit)
             for group in opt.param_groups:
                 group["lr"] = lr_at(args, step)

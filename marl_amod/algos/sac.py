@@ -20,7 +20,7 @@ batched matmul per layer for the pair); ``critic_time`` gives the critics the ti
 ``auto_entropy`` tunes the temperature. On these small graphs an update is dominated by per-op
 overhead, so the update does each thing once: one replay gather, fused Adam, no critic weight
 gradients in the policy step, the target side in inference mode. ``precision: bf16`` runs the update's network passes in bfloat16
-(twice as fast at 256 hidden units on CPUs with AMX; :func:`autocast`).
+(twice as fast at 256 hidden units on CPUs with AMX; :func:`~marl_amod.algos.common.autocast`).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ import copy
 import math
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import torch
@@ -72,7 +72,7 @@ class Args(C.RunArgs):
     """entropy the temperature is tuned towards, per region (None: -1 per region, i.e. -N)"""
     polyak: float = Field(0.995, ge=0, le=1)
     """target-network averaging factor"""
-    precision: Literal["fp32", "bf16"] = "fp32"
+    precision: C.Precision = "fp32"
     """arithmetic of the gradient update's network passes. bf16: the actor's and critics' matmuls
     and activations in bfloat16 (``torch.autocast``; on CPUs with AMX or AVX512-BF16 units several
     times faster at 256 hidden units), with float32 weights, optimisers, Q heads, targets, losses
@@ -166,22 +166,8 @@ def _obs_items(obs: Obs, prefix: str, local: bool, time: bool) -> dict[str, torc
     return items
 
 
-Autocast = Callable[[], contextlib.AbstractContextManager]
-
-
-def autocast(precision: str) -> Autocast:
-    """The context the update's network passes run in: bfloat16 autocast on the CPU, or nothing.
-
-    A fresh context per pass: autocast caches the bf16 copies of the weights until its outermost
-    context exits, and the critic's weights change between its passes of one update.
-    """
-    if precision == "fp32":
-        return contextlib.nullcontext
-    return lambda: torch.autocast("cpu", dtype=torch.bfloat16)
-
-
 def policy_sample(
-    actor, b: dict[str, torch.Tensor], prefix: str, edge_index: Graph, local: bool, amp: Autocast = contextlib.nullcontext,
+    actor, b: dict[str, torch.Tensor], prefix: str, edge_index: Graph, local: bool, amp: C.Autocast = contextlib.nullcontext,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Reparameterised action y (B, N) on the simplex and log pi (B,); the actor runs under
     ``amp``, its concentrations and the distribution in float32."""
@@ -255,7 +241,7 @@ class Learner:
         self.log_alpha = torch.tensor(float(np.log(args.alpha)), requires_grad=True)
         self.opt_alpha = torch.optim.Adam([self.log_alpha], lr=args.lr_alpha)
         self.target_entropy = (-1.0 if args.target_entropy is None else args.target_entropy) * city.n_regions
-        self.amp = autocast(args.precision)
+        self.amp = C.autocast(args.precision)
 
     def update(self, b: dict[str, torch.Tensor], mark: Callable[[str], None] = _no_mark) -> dict[str, torch.Tensor]:
         """One critic and one actor step (and the temperature's with auto_entropy) on the sample ``b``."""
