@@ -36,6 +36,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from marl_amod.algos import common as C  # noqa: E402
 from marl_amod.algos import meta  # noqa: E402
 from marl_amod.algos import meta_imitation as mi  # noqa: E402
 from marl_amod.algos.registry import ALGOS  # noqa: E402
@@ -52,7 +53,7 @@ def timed_update(form: str, model: meta.RecurrentGNN, opt: torch.optim.Optimizer
     """(seconds, loss) of one whole update as training does it, in one of the ``FORMS``."""
     padded, recurrent._heads, bf16 = FORMS[form]
     start = time.perf_counter()
-    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+    with C.autocast("bf16" if bf16 else "fp32")():
         ce, vl = mi.cities_losses(model, draws, args.gamma, padded, args.fit)
     loss = ce + args.value_coef * vl
     opt.zero_grad()

@@ -13,7 +13,6 @@ import torch
 import yaml
 
 from marl_amod.algos import common as C
-from marl_amod.algos.common import autocast
 from marl_amod.algos.sac import policy_sample
 from marl_amod.errors import ConfigError
 from marl_amod.models import TwinQ
@@ -44,7 +43,7 @@ def test_bf16_critics_and_actor_agree_with_fp32_to_the_stated_tolerance(hidden):
     read (Q, concentrations) is float32."""
     graph, x, y, critic, actor = _setup(hidden)
     y.requires_grad_(True)
-    amp = autocast("bf16")
+    amp = C.autocast("bf16")
 
     def run(ctx):
         critic.zero_grad()
@@ -55,7 +54,7 @@ def test_bf16_critics_and_actor_agree_with_fp32_to_the_stated_tolerance(hidden):
         (q1.sum() + q2.sum()).backward()
         return q1, alpha, y.grad.clone(), [p.grad.clone() for p in critic.parameters()]
 
-    (q, alpha, dy, grads), (qb, alphab, dyb, gradsb) = run(autocast("fp32")), run(amp)
+    (q, alpha, dy, grads), (qb, alphab, dyb, gradsb) = run(C.autocast("fp32")), run(amp)
     assert qb.dtype == alphab.dtype == torch.float32
     assert 0 < _rel(qb, q) < 0.03  # > 0: the matmuls did run in bfloat16
     assert _rel(alphab, alpha) < 0.01
@@ -68,7 +67,7 @@ def test_a_few_bf16_updates_reduce_the_critic_and_policy_losses():
     """Critic regression towards fixed targets and the policy loss against a fixed critic, both
     with their network passes under the bf16 autocast, fall within a few Adam steps."""
     graph, x, y, critic, actor = _setup(64)
-    amp = autocast("bf16")
+    amp = C.autocast("bf16")
     target = torch.randn(x.shape[0])
     opt_c = torch.optim.Adam(critic.parameters(), lr=1e-2)
     losses = []

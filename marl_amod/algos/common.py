@@ -40,9 +40,6 @@ from marl_amod.scenario import City
 from marl_amod.selection import QSelector, Selection
 
 Progress = Callable[[int, int, dict], None]
-
-
-
 Precision = Literal["fp32", "bf16"]
 Autocast = Callable[[], contextlib.AbstractContextManager]
 
