@@ -30,6 +30,8 @@ import argparse
 import itertools
 import os
 import time
+from collections.abc import Callable
+from typing import NamedTuple
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
@@ -45,16 +47,25 @@ from marl_amod.models import recurrent  # noqa: E402
 from marl_amod.scenario import load_city  # noqa: E402
 
 SPLIT_HEADS = recurrent._heads
-FORMS = {"per city": (False, SPLIT_HEADS, False), "padded": (True, SPLIT_HEADS, False),
-         "padded, heads on the concatenation": (True, recurrent.concatenated_heads, False), "padded, bf16": (True, SPLIT_HEADS, True)}
+
+
+class Form(NamedTuple):
+    padded: bool
+    heads: Callable
+    precision: C.Precision
+
+
+FORMS = {"per city": Form(False, SPLIT_HEADS, "fp32"), "padded": Form(True, SPLIT_HEADS, "fp32"),
+         "padded, heads on the concatenation": Form(True, recurrent.concatenated_heads, "fp32"), "padded, bf16": Form(True, SPLIT_HEADS, "bf16")}
 
 
 def timed_update(form: str, model: meta.RecurrentGNN, opt: torch.optim.Optimizer, draws: list, args: mi.Args) -> tuple[float, float]:
     """(seconds, loss) of one whole update as training does it, in one of the ``FORMS``."""
-    padded, recurrent._heads, bf16 = FORMS[form]
+    chosen = FORMS[form]
+    recurrent._heads = chosen.heads
     start = time.perf_counter()
-    with C.autocast("bf16" if bf16 else "fp32")():
-        ce, vl = mi.cities_losses(model, draws, args.gamma, padded, args.fit)
+    with C.autocast(chosen.precision)():
+        ce, vl = mi.cities_losses(model, draws, args.gamma, chosen.padded, args.fit)
     loss = ce + args.value_coef * vl
     opt.zero_grad()
     loss.backward()
@@ -100,7 +111,7 @@ def main() -> None:
             if i >= 2:
                 for form, (seconds, _) in timed.items():
                     times[form].append(seconds)
-                losses = [loss for form, (_, loss) in timed.items() if not FORMS[form][2]]
+                losses = [loss for form, (_, loss) in timed.items() if FORMS[form].precision == "fp32"]
                 diff = max(diff, max(losses) - min(losses))
                 bf16_diff = max(bf16_diff, abs(timed["padded, bf16"][1] / timed["padded"][1] - 1))
         per_city, padded, concatenated, bf16 = (np.median(times[form]) for form in FORMS)

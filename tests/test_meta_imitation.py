@@ -515,6 +515,13 @@ def test_shocked_dagger_trials_are_labelled_by_the_chosen_expert(tasks, labels):
     assert differ > 0
 
 
+def _structured_demos(tasks: list[str], tmp_path) -> tuple[list, list[mi.CityDemos]]:
+    """(cities, their demonstrations with the structure and place columns): 3 MPC-F episodes a task."""
+    mi.collect_demos(tmp_path / "d", tasks, episodes=3, seed=0, lookahead=6)
+    cities = [load_city(t) for t in tasks]
+    return cities, [mi.load_demos(tmp_path / "d", c, 6, structure=True, place=True) for c in cities]
+
+
 @pytest.mark.parametrize(
     ("readout", "fit"),
     [("none", mi.Fit()), ("mean-max", mi.Fit()), ("mean-max", mi.Fit(own_prev_action=True)), ("mean-max", mi.Fit(imitation="l1", shortfall=2.0)),
@@ -524,9 +531,7 @@ def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp
     """One update's cities of different sizes (6 and 9 regions; one drawn twice, one with a shorter
     trial) in one padded batch give the mean of the per-city losses and the same gradients: the
     padding reaches no message, pool, stay prior, value or cross-entropy."""
-    mi.collect_demos(tmp_path / "d", tasks, episodes=3, seed=0, lookahead=6)
-    cities = [load_city(t) for t in tasks]
-    demos = [mi.load_demos(tmp_path / "d", c, 6, structure=True, place=True) for c in cities]
+    cities, demos = _structured_demos(tasks, tmp_path)
     graphs = [meta.city_graph(c) for c in cities]
     short = mi.CityDemos(*(v[:, :4] for v in vars(demos[1]).values()))  # a city with 4 decisions per episode
     rng = np.random.default_rng(0)
@@ -552,9 +557,7 @@ def test_bf16_autocast_keeps_the_memory_and_what_the_losses_read_in_float32(task
     The memory carried across the trial's steps, the Dirichlet means and the values come out float32,
     and the losses and gradients stay those of float32 to bf16's rounding (a policy trained so plays
     as one trained in float32); a short run trains and saves float32 weights."""
-    mi.collect_demos(tmp_path / "d", tasks, episodes=3, seed=0, lookahead=6)
-    cities = [load_city(t) for t in tasks]
-    demos = [mi.load_demos(tmp_path / "d", c, 6, structure=True, place=True) for c in cities]
+    cities, demos = _structured_demos(tasks, tmp_path)
     rng = np.random.default_rng(0)
     draws = [(d, rng.integers(3, size=(2, 4)), meta.city_graph(c)) for d, c in zip(demos, cities, strict=True)]
     torch.manual_seed(0)
