@@ -114,13 +114,16 @@ class RecurrentGNN(nn.Module):
         # float32 out of the GRU and the heads (no-ops in float32): under bf16 autocast only the products are bf16,
         # the memory carried across a trial's steps and what the prior and losses read keep float32's precision
         memory = self.memory(flat, memory.reshape(-1, self.hidden)).float().reshape(*lead, n, self.hidden)  # (..., N, H)
+        # what the layers after the GRU read: under autocast the memory cast once (every reader is a product, which
+        # would cast it again each, and the readout and the heads the 2H-wide z too); float32 outside autocast
+        read = memory.to(torch.get_autocast_dtype("cpu")) if torch.is_autocast_enabled("cpu") else memory
         mask = graph.mask if isinstance(graph, PaddedGraphs) else None  # (C, 1, N): the real regions
         if isinstance(graph, DenseGraph | PaddedGraphs):
-            mixed = graph.conv(self.conv, memory)
+            mixed = graph.conv(self.conv, read)
         else:  # torch-geometric: the batch as one graph of B copies
             edges = batch_edge_index(graph, math.prod(lead), n) if lead else graph
-            mixed = self.conv(memory.reshape(-1, self.hidden), edges).reshape(*lead, n, self.hidden)
-        z = torch.cat([memory, F.relu(mixed)], dim=-1)  # (..., N, 2H): own memory, neighbours' memories
+            mixed = self.conv(read.reshape(-1, self.hidden), edges).reshape(*lead, n, self.hidden)
+        z = torch.cat([read, F.relu(mixed)], dim=-1)  # (..., N, 2H): own memory, neighbours' memories
         fleet = self.readout.summary(z, mask) if self.readout is not None else None  # (..., 1, kH): the whole fleet's
         actor, per_region = (out.squeeze(-1).float() for out in _heads(z, fleet, (self.actor, self.critic)))  # (..., N) each
         regions = n if mask is None else mask.sum(-1, keepdim=True)  # each city's own N
