@@ -14,10 +14,13 @@ draws, alternating, so the machine's load hits all alike (the ratios are what to
   full output (:func:`~marl_amod.models.recurrent.concatenated_heads`, the fleet summary copied to
   every region) instead of split (the model's own ``_heads``: the summary's columns once per graph);
 * ``padded, bf16``: the padded form under bf16 autocast (a meta config's ``precision: bf16``): pays on a
-  CPU with AMX or AVX512-BF16 (this one: ``torch.backends.cpu.get_cpu_capability()`` is printed).
+  CPU with AMX or AVX512-BF16 (this one: ``torch.backends.cpu.get_cpu_capability()`` is printed);
+* ``padded, bf16, memory cast per reader``: the same with the GRU memory handed to the layers after the GRU
+  in float32, so each product casts it again (the model before :func:`~marl_amod.models.recurrent._for_products`).
 
-It also prints the largest difference of the float32 losses over the timed updates (float rounding), and
-the largest relative difference of the bf16 loss to them.
+It also prints the largest difference of the float32 losses over the timed updates (float rounding), the
+largest relative difference of the bf16 loss to them, and the largest difference between the two bf16 forms (0:
+the products see the same values).
 
     python benchmarks/meta_update.py [--config configs/meta/bc_dagger_l1.yaml] [--updates 20] [--hidden 64 128] [--num-envs 16 4] [--threads 2]
 
@@ -47,22 +50,30 @@ from marl_amod.models import recurrent  # noqa: E402
 from marl_amod.scenario import load_city  # noqa: E402
 
 SPLIT_HEADS = recurrent._heads
+CAST_ONCE = recurrent._for_products
+
+
+def per_reader(memory: torch.Tensor) -> torch.Tensor:
+    """The float32 memory itself: every product after the GRU casts it under autocast."""
+    return memory
 
 
 class Form(NamedTuple):
     padded: bool
     heads: Callable
     precision: C.Precision
+    memory_read: Callable = CAST_ONCE
 
 
 FORMS = {"per city": Form(False, SPLIT_HEADS, "fp32"), "padded": Form(True, SPLIT_HEADS, "fp32"),
-         "padded, heads on the concatenation": Form(True, recurrent.concatenated_heads, "fp32"), "padded, bf16": Form(True, SPLIT_HEADS, "bf16")}
+         "padded, heads on the concatenation": Form(True, recurrent.concatenated_heads, "fp32"), "padded, bf16": Form(True, SPLIT_HEADS, "bf16"),
+         "padded, bf16, memory cast per reader": Form(True, SPLIT_HEADS, "bf16", per_reader)}
 
 
 def timed_update(form: str, model: meta.RecurrentGNN, opt: torch.optim.Optimizer, draws: list, args: mi.Args) -> tuple[float, float]:
     """(seconds, loss) of one whole update as training does it, in one of the ``FORMS``."""
     chosen = FORMS[form]
-    recurrent._heads = chosen.heads
+    recurrent._heads, recurrent._for_products = chosen.heads, chosen.memory_read
     start = time.perf_counter()
     with C.autocast(chosen.precision)():
         ce, vl = mi.cities_losses(model, draws, args.gamma, chosen.padded, args.fit)
@@ -91,9 +102,10 @@ def main() -> None:
     print(f"{opts.config}: {args.cities_per_update} cities x {args.num_envs} trials x {args.trial_episodes} episodes per update, "
           f"regions {sorted(c.n_regions for c in cities.values())}, {torch.get_num_threads()} torch thread(s), CPU capability {torch.backends.cpu.get_cpu_capability()}")  # fmt: skip
     print("| hidden | trials per city | per city (s/update) | padded (s/update) | padded, heads on the concatenation (s/update) "
-          "| padded, bf16 (s/update) | padded vs per city | split heads vs concatenation | bf16 vs float32 "
-          "| max loss difference | bf16's max relative loss difference |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+          "| padded, bf16 (s/update) | padded, bf16, memory cast per reader (s/update) | padded vs per city | split heads vs concatenation "
+          "| bf16 vs float32 | memory cast once vs per reader | max loss difference | bf16's max relative loss difference "
+          "| max difference of the bf16 forms |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for hidden, num_envs in itertools.product(opts.hidden or [args.hidden], opts.num_envs or [args.num_envs]):
         run = args.model_copy(update={"hidden": hidden, "num_envs": num_envs})
         torch.manual_seed(0)
@@ -101,7 +113,7 @@ def main() -> None:
         opt = torch.optim.Adam(model.parameters(), lr=0.0)  # lr 0: every form sees the same weights every update
         rng = np.random.default_rng(0)
         times: dict[str, list[float]] = {form: [] for form in FORMS}
-        diff = bf16_diff = 0.0
+        diff = bf16_diff = cast_diff = 0.0
         for i in range(opts.updates + 2):
             draws = []
             for _ in range(run.cities_per_update):
@@ -114,10 +126,12 @@ def main() -> None:
                 losses = [loss for form, (_, loss) in timed.items() if FORMS[form].precision == "fp32"]
                 diff = max(diff, max(losses) - min(losses))
                 bf16_diff = max(bf16_diff, abs(timed["padded, bf16"][1] / timed["padded"][1] - 1))
-        per_city, padded, concatenated, bf16 = (np.median(times[form]) for form in FORMS)
-        print(f"| {hidden} | {num_envs} | {per_city:.3f} | {padded:.3f} | {concatenated:.3f} | {bf16:.3f} | {per_city / padded:.2f}x "
-              f"| {concatenated / padded:.2f}x | {padded / bf16:.2f}x | {diff:.1e} | {bf16_diff:.1e} |", flush=True)  # fmt: skip
-    recurrent._heads = SPLIT_HEADS
+                cast_diff = max(cast_diff, abs(timed["padded, bf16"][1] - timed["padded, bf16, memory cast per reader"][1]))
+        per_city, padded, concatenated, bf16, per_reader_bf16 = (np.median(times[form]) for form in FORMS)
+        print(f"| {hidden} | {num_envs} | {per_city:.3f} | {padded:.3f} | {concatenated:.3f} | {bf16:.3f} | {per_reader_bf16:.3f} "
+              f"| {per_city / padded:.2f}x | {concatenated / padded:.2f}x | {padded / bf16:.2f}x | {per_reader_bf16 / bf16:.3f}x "
+              f"| {diff:.1e} | {bf16_diff:.1e} | {cast_diff:.1e} |", flush=True)  # fmt: skip
+    recurrent._heads, recurrent._for_products = SPLIT_HEADS, CAST_ONCE
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ from marl_amod.algos.registry import ALGOS, args_for
 from marl_amod.baselines.mpc import MPCForecast
 from marl_amod.errors import ConfigError, DataError
 from marl_amod.evaluation import evaluate
+from marl_amod.models import recurrent
 from marl_amod.models.recurrent import RecurrentGNN
 from marl_amod.scenario import load_city
 from tests.conftest import needs_data
@@ -579,6 +580,33 @@ def test_bf16_autocast_keeps_the_memory_and_what_the_losses_read_in_float32(task
     out = ALGOS["meta-bc"].train(tiny_args(tasks, tmp_path, "bf", precision="bf16"))
     assert out["card"]["updates"] > 0
     assert all(v.dtype == torch.float32 for v in torch.load(out["policy"], weights_only=False)["state_dict"].values())
+
+
+def test_under_autocast_the_memory_is_cast_once_for_every_product_after_the_gru(tasks, tmp_path, monkeypatch):
+    """The layers after the GRU read one bf16 copy of the memory (:func:`recurrent._for_products`) instead
+    of each product casting the float32 memory: the products see the same values, so the losses are bit
+    for bit those of casting per reader, and only the gradients' sums at the memory round differently.
+    Outside autocast they read the float32 memory itself."""
+    cities, demos = _structured_demos(tasks, tmp_path)
+    rng = np.random.default_rng(1)
+    draws = [(d, rng.integers(3, size=(2, 4)), meta.city_graph(c)) for d, c in zip(demos, cities, strict=True)]
+    torch.manual_seed(0)
+    model = RecurrentGNN(meta.n_task_features(6, structure=True, place=True), hidden=16, stay_prior=True, readout="mean-max")
+
+    def losses_and_grad() -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        with C.autocast("bf16")():
+            ce, vl = mi.cities_losses(model, draws, gamma=0.97)
+        return ce, vl, torch.cat([g.flatten() for g in torch.autograd.grad(ce + 0.5 * vl, list(model.parameters()))])
+
+    once = losses_and_grad()
+    memory = torch.rand(3, 4)
+    with C.autocast("bf16")():
+        assert recurrent._for_products(memory).dtype == torch.bfloat16
+    assert recurrent._for_products(memory) is memory
+    monkeypatch.setattr(recurrent, "_for_products", lambda m: m)
+    per_reader = losses_and_grad()
+    assert torch.equal(once[0], per_reader[0]) and torch.equal(once[1], per_reader[1])
+    assert F.cosine_similarity(once[2], per_reader[2], dim=0) > 0.999
 
 
 def test_a_resume_refuses_a_config_that_names_other_tasks(tasks, tmp_path):
