@@ -27,6 +27,7 @@ the large tensors falling out of the cache; each step's batch is already large e
 from __future__ import annotations
 
 import math
+from functools import partial
 
 import torch
 import torch.nn.functional as F
@@ -170,15 +171,15 @@ def _for_products(memory: torch.Tensor) -> torch.Tensor:
     once, the products see the same bf16 values (the losses bit for bit the same) and a 128-unit bf16
     update runs about 1.06x faster (``benchmarks/meta_update.py``). The memory carried to the next step stays float32.
     """
-    on, dtype = _cpu_autocast()
-    return memory.to(dtype) if on else memory
+    return memory.to(_cpu_autocast_dtype()) if _cpu_autocast_enabled() else memory
 
 
-def _cpu_autocast() -> tuple[bool, torch.dtype]:
-    """(whether CPU autocast is on, its dtype), on every torch the package supports (the device-type forms came in 2.4)."""
-    if hasattr(torch, "get_autocast_dtype"):
-        return torch.is_autocast_enabled("cpu"), torch.get_autocast_dtype("cpu")
-    return torch.is_autocast_cpu_enabled(), torch.get_autocast_cpu_dtype()  # torch 2.2-2.3
+# CPU autocast's state through the installed torch's API, chosen once at import (the device-type forms came in 2.4;
+# the package supports 2.2, whose forms 2.4 deprecates)
+if hasattr(torch, "get_autocast_dtype"):
+    _cpu_autocast_enabled, _cpu_autocast_dtype = partial(torch.is_autocast_enabled, "cpu"), partial(torch.get_autocast_dtype, "cpu")
+else:  # torch 2.2-2.3
+    _cpu_autocast_enabled, _cpu_autocast_dtype = torch.is_autocast_cpu_enabled, torch.get_autocast_cpu_dtype
 
 
 def concatenated_heads(z: torch.Tensor, fleet: torch.Tensor | None, heads: tuple[nn.Sequential, ...]) -> list[torch.Tensor]:
