@@ -77,6 +77,26 @@ def test_load_city_builds_a_variant_on_its_scenario_with_the_overrides_first(tmp
     assert [e["regions"] for e in load_city(path + "~ev0+4x3@1-3").meta["events"]] == [[0, 4]]
 
 
+def test_a_hotspot_over_a_window_changes_only_those_steps_and_keeps_every_steps_total():
+    """``~hot<r>x<m>@<s>-<e>``: inside [s, e) the region's share of the requests out rises as the
+    all-day hotspot's does, in the draw and the forecast; outside it the city is untouched; each
+    step's total stays; the name rebuilds the city."""
+    base, day = load_city("synthetic"), load_city("synthetic~hot2x3")
+    late = load_city("synthetic~hot2x3@15-20")
+    assert late.name == "synthetic~hot2x3@15-20" and late.meta["hotspot"] == {"region": 2, "multiplier": 3.0, "start": 15, "end": 20}
+    _same_city(late, hotspot(base, 2, 3.0, 15, 20))
+    for table in ("demand_rate", "forecast_rate"):
+        b, d, w = (np.asarray(getattr(c, table)) for c in (base, day, late))
+        np.testing.assert_array_equal(w[:15], b[:15])
+        np.testing.assert_array_equal(w[20:], b[20:])
+        np.testing.assert_allclose(w[15:20], d[15:20])
+        np.testing.assert_allclose(w.sum(axis=(1, 2)), b.sum(axis=(1, 2)))
+        share = w[15:20, 2].sum() / w[15:20].sum()
+        assert share > 1.5 * b[15:20, 2].sum() / b[15:20].sum()
+    with pytest.raises(ConfigError, match="needs both start and end"):
+        hotspot(base, 2, 3.0, start=4)
+
+
 def test_a_variant_on_a_scenario_with_events_keeps_them_and_adds_its_own(tmp_path):
     (tmp_path / "shocked.yaml").write_text(
         "name: shocked\nsource: synthetic\nrows: 2\ncols: 2\nhorizon: 6\n"
@@ -109,6 +129,9 @@ def test_a_variant_on_a_scenario_with_events_keeps_them_and_adds_its_own(tmp_pat
         ("synthetic~sink2", "is no variant"),
         ("synthetic~sink99x2", "sink of synthetic: region 99"),
         ("synthetic~sink2x0", "sink of synthetic: region 2 (0..15) and multiplier 0.0"),
+        ("synthetic~hot2x3@5", "is no variant"),
+        ("synthetic~hot2x3@6-4", "hotspot of synthetic: window [6, 4)"),
+        ("synthetic~hot2x3@20-25", "start < the horizon 20"),
     ],
 )
 def test_a_bad_variant_is_one_line_naming_the_forms(bad, message):

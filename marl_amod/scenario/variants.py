@@ -2,13 +2,14 @@
 
 Four forms, appended to any scenario (a bundled name or a YAML path)::
 
-    <scenario>~hot<region>x<multiplier>                        a hotspot (:func:`hotspot`)
+    <scenario>~hot<region>x<multiplier>[@<start>-<end>]        a hotspot, all day or over a window (:func:`hotspot`)
     <scenario>~sink<region>x<multiplier>                       a sink of the trips (:func:`sink`)
     <scenario>~skew<gamma>                                     a more (or less) skewed demand (:func:`skew`)
     <scenario>~ev<r>+<r>x<m>@<start>-<end>[dr<r>+<r>x<m>]      a special event (:func:`event_task`)
 
 ``porto~hot1x2.5`` is Porto with the requests out of region 1 x2.5 against the rest, in the draw
-and the forecast (another city, which the features show); ``porto~ev3+7x4@5-12dr0+1x0.5`` is Porto
+and the forecast (another city, which the features show), and ``porto~hot1x2.5@15-20`` the same over
+control steps [15, 20) only; ``porto~ev3+7x4@5-12dr0+1x0.5`` is Porto
 whose requests out of regions 3 and 7 are x4 over control steps [5, 12) while those out of 0 and 1
 are x0.5, in the draw only (a shock the forecast does not know, as a scenario's ``events``);
 ``porto~sink4x3`` is Porto with every origin's requests *to* region 4 x3 against its other
@@ -37,12 +38,12 @@ from marl_amod.errors import ConfigError, pydantic_problems
 from marl_amod.scenario.events import DemandEvent, apply_events
 from marl_amod.scenario.types import City
 
-HOTSPOT = "~hot"  # "<scenario>~hot<region>x<multiplier>": the scenario with that hotspot
+HOTSPOT = "~hot"  # "<scenario>~hot<region>x<multiplier>[@<start>-<end>]": the scenario with that hotspot
 SINK = "~sink"  # "<scenario>~sink<region>x<multiplier>": the scenario with the trips into that region x the multiplier
 SKEW = "~skew"  # "<scenario>~skew<gamma>": the scenario with its origin shares raised to that power
 EVENT = "~ev"  # "<scenario>~ev<r>+<r>x<m>@<start>-<end>[dr<r>+<r>x<m>]": the scenario with that event
 FORMS = (
-    f"<scenario>{HOTSPOT}<region>x<multiplier> (a hotspot, e.g. porto{HOTSPOT}1x2.5), "
+    f"<scenario>{HOTSPOT}<region>x<multiplier>[@<start>-<end>] (a hotspot, e.g. porto{HOTSPOT}1x2.5 or porto{HOTSPOT}1x2.5@15-20), "
     f"<scenario>{SINK}<region>x<multiplier> (a sink, e.g. porto{SINK}4x3), "
     f"<scenario>{SKEW}<gamma> (a demand shape, e.g. porto{SKEW}1.6) or "
     f"<scenario>{EVENT}<r>+<r>x<m>@<start>-<end>[dr<r>+<r>x<m>] (an event, e.g. porto{EVENT}3+7x4@5-12dr0+1x0.5)"
@@ -51,6 +52,7 @@ FORMS = (
 _NUMBER = r"\d+(?:\.\d+)?"  # what _number writes: no sign, no exponent
 _REGIONS = r"\d+(?:\+\d+)*"
 _HOTSPOT_RE = re.compile(rf"(?P<region>\d+)x(?P<m>{_NUMBER})")
+_WINDOWED_RE = re.compile(rf"(?P<region>\d+)x(?P<m>{_NUMBER})(?:@(?P<s>\d+)-(?P<e>\d+))?")
 _SKEW_RE = re.compile(rf"(?P<g>{_NUMBER})")
 _EVENT_RE = re.compile(rf"(?P<up>{_REGIONS})x(?P<m>{_NUMBER})@(?P<s>\d+)-(?P<e>\d+)(?:dr(?P<down>{_REGIONS})x(?P<dm>{_NUMBER}))?")
 
@@ -58,19 +60,33 @@ _EVENT_RE = re.compile(rf"(?P<up>{_REGIONS})x(?P<m>{_NUMBER})@(?P<s>\d+)-(?P<e>\
 # --------------------------------------------------------------------------------------------
 # The four variants
 # --------------------------------------------------------------------------------------------
-def hotspot(city: City, region: int, multiplier: float) -> City:
+def hotspot(city: City, region: int, multiplier: float, start: int | None = None, end: int | None = None) -> City:
     """``city`` with the requests out of ``region`` x ``multiplier`` against the rest, every step's
     total kept (the same fleet against the same demand, only more of it in one place), in the draw
     *and* the forecast: another city (the features show it), not a shock. Why: the held-out cities'
     busiest region draws 4.6 (San Francisco) and 5.1 (Brooklyn) times a region's average share of
     the requests, every training city's at most 4.2, and MPC-Forecast sends it 0.29-0.31 of the
     idle fleet against at most 0.14 in a training city; the meta policy, never shown that, sends
-    0.15-0.25 (docs/meta/log.md, "Where the held-out gap comes from")."""
+    0.15-0.25 (docs/meta/log.md, "Where the held-out gap comes from").
+
+    With ``start`` and ``end`` only control steps [start, end) change (end capped at the tables'
+    steps): a hotspot that rises during the day, as San Francisco's busiest region's share does at
+    step 15, where the meta policy stops sending it vehicles that MPC-Forecast sends
+    (docs/meta/log.md, "Which steps hold the held-out gap")."""
     if not 0 <= region < city.n_regions or not np.isfinite(multiplier) or multiplier <= 0:
         raise ConfigError(f"hotspot of {city.name}: region {region} (0..{city.n_regions - 1}) and multiplier {multiplier} (> 0)")
-    factor = np.ones(city.n_regions)
-    factor[region] = multiplier
-    return _reweighted(city, factor, hotspot_name(city.name, region, multiplier), {"hotspot": {"region": region, "multiplier": multiplier}})
+    if (start is None) != (end is None):
+        raise ConfigError(f"hotspot of {city.name}: a window needs both start and end, got start {start}, end {end}")
+    if start is None:
+        factor = np.ones(city.n_regions)
+        factor[region] = multiplier
+        return _reweighted(city, factor, hotspot_name(city.name, region, multiplier), {"hotspot": {"region": region, "multiplier": multiplier}})
+    if not 0 <= start < end or start >= city.horizon:
+        raise ConfigError(f"hotspot of {city.name}: window [{start}, {end}) must satisfy 0 <= start < end and start < the horizon {city.horizon}")
+    factor = np.ones((city.n_steps, city.n_regions))
+    factor[start:end, region] = multiplier
+    meta = {"hotspot": {"region": region, "multiplier": multiplier, "start": start, "end": end}}
+    return _reweighted(city, factor, hotspot_name(city.name, region, multiplier, start, end), meta)
 
 
 def skew(city: City, gamma: float) -> City:
@@ -122,11 +138,13 @@ DESTINATIONS = 2  # or requests into each region
 
 def _reweighted(city: City, factor: np.ndarray, name: str, meta: dict, axis: int = ORIGINS) -> City:
     """``city`` with the requests out of (``ORIGINS``) or into (``DESTINATIONS``) each region x
-    ``factor`` (N,), in the draw and the forecast, named ``name``, ``meta`` added to its meta. Kept:
-    every step's total (origins), or every step's requests out of each origin (destinations: the
-    same requests, other destinations)."""
+    ``factor`` (N,), or (S, N) for a factor that changes with the step, in the draw and the forecast,
+    named ``name``, ``meta`` added to its meta. Kept: every step's total (origins), or every step's
+    requests out of each origin (destinations: the same requests, other destinations)."""
     shape, kept = [1, 1, 1], ((1, 2) if axis == ORIGINS else (2,))
     shape[axis] = city.n_regions
+    if factor.ndim == 2:  # (S, N): the step on the first axis
+        shape[0] = city.n_steps
     weight = factor.reshape(shape)
 
     def raised(rate: np.ndarray) -> np.ndarray:
@@ -158,10 +176,11 @@ def event_task(city: City, surge: list[int], multiplier: float, start: int, end:
 # --------------------------------------------------------------------------------------------
 # Names: written exactly, parsed back
 # --------------------------------------------------------------------------------------------
-def hotspot_name(city: str, region: int, multiplier: float) -> str:
-    """``<city>~hot<region>x<multiplier>``, the multiplier exactly (the name is what rebuilds the
-    city) and short (3, not 3.0)."""
-    return f"{city}{HOTSPOT}{region}x{_number(multiplier)}"
+def hotspot_name(city: str, region: int, multiplier: float, start: int | None = None, end: int | None = None) -> str:
+    """``<city>~hot<region>x<multiplier>`` and, over a window, ``@<start>-<end>``: the multiplier
+    exactly (the name is what rebuilds the city) and short (3, not 3.0)."""
+    window = "" if start is None else f"@{start}-{end}"
+    return f"{city}{HOTSPOT}{region}x{_number(multiplier)}{window}"
 
 
 def sink_name(city: str, region: int, multiplier: float) -> str:
@@ -209,8 +228,9 @@ def parse(name: str) -> tuple[str, Callable[[City], City] | None]:
     base, variant = split(name)
     if variant is None:
         return name, None
-    if variant.startswith(HOTSPOT) and (m := _HOTSPOT_RE.fullmatch(variant.removeprefix(HOTSPOT))):
-        return base, partial(hotspot, region=int(m["region"]), multiplier=float(m["m"]))
+    if variant.startswith(HOTSPOT) and (m := _WINDOWED_RE.fullmatch(variant.removeprefix(HOTSPOT))):
+        window = {"start": int(m["s"]), "end": int(m["e"])} if m["s"] else {}
+        return base, partial(hotspot, region=int(m["region"]), multiplier=float(m["m"]), **window)
     if variant.startswith(SINK) and (m := _HOTSPOT_RE.fullmatch(variant.removeprefix(SINK))):
         return base, partial(sink, region=int(m["region"]), multiplier=float(m["m"]))
     if variant.startswith(SKEW) and (m := _SKEW_RE.fullmatch(variant.removeprefix(SKEW))):
