@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -697,6 +698,57 @@ def ensemble(
 
     path = write_ensemble(out, list(members), adaptation, together)  # type: ignore[arg-type]  # checked there
     console.print(f"wrote {path} ({len(members)} members) and {path.with_suffix('.md')}")
+
+
+@app.command("train-ensemble")
+def train_ensemble(
+    configs: Annotated[list[Path], typer.Argument(help="two or more training configs, one member each (e.g. two training seeds of a recipe)")],
+    out: Annotated[Path, typer.Option(help="the ensemble file (.yaml) written from the members' policies; its card goes beside it (.md)")],
+    jobs: Annotated[int | None, typer.Option(min=1, help="members trained at once, one process each (default: as many as there are "
+                                                       "members, at most the machine's cores)", show_default=False)] = None,
+    resume: Annotated[bool, typer.Option(help="keep the members whose policy this config already made, resume those with a training "
+                                              "state (after a Ctrl-C), start the rest")] = False,
+    data_dir: DataDir = None,
+) -> None:
+    """Train several configs side by side, one process each, then write their ensemble: the tables' meta-policy in one command."""
+    from marl_amod.ensemble import write_ensemble
+    from marl_amod.side_by_side import plan, train_side_by_side
+
+    _use_data_dir(data_dir)
+    if out.suffix not in (".yaml", ".yml"):
+        raise ConfigError(f"--out {out}: the ensemble file is named .yaml")
+    check_destination(out, what="--out")
+    members = plan([str(c) for c in configs])
+    jobs = jobs or min(len(members), os.cpu_count() or 1)
+    console.print(f"{len(members)} members, {jobs} at a time; each run's output in its run_dir/train.log")
+    started = time.time()
+    try:
+        with progress_bar() as bar:
+            tasks = {m: bar.add_task(f"{m.config.stem}: waiting", total=m.total) for m in members}
+
+            def tick(status: dict) -> None:
+                for m, (state, done) in status.items():
+                    bar.update(tasks[m], completed=done, description=f"{m.config.stem}: {state}")
+
+            outcomes = train_side_by_side(members, jobs, resume, tick)
+    except KeyboardInterrupt:
+        console.print("interrupted: each running member saved its training state; rerun the same command with --resume", soft_wrap=True)
+        raise typer.Exit(130) from None
+    wall = time.time() - started
+    table = Table("member", "policy", "wall time", "status")
+    for o in outcomes:
+        table.add_row(str(o.member.config), str(o.member.policy_out), "-" if o.kept else f"{o.wall_s / 60:.1f} min",
+                      "kept (--resume)" if o.kept else "done" if o.ok else f"failed (exit {o.returncode})")  # fmt: skip
+    console.print(table)
+    failed = [o for o in outcomes if not o.ok]
+    for o in failed:
+        lines = o.member.log.read_text(errors="replace").strip().splitlines() if o.member.log.is_file() else []
+        console.print(f"{o.member.config} failed; its log {o.member.log} ends: {escape(lines[-1]) if lines else '(empty)'}", soft_wrap=True)
+    if failed:
+        console.print(f"[red]{len(failed)} member(s) failed[/red]; no ensemble written. Fix and rerun with --resume to keep the others.", soft_wrap=True)
+        raise typer.Exit(1)
+    path = write_ensemble(out, [o.member.policy_out for o in outcomes])
+    console.print(f"wrote {path} ({len(outcomes)} members) and {path.with_suffix('.md')}; {wall / 60:.1f} min of wall time side by side")
 
 
 @app.command("transfer-table")
