@@ -19,6 +19,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -67,10 +68,11 @@ class Member:
                 return 0
             with path.open("rb") as fh:
                 fh.seek(max(fh.seek(0, os.SEEK_END) - 4096, 0))
-                lines = fh.read().decode("utf-8", "replace").strip().splitlines()
+                text = fh.read().decode("utf-8", "replace")
         except OSError:
             return 0
-        for line in reversed(lines[1:] if len(lines) > 1 else lines):
+        lines = text.split("\n")[1:-1]  # whole lines only: the chunk's first may be cut, its last still being written
+        for line in reversed(lines):
             head = line.split(",", 1)[0]
             if head.isdigit():
                 return int(head)
@@ -147,6 +149,10 @@ def train_side_by_side(
                 out[m] = ("waiting", 0)
         return out
 
+    def stop(signum: int, frame: object) -> None:  # a kill (SIGTERM) stops the children as a Ctrl-C does, not orphans them
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, stop) if threading.current_thread() is threading.main_thread() else None
     try:
         while waiting or running:
             while waiting and len(running) < jobs:
@@ -166,6 +172,9 @@ def train_side_by_side(
         for child, _ in running.values():
             child.wait()
         raise
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
     return [outcomes[m] for m in members]
 
 

@@ -121,3 +121,19 @@ def test_resume_keeps_the_done_member_and_resumes_the_stopped_one_from_its_state
     assert len(rows) == len(set(rows)) and sorted({int(e) for e, _ in rows}) == [2, 4]
     assert (tmp_path / "run1" / "train.log").read_text().startswith("the stopped run\n")
     assert len(read_members(out)) == 2
+
+
+def test_progress_reads_the_last_whole_row_of_this_runs_log(tmp_path):
+    """The bar counts what the run has logged: the last whole row (a row still being written is not
+    read as a smaller number), and nothing from a log an earlier run left in the folder."""
+    import os
+
+    from marl_amod.side_by_side import Member
+
+    member = Member(tmp_path / "c.yaml", "a2c", tmp_path, tmp_path / "p.pt", 100)
+    assert member.progress(since=0) == 0  # no log yet
+    log = tmp_path / "log.csv"
+    log.write_text("episode,metric,value\n" + "".join(f"{e},loss,0.5\n" for e in range(1, 40)) + "4")  # 40 half written
+    assert member.progress(since=0) == 39
+    os.utime(log, (1_000, 1_000))
+    assert member.progress(since=2_000) == 0  # older than this run: an earlier run's log
