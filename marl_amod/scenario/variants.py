@@ -52,7 +52,7 @@ FORMS = (
 _NUMBER = r"\d+(?:\.\d+)?"  # what _number writes: no sign, no exponent
 _REGIONS = r"\d+(?:\+\d+)*"
 _HOTSPOT_RE = re.compile(rf"(?P<region>\d+)x(?P<m>{_NUMBER})")
-_WINDOWED_RE = re.compile(rf"(?P<region>\d+)x(?P<m>{_NUMBER})(?:@(?P<s>\d+)-(?P<e>\d+))?")
+_WINDOWED_RE = re.compile(_HOTSPOT_RE.pattern + r"(?:@(?P<s>\d+)-(?P<e>\d+))?")  # a hotspot, over a window of steps or not
 _SKEW_RE = re.compile(rf"(?P<g>{_NUMBER})")
 _EVENT_RE = re.compile(rf"(?P<up>{_REGIONS})x(?P<m>{_NUMBER})@(?P<s>\d+)-(?P<e>\d+)(?:dr(?P<down>{_REGIONS})x(?P<dm>{_NUMBER}))?")
 
