@@ -465,6 +465,10 @@ def train(
                 desc = f"{algo} {args.mode} on {args.scenario}"
                 if last_eval:
                     desc += f" | val profit {last_eval['profit']:,.0f}"
+                if stats.get("status"):  # what a run does between updates (collecting demonstrations, a DAgger round)
+                    desc += f" | {stats['status']}"
+                    if not console.is_terminal:  # a log file gets each as a line (the bar there prints only its tenths)
+                        console.print(f"{algo} at {ep:,}/{total:,}: {stats['status']}", markup=False)
                 bar.update(task, completed=ep, description=desc)
 
             summary = run_training(algo, args, resume=str(resume) if resume else None, progress=progress, config_path=str(config))

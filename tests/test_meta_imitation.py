@@ -159,7 +159,12 @@ def test_dagger_rounds_join_the_demonstrations_and_resume_from_disk(tasks, tmp_p
     args = tiny_args(tasks, tmp_path, "bc", updates=4, eval_every=2, eval_episodes=2, dagger_rounds=2, dagger_every=2,
                      dagger_episodes=2, lr=0.01, lr_final=0.001)
     assert mi.lr_at(args, 0) == 0.01 and mi.lr_at(args, 2) == pytest.approx(0.01 * 0.1**0.5) and mi.lr_at(args, 9) == pytest.approx(0.001)
-    card = ALGOS["meta-bc"].train(args.model_copy(update={"updates": 2}))["card"]
+    said: list[tuple[int, str]] = []  # what the bar hears between updates: each task's collection, before it starts
+    card = ALGOS["meta-bc"].train(args.model_copy(update={"updates": 2}), progress=lambda ep, total, stats: said.append((ep, stats.get("status", ""))))["card"]
+    statuses = [text for _, text in said if text]
+    assert statuses == [f"collecting MPC-Forecast demonstrations: {t} ({i}/2)" for i, t in enumerate(tasks, 1)] + [
+        f"DAgger round 1: collecting its own episodes: {t} ({i}/2)" for i, t in enumerate(tasks, 1)]
+    assert [ep for ep, text in said if text.startswith("DAgger")] == [args.dagger_first] * 2  # the round comes before that update
     rounds = tmp_path / "bc" / "dagger"
     assert card["dagger"]["rounds"] == 1 and sorted(p.name for p in rounds.iterdir()) == ["round1"]
     stamp = (rounds / "round1" / "small.npz").stat().st_mtime_ns

@@ -201,22 +201,25 @@ def collect_demos(
     folder: str | Path, cities: list[str], episodes: int, seed: int, lookahead: int, learner: RecurrentGNN | None = None,
     trial_episodes: int = 1, seed_of: Callable[[int, int], np.random.SeedSequence] = demo_seed, shock_prob: float = 0.0,
     shock_labels: ShockLabels = "told", shock_per_task: bool = False, adaptation: meta.Adaptation = "sampled",
-    concentration: float | None = None,
+    concentration: float | None = None, announce: Callable[[str], None] | None = None,
 ) -> dict[str, float]:
     """Write ``folder/<task>.npz`` for each task (a city or a :func:`~marl_amod.algos.meta.task_city`
     variant) not yet there (resumable, split by task; a file there is checked, :func:`check_demo_file`; with
     ``learner``, a DAgger round: :func:`collect_city`); returns the collection wall seconds of every
-    city's file (recorded in it)."""
+    city's file (recorded in it). ``announce`` hears each task before it is collected (minutes of
+    collection would otherwise show as a training bar standing still)."""
     held = meta.held_out_among(cities)
     if held:
         raise DataError(f"demonstrations on held-out {held}: the study tests on them")
     walls = {}
-    for name in cities:
+    for i, name in enumerate(cities, 1):
         city = meta.task_city(name)
         path = demo_path(folder, city.name)
         if path.is_file():
             check_demo_file(path, episodes, lookahead)
         else:
+            if announce is not None:
+                announce(f"collecting {'its own episodes' if learner is not None else 'MPC-Forecast demonstrations'}: {name} ({i}/{len(cities)})")
             start = time.perf_counter()
             arrays = collect_city(city, episodes, seed, lookahead, learner, trial_episodes, seed_of, shock_prob, shock_labels, shock_per_task,
                                   adaptation, concentration)  # fmt: skip
@@ -607,15 +610,19 @@ def joined(a: CityDemos, b: CityDemos) -> CityDemos:
     return CityDemos(*(torch.cat([x, y]) for x, y in zip(vars(a).values(), vars(b).values(), strict=True)))
 
 
-def dagger_round(args: Args, model: RecurrentGNN, k: int, data: dict[str, tuple[CityDemos, DenseGraph]], cities: dict[str, City]) -> float:
+def dagger_round(
+    args: Args, model: RecurrentGNN, k: int, data: dict[str, tuple[CityDemos, DenseGraph]], cities: dict[str, City],
+    announce: Callable[[str], None] | None = None,
+) -> float:
     """DAgger round ``k`` on every task in ``data`` (collected unless its files exist: resumable) added
     to ``data``; its collection wall seconds."""
     folder = Path(args.run_dir) / "dagger" / f"round{k}"
+    told = None if announce is None else (lambda text: announce(f"DAgger round {k}: {text}"))
     with torch.no_grad():
         walls = collect_demos(folder, list(data), args.dagger_episodes, args.seed, args.lookahead, learner=model,
                               trial_episodes=args.trial_episodes, seed_of=functools.partial(dagger_seed, round=k), shock_prob=args.dagger_shock_prob,
                               shock_labels=args.dagger_shock_labels, shock_per_task=args.dagger_shock_per_task,
-                              adaptation=args.adaptation, concentration=args.dagger_concentration)  # fmt: skip
+                              adaptation=args.adaptation, concentration=args.dagger_concentration, announce=told)  # fmt: skip
     for name in data:
         demos, graph = data[name]
         data[name] = (joined(demos, load_run_demos(folder, cities[name], args)), graph)
@@ -712,20 +719,26 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     events = event_names(args)
     # every task and validation city built before any collection: a bad name or setting fails now, not after the demonstrations
     cities = {name: meta.task_city(name) for name in dict.fromkeys([*plain, *variants, *events, *args.val_cities])}
-    walls = collect_demos(args.demos, plain, args.demo_episodes, args.seed, args.lookahead)
+    step = 0
+
+    def announce(text: str) -> None:  # what the run is doing while no update moves its bar
+        if progress is not None:
+            progress(step, args.updates, {"status": text})
+
+    walls = collect_demos(args.demos, plain, args.demo_episodes, args.seed, args.lookahead, announce=announce)
     n_hot, n_skew = args.hotspot_variants * len(plain), args.skew_variants * len(plain)  # each *_tasks names exactly that many per city, or refuses
     hot, skewed, sinks = variants[:n_hot], variants[n_hot : n_hot + n_skew], variants[n_hot + n_skew :]
-    walls |= collect_demos(args.demos, hot, args.hotspot_episodes, args.seed, args.lookahead)
-    walls |= collect_demos(args.demos, skewed, args.skew_episodes, args.seed, args.lookahead)
-    walls |= collect_demos(args.demos, sinks, args.sink_episodes, args.seed, args.lookahead)
-    walls |= collect_demos(args.demos, events, args.event_episodes, args.seed, args.lookahead)
+    walls |= collect_demos(args.demos, hot, args.hotspot_episodes, args.seed, args.lookahead, announce=announce)
+    walls |= collect_demos(args.demos, skewed, args.skew_episodes, args.seed, args.lookahead, announce=announce)
+    walls |= collect_demos(args.demos, sinks, args.sink_episodes, args.seed, args.lookahead, announce=announce)
+    walls |= collect_demos(args.demos, events, args.event_episodes, args.seed, args.lookahead, announce=announce)
     data = load_all(args, cities, [*plain, *variants, *events])
     names = list(data)
     dagger_from = {name: data[name][0].episodes if args.dagger_whole_trials else None for name in names}  # DAgger rounds join after these
     model = meta.make_model(args)
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
     rng = np.random.default_rng([args.seed, 23])
-    step, prior_wall = 0, 0.0
+    prior_wall = 0.0
     best, warm = meta.warm_start(args, model, cities, resume)  # init_actor: continue an imitation (e.g. with DAgger rounds)
     if resume:
         st = C.load_state(resume, "meta-bc")
@@ -760,7 +773,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     with C.interruptible(save):
         while step < last:
             if k := round_due(args, step):
-                dagger_wall += dagger_round(args, model, k, data, cities)
+                dagger_wall += dagger_round(args, model, k, data, cities, announce)
             draws = []
             for _ in range(args.cities_per_update):
                 name = draw_run_task(args, names, len(plain), events, rng)
