@@ -91,6 +91,9 @@ class PolicyCard(BaseModel):
     """the validated training arguments (after the config's extends: and defaults)"""
     git_commit: str | None = None
     """the code's commit when trained (with +dirty if the tree had changes)"""
+    platform: dict[str, str] | None = None
+    """what computed it (:func:`platform_info`): the same config and code repeat a run to the bit on one
+    platform, not across CPUs (docs/meta/log.md, "The tables' pair again, in one command")"""
     critic: dict[str, Any] | None = None
     """the twin Q critic whose weights the file carries beside the actor's (IQL, CQL):
     n_features, hidden, conv; absent: the file has the actor only"""
@@ -120,9 +123,28 @@ def git_commit() -> str | None:
     return f"{sha}+dirty" if dirty.strip() else sha
 
 
+def platform_info() -> dict[str, str]:
+    """The versions and CPU a run's floating-point results depend on: torch and numpy, the CPU kernels
+    torch dispatches to (``get_cpu_capability``: AVX2, AVX512, ...) and the CPU's model name. Why: the
+    tables' meta-policy retrained from its configs on another machine came out with other weights,
+    while the same code repeated itself to the bit on one machine, old code and new alike."""
+    import platform
+
+    import numpy as np
+    import torch
+
+    model = ""
+    try:
+        model = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines() if line.startswith("model name")), "")
+    except OSError:
+        pass
+    return {"torch": torch.__version__, "numpy": np.__version__, "cpu_capability": torch.backends.cpu.get_cpu_capability(),
+            "cpu": model or platform.processor() or platform.machine()}  # fmt: skip
+
+
 def make_card(**fields: Any) -> PolicyCard:
-    """A card for a policy trained now: env version and commit filled in."""
-    return PolicyCard(env_version=env_version(), git_commit=git_commit(), **fields)
+    """A card for a policy trained now: env version, commit and platform filled in."""
+    return PolicyCard(env_version=env_version(), git_commit=git_commit(), platform=platform_info(), **fields)
 
 
 # --------------------------------------------------------------------------------------------

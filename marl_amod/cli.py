@@ -457,12 +457,15 @@ def train(
     last_eval: dict[str, float] = {}
     try:
         with progress_bar() as bar:
-            task = bar.add_task(f"{algo} {args.mode} on {args.scenario}", total=getattr(args, "updates", args.episodes))
+            # what the run trains on (a meta run: its cities, not the scenario key it leaves at its default) and up to where
+            where = f"{len(args.cities)} training cities" if algo in ("meta", "meta-bc") else args.scenario
+            last = getattr(args, "stop_after", None) or getattr(args, "updates", args.episodes)
+            task = bar.add_task(f"{algo} {args.mode} on {where}", total=last)
 
             def progress(ep: int, total: int, stats: dict) -> None:
                 if "eval/profit" in stats:
                     last_eval["profit"] = stats["eval/profit"]
-                desc = f"{algo} {args.mode} on {args.scenario}"
+                desc = f"{algo} {args.mode} on {where}"
                 if last_eval:
                     desc += f" | val profit {last_eval['profit']:,.0f}"
                 if stats.get("status"):  # what a run does between updates (collecting demonstrations, a DAgger round)

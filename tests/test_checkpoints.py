@@ -103,6 +103,8 @@ def test_policy_card_is_the_one_type_with_env_version_and_commit(tmp_path, tiny_
     card = make_card(**_card(tiny_city), profit_mean=1.0, config="configs/a2c/synthetic.yaml")
     assert card.env_version == "v0" and card.to_dict()["config"] == "configs/a2c/synthetic.yaml"
     assert card.git_commit is None or len(card.git_commit.split("+")[0]) == 40
+    assert card.platform["torch"] == torch.__version__ and card.platform["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
+    assert card.platform["cpu"]  # what the run's floating point depends on, for a retrain elsewhere that differs
     path = save_policy(tmp_path / "c.pt", build_actor("gnn", tiny_city, 13, 8), card)
     on_disk = json.loads(path.with_suffix(".json").read_text())
     assert PolicyCard.model_validate(on_disk).env_version == "v0"
