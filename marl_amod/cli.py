@@ -471,7 +471,7 @@ def train(
                 if stats.get("status"):  # what a run does between updates (collecting demonstrations, a DAgger round)
                     desc += f" | {stats['status']}"
                     if not console.is_terminal:  # a log file gets each as a line (the bar there prints only its tenths)
-                        console.print(f"{algo} at {ep:,}/{total:,}: {stats['status']}", markup=False)
+                        console.print(f"{algo} at {ep:,}/{last:,}: {stats['status']}", markup=False)
                 bar.update(task, completed=ep, description=desc)
 
             summary = run_training(algo, args, resume=str(resume) if resume else None, progress=progress, config_path=str(config))
