@@ -91,6 +91,7 @@ import torch.nn.functional as F
 from pydantic import Field, model_validator
 
 from marl_amod.algos import common as C
+from marl_amod.algos import offline as O
 from marl_amod.algos.rollout import train_seed
 from marl_amod.baselines.base import WeightPolicy
 from marl_amod.batch_system import BatchFleetSystem
@@ -581,6 +582,15 @@ class Args(C.RunArgs):
     A2C's noisy signal accumulates"""
     demos: str = "runs/meta_demos"
     """folder of the MPC-Forecast demonstrations (:func:`.meta_imitation.collect_demos`), read when ``bc_coef`` > 0"""
+    imitation: O.Imitation = "ce"
+    """the actor's loss against MPC-F's shares (:func:`marl_amod.algos.offline.shares_loss`), in meta-bc's
+    training and in RL²'s ``bc_coef`` term (which should pull a warm start towards what it was fitted to):
+    ce, the cross-entropy, which near its optimum prices a vehicle off at a region holding a third of the
+    fleet some 30 times less than at one holding 1%; l1, every vehicle alike (the offline clone of
+    MPC-F in Brooklyn, whose error was at the busiest regions too, halved its gap with it)"""
+    shortfall_weight: float = Field(0.0, ge=0)
+    """with ``imitation: l1``, a vehicle short at a receiving region (:func:`.meta_imitation.receiving`) costs
+    1 + this times one over: a vehicle short there leaves requests unserved (offline's selected weight: 2)"""
     more_demos: list[str] = []
     """folders of more labelled episodes joined to ``demos`` (an earlier run's DAgger rounds,
     ``<run_dir>/dagger/round<k>``): a run continuing a DAgger run keeps the states its rounds reached"""
@@ -605,6 +615,9 @@ class Args(C.RunArgs):
             raise ValueError(f"demand_prior {self.demand_prior} mixes into the stay prior: set stay_prior too")
         if self.centred_actor and not self.stay_prior:
             raise ValueError("centred_actor centres the log-ratios to the stay prior: set stay_prior too")
+        if self.shortfall_weight and self.imitation != "l1":
+            raise ValueError(f"shortfall_weight {self.shortfall_weight} with imitation {self.imitation!r}: only l1 prices a "
+                             "vehicle short apart (set imitation: l1, or shortfall_weight: 0)")  # fmt: skip
         return self
 
     def ignored_keys(self) -> dict[str, str]:
@@ -774,9 +787,9 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     best, warm = warm_start(args, model, cities, resume)
     imitation = None
     if args.bc_coef > 0:
-        from marl_amod.algos.meta_imitation import draw_trials, imitation_losses, load_all
+        from marl_amod.algos.meta_imitation import Fit, draw_trials, imitation_losses, load_all
 
-        imitation = load_all(args, cities)
+        imitation, fit = load_all(args, cities), Fit(imitation=args.imitation, shortfall=args.shortfall_weight)
     if resume:
         st = C.load_state(resume, "meta")
         model.load_state_dict(st["model"]), opt.load_state_dict(st["opt"])
@@ -818,7 +831,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
             total = torch.stack(losses).mean()
             if imitation is not None:  # one city's trials of MPC-F demonstrations, teacher-forced
                 demos, graph = imitation[args.cities[int(rng.integers(len(args.cities)))]]
-                ce, vl = imitation_losses(model, demos, draw_trials(demos, args, rng), graph, args.gamma)
+                ce, vl = imitation_losses(model, demos, draw_trials(demos, args, rng), graph, args.gamma, fit)
                 total = total + args.bc_coef * (ce + args.value_coef * vl)
             opt.zero_grad()
             total.backward()

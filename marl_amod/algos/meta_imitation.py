@@ -528,14 +528,6 @@ class Args(meta.Args):
     before, as deployed) instead of what was played (MPC-F's move in a demonstration): MPC-F's move
     predicts its next one, so a policy trained on it leans on a channel that at deployment carries
     its own mistakes forward (the copycat problem; ``teacher_forced``)"""
-    imitation: O.Imitation = "ce"
-    """the actor's loss against MPC-F's shares (:func:`marl_amod.algos.offline.shares_loss`): ce, the
-    cross-entropy, which near its optimum prices a vehicle off at a region holding a third of the
-    fleet some 30 times less than at one holding 1%; l1, every vehicle alike (the offline clone of
-    MPC-F in Brooklyn, whose error was at the busiest regions too, halved its gap with it)"""
-    shortfall_weight: float = Field(0.0, ge=0)
-    """with ``imitation: l1``, a vehicle short at a receiving region (:func:`receiving`) costs 1 + this
-    times one over: a vehicle short there leaves requests unserved (offline's selected weight: 2)"""
     end_weight: float = Field(0.0, ge=0)
     """a decision in an episode's last ``end_steps`` steps counts 1 + this times in the actor's loss
     (:func:`step_weights`): where MPC-F's cut horizon stops moving vehicles that could not pay back"""
@@ -565,9 +557,6 @@ class Args(meta.Args):
                              "the draws that goes to them, and a share needs event tasks")  # fmt: skip
         if self.hotspot_share is not None and not (self.hotspot_variants or self.skew_variants or self.sink_variants):
             raise ValueError(f"hotspot_share {self.hotspot_share} without hotspot_variants, skew_variants or sink_variants: there are no variants to draw")
-        if self.shortfall_weight and self.imitation != "l1":
-            raise ValueError(f"shortfall_weight {self.shortfall_weight} with imitation {self.imitation!r}: only l1 prices a "
-                             "vehicle short apart (set imitation: l1, or shortfall_weight: 0)")  # fmt: skip
         if self.dagger_whole_trials and (not self.dagger_rounds or self.dagger_episodes % self.trial_episodes):
             raise ValueError(f"dagger_whole_trials with dagger_rounds {self.dagger_rounds} and dagger_episodes {self.dagger_episodes}: "
                              f"whole trials need DAgger rounds of whole trials (dagger_episodes a multiple of trial_episodes {self.trial_episodes})")  # fmt: skip
