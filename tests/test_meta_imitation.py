@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
+from pydantic import ValidationError
 
 from marl_amod.algos import common as C
 from marl_amod.algos import meta
@@ -105,7 +106,7 @@ def test_imitation_fits_mpc_forecasts_distribution(tasks, tmp_path):
     assert ce.item() - floor < 0.5 * (first - floor)
 
 
-def test_imitation_ships_a_meta_policy_that_warm_starts_rl2(tasks, tmp_path):
+def test_imitation_ships_a_meta_policy_that_warm_starts_rl2(tasks, tmp_path, monkeypatch):
     args = tiny_args(tasks, tmp_path, "bc", updates=4, eval_every=2, eval_episodes=2)
     card = ALGOS["meta-bc"].train(args)["card"]
     assert card["algorithm"] == "meta-bc" and card["demonstrations"]["episodes_per_city"] == 2 and card["updates"] == 4
@@ -130,6 +131,13 @@ def test_imitation_ships_a_meta_policy_that_warm_starts_rl2(tasks, tmp_path):
     assert "eval/scaled_return" in log
     with pytest.raises(DataError, match="hidden 8"):
         meta.train(rl.model_copy(update={"hidden": 4}))
+    # the imitation term fits the loss the start was fitted with (an l1 member pulled towards the cross-entropy's optimum would drift)
+    fits, real = [], mi.imitation_losses
+    monkeypatch.setattr(mi, "imitation_losses", lambda *a: fits.append(a[5]) or real(*a))
+    meta.train(rl.model_copy(update={"imitation": "l1", "shortfall_weight": 2.0, "run_dir": str(tmp_path / "rl_l1"), "policy_out": ""}))
+    assert fits and all(f.imitation == "l1" and f.shortfall == 2.0 for f in fits)
+    with pytest.raises(ValidationError, match="only l1 prices"):
+        meta.Args(imitation="ce", shortfall_weight=2.0)
 
 
 def test_dagger_episodes_are_the_learners_labelled_by_mpc_forecast(tasks):
