@@ -120,6 +120,7 @@ def test_imitation_ships_a_meta_policy_that_warm_starts_rl2(tasks, tmp_path, mon
                    eval_every=8, eval_episodes=2, final_eval_episodes=1, run_dir=str(tmp_path / "rl"), policy_out=str(tmp_path / "rl.pt"))  # fmt: skip
     card = ALGOS["meta"].train(rl)["card"]
     assert card["episodes_trained"] == 8 and card["warm_start"]["demonstrations"]["episodes_per_city"] == 2
+    assert np.isfinite(card["warm_start"]["validation"])  # the start's validation, which RL² had to beat to replace it
     # the transfer table names the demonstrations the meta-policy's training used
     from marl_amod.transfer import run_strategy, study_markdown
 

@@ -748,7 +748,9 @@ def warm_start(args: Args, model: RecurrentGNN, cities: dict[str, City], resume:
     if resume:  # the resumed state brings its own model and best
         return C.BestActor.of(model), warm
     model.load_state_dict(widened(start, model))
-    return C.BestActor(validate(model, args, cities), copy.deepcopy(model.state_dict())), warm
+    value = validate(model, args, cities)
+    warm["warm_start"]["validation"] = value  # what training had to beat: the card says whether the start was kept
+    return C.BestActor(value, copy.deepcopy(model.state_dict())), warm
 
 
 def widened(start: RecurrentGNN, model: RecurrentGNN) -> dict[str, torch.Tensor]:
