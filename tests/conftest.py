@@ -85,3 +85,19 @@ def tiny_prop_dataset(tmp_path_factory) -> tuple[str, str]:
     path = data.save(root / "tiny_prop.npz")
     write_card(path, data, city, make_policy("prop", city), eval_episodes=1, eval_seed=0)
     return str(scenario), str(path)
+
+
+def ctrl_c_after(monkeypatch: pytest.MonkeyPatch, episode: int) -> None:
+    """Training runs (those that close their episodes through ``EpisodeBook``) raise KeyboardInterrupt,
+    as a Ctrl-C would, right after logging ``episode``, until ``monkeypatch.undo()``."""
+    from marl_amod.algos import common
+
+    real = common.EpisodeBook.close
+
+    def close(self, ep, *a, **k):
+        stop = real(self, ep, *a, **k)
+        if ep == episode:
+            raise KeyboardInterrupt
+        return stop
+
+    monkeypatch.setattr(common.EpisodeBook, "close", close)

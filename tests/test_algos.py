@@ -16,6 +16,7 @@ from marl_amod.evaluation import evaluate
 from marl_amod.models import build_actor
 from marl_amod.scenario import load_city
 from marl_amod.system import FleetSystem
+from tests.conftest import ctrl_c_after
 
 
 @pytest.fixture
@@ -354,21 +355,12 @@ def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path, tiny_yaml, a
 def test_ctrl_c_saves_state_prints_one_line_and_resume_logs_each_episode_once(tmp_path, tiny_yaml, monkeypatch):
     from typer.testing import CliRunner
 
-    import marl_amod.algos.common as common
     from marl_amod.cli import app
 
     args = _common(tmp_path, tiny_yaml, episodes=8, episodes_per_update=2, eval_every=6)
     cfg = tmp_path / "run.yaml"
     cfg.write_text(yaml.safe_dump({"algo": "a2c", "args": args}))
-    real = common.EpisodeBook.close
-
-    def interrupt_at_4(self, ep, *a, **k):
-        stop = real(self, ep, *a, **k)
-        if ep == 4:
-            raise KeyboardInterrupt
-        return stop
-
-    monkeypatch.setattr(common.EpisodeBook, "close", interrupt_at_4)
+    ctrl_c_after(monkeypatch, 4)
     res = CliRunner().invoke(app, ["train", "--config", str(cfg)])
     state = tmp_path / "run" / "state.pt"
     assert res.exit_code == 130
@@ -377,7 +369,7 @@ def test_ctrl_c_saves_state_prints_one_line_and_resume_logs_each_episode_once(tm
     assert not (tmp_path / "policies" / "p.pt").exists()
     assert torch.load(state, map_location="cpu", weights_only=False)["episode"] == 4
 
-    monkeypatch.setattr(common.EpisodeBook, "close", real)
+    monkeypatch.undo()
     res = CliRunner().invoke(app, ["train", "--config", str(cfg), "--resume", str(state)])
     assert res.exit_code == 0, res.output
     rows = [tuple(line.split(",")[:2]) for line in (tmp_path / "run" / "log.csv").read_text().splitlines()[1:]]

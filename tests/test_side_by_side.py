@@ -15,6 +15,7 @@ from marl_amod.cli import app
 from marl_amod.ensemble import read_members
 from marl_amod.errors import ConfigError
 from marl_amod.side_by_side import plan
+from tests.conftest import ctrl_c_after
 
 
 @pytest.fixture
@@ -94,21 +95,11 @@ def test_one_config_or_one_without_a_policy_is_no_ensemble(tmp_path, tiny_yaml):
 def test_resume_keeps_the_done_member_and_resumes_the_stopped_one_from_its_state(tmp_path, tiny_yaml, monkeypatch):
     """After a Ctrl-C one member is done and the other holds a training state: --resume runs only the
     second, from its state (its log keeps each episode once), and writes the ensemble."""
-    from marl_amod.algos import common
-
     configs = [_config(tmp_path, tiny_yaml, s) for s in (0, 1)]
     assert CliRunner().invoke(app, ["train", "--config", str(configs[0])]).exit_code == 0
-    real = common.EpisodeBook.close
-
-    def interrupt_at_2(self, ep, *a, **k):
-        stop = real(self, ep, *a, **k)
-        if ep == 2:
-            raise KeyboardInterrupt
-        return stop
-
-    monkeypatch.setattr(common.EpisodeBook, "close", interrupt_at_2)
+    ctrl_c_after(monkeypatch, 2)
     assert CliRunner().invoke(app, ["train", "--config", str(configs[1])]).exit_code == 130
-    monkeypatch.setattr(common.EpisodeBook, "close", real)
+    monkeypatch.undo()
     done = tmp_path / "policies" / "p0.pt"
     stamp = done.stat().st_mtime_ns
     (tmp_path / "run1" / "train.log").write_text("the stopped run\n")  # a resumed member's log goes on after it; a fresh one starts anew
