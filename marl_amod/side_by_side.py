@@ -40,6 +40,8 @@ class Member:
     policy_out: Path
     total: int
     """the updates (or episodes) the run is set to reach: what its progress counts to"""
+    collects_into: Path | None = None
+    """a folder the run writes demonstrations into when they are missing (meta-bc's ``demos``)"""
 
     @property
     def state(self) -> Path:
@@ -94,8 +96,8 @@ class Outcome:
 
 def plan(configs: Sequence[str | Path]) -> list[Member]:
     """The members, every config validated before any run starts: each must write a policy
-    (``policy_out``), and no two may share a run folder or a policy file (one run would overwrite
-    the other's state, log or policy)."""
+    (``policy_out``), and no two may share a run folder, a policy file or a folder they collect
+    demonstrations into (one run would overwrite the other's state, log, policy or files)."""
     from marl_amod.algos.registry import load_train_config
     from marl_amod.files import check_destination
 
@@ -108,13 +110,18 @@ def plan(configs: Sequence[str | Path]) -> list[Member]:
             raise ConfigError(f"{config}: policy_out is empty, so the run would write no policy to put in the ensemble")
         check_destination(args.policy_out, what=f"{config}: policy_out")  # now, not when that member's run ends
         total = getattr(args, "stop_after", None) or getattr(args, "updates", None) or args.episodes
-        members.append(Member(config, algo, Path(args.run_dir), Path(args.policy_out), int(total)))
-    for what in ("run_dir", "policy_out"):
+        collects = Path(args.demos) if algo == "meta-bc" else None  # meta (RL²) only reads its demos
+        members.append(Member(config, algo, Path(args.run_dir), Path(args.policy_out), int(total), collects))
+    for what in ("run_dir", "policy_out", "collects_into"):  # side by side, two runs writing one place would clobber it
         seen: dict[Path, Path] = {}
         for m in members:
+            if getattr(m, what) is None:
+                continue
             where = getattr(m, what).resolve()
             if where in seen:
-                raise ConfigError(f"{seen[where]} and {m.config} share {what} {getattr(m, what)}: each member needs its own")
+                label = "demos" if what == "collects_into" else what
+                raise ConfigError(f"{seen[where]} and {m.config} share {label} {getattr(m, what)}: each member needs its own"
+                                  + (" (each collects its demonstrations there)" if label == "demos" else ""))  # fmt: skip
             seen[where] = m.config
     return members
 

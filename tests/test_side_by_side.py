@@ -128,3 +128,14 @@ def test_progress_reads_the_last_whole_row_of_this_runs_log(tmp_path):
     assert member.progress(since=0) == 39
     os.utime(log, (1_000, 1_000))
     assert member.progress(since=2_000) == 0  # older than this run: an earlier run's log
+
+
+def test_meta_bc_members_that_would_collect_into_one_demonstrations_folder_are_refused():
+    """Side by side, two meta-bc runs missing the same demonstration files would write them at once;
+    RL² (meta) only reads its folder, so its members may share one."""
+    root = Path(__file__).resolve().parent.parent / "configs" / "meta"
+    with pytest.raises(ConfigError, match="share demos runs/meta_demos_seed1"):
+        plan([root / "bc_dagger_l1_hot36.yaml", root / "bc_dagger_l1_ens1.yaml"])  # seed 1's two arms, one folder
+    assert plan([root / "bc_dagger_l1_whole_rep4.yaml", root / "bc_dagger_l1_whole_rep5.yaml"])[0].collects_into == Path("runs/meta_demos_seed4")
+    rl2 = plan([root / "rl2_whole_rep4.yaml", root / "rl2_whole_rep5.yaml"])
+    assert all(m.collects_into is None for m in rl2)
