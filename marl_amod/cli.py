@@ -457,9 +457,7 @@ def train(
     last_eval: dict[str, float] = {}
     try:
         with progress_bar() as bar:
-            # what the run trains on (a meta run: its cities, not the scenario key it leaves at its default) and up to where
-            where = f"{len(args.cities)} training cities" if algo in ("meta", "meta-bc") else args.scenario
-            last = getattr(args, "stop_after", None) or getattr(args, "updates", args.episodes)
+            where, last = args.trained_on(), args.run_length()
             task = bar.add_task(f"{algo} {args.mode} on {where}", total=last)
 
             def progress(ep: int, total: int, stats: dict) -> None:
@@ -718,11 +716,11 @@ def train_ensemble(
     data_dir: DataDir = None,
 ) -> None:
     """Train several configs side by side, one process each, then write their ensemble: the tables' meta-policy in one command."""
-    from marl_amod.ensemble import write_ensemble
+    from marl_amod.ensemble import is_ensemble, write_ensemble
     from marl_amod.side_by_side import plan, train_side_by_side
 
     _use_data_dir(data_dir)
-    if out.suffix not in (".yaml", ".yml"):
+    if not is_ensemble(out):  # write_ensemble would refuse it too, but only after the training
         raise ConfigError(f"--out {out}: the ensemble file is named .yaml")
     check_destination(out, what="--out")
     members = plan([str(c) for c in configs])

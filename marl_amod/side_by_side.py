@@ -22,7 +22,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from marl_amod.errors import ConfigError
@@ -40,8 +40,8 @@ class Member:
     policy_out: Path
     total: int
     """the updates (or episodes) the run is set to reach: what its progress counts to"""
-    collects_into: Path | None = None
-    """a folder the run writes demonstrations into when they are missing (meta-bc's ``demos``)"""
+    writes: dict[str, Path] = field(default_factory=dict, compare=False)  # out of the hash: members key dicts
+    """every path the run writes to, by its config key (``RunArgs.outputs``)"""
 
     @property
     def state(self) -> Path:
@@ -96,8 +96,8 @@ class Outcome:
 
 def plan(configs: Sequence[str | Path]) -> list[Member]:
     """The members, every config validated before any run starts: each must write a policy
-    (``policy_out``), and no two may share a run folder, a policy file or a folder they collect
-    demonstrations into (one run would overwrite the other's state, log, policy or files)."""
+    (``policy_out``), and no two may share a path they write to (``RunArgs.outputs``: the run
+    folder, the policy file, meta-bc's demonstrations folder), or one run would overwrite the other's."""
     from marl_amod.algos.registry import load_train_config
     from marl_amod.files import check_destination
 
@@ -109,19 +109,13 @@ def plan(configs: Sequence[str | Path]) -> list[Member]:
         if not args.policy_out:
             raise ConfigError(f"{config}: policy_out is empty, so the run would write no policy to put in the ensemble")
         check_destination(args.policy_out, what=f"{config}: policy_out")  # now, not when that member's run ends
-        total = getattr(args, "stop_after", None) or getattr(args, "updates", None) or args.episodes
-        collects = Path(args.demos) if algo == "meta-bc" else None  # meta (RL²) only reads its demos
-        members.append(Member(config, algo, Path(args.run_dir), Path(args.policy_out), int(total), collects))
-    for what in ("run_dir", "policy_out", "collects_into"):  # side by side, two runs writing one place would clobber it
-        seen: dict[Path, Path] = {}
-        for m in members:
-            if getattr(m, what) is None:
-                continue
-            where = getattr(m, what).resolve()
-            if where in seen:
-                label = "demos" if what == "collects_into" else what
-                raise ConfigError(f"{seen[where]} and {m.config} share {label} {getattr(m, what)}: each member needs its own"
-                                  + (" (each collects its demonstrations there)" if label == "demos" else ""))  # fmt: skip
+        writes = {key: Path(path) for key, path in args.outputs().items()}
+        members.append(Member(config, algo, Path(args.run_dir), Path(args.policy_out), args.run_length(), writes))
+    seen: dict[Path, Path] = {}  # a path written to -> the config of the member writing it
+    for m in members:
+        for key, path in m.writes.items():
+            if (where := path.resolve()) in seen:
+                raise ConfigError(f"{seen[where]} and {m.config} share {key} {path}: each member needs its own")
             seen[where] = m.config
     return members
 

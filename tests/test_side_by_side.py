@@ -136,6 +136,6 @@ def test_meta_bc_members_that_would_collect_into_one_demonstrations_folder_are_r
     root = Path(__file__).resolve().parent.parent / "configs" / "meta"
     with pytest.raises(ConfigError, match="share demos runs/meta_demos_seed1"):
         plan([root / "bc_dagger_l1_hot36.yaml", root / "bc_dagger_l1_ens1.yaml"])  # seed 1's two arms, one folder
-    assert plan([root / "bc_dagger_l1_whole_rep4.yaml", root / "bc_dagger_l1_whole_rep5.yaml"])[0].collects_into == Path("runs/meta_demos_seed4")
+    assert plan([root / "bc_dagger_l1_whole_rep4.yaml", root / "bc_dagger_l1_whole_rep5.yaml"])[0].writes["demos"] == Path("runs/meta_demos_seed4")
     rl2 = plan([root / "rl2_whole_rep4.yaml", root / "rl2_whole_rep5.yaml"])
-    assert all(m.collects_into is None for m in rl2)
+    assert all("demos" not in m.writes for m in rl2)

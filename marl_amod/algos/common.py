@@ -121,6 +121,19 @@ class RunArgs(CommonArgs):
                              "stay mean 0, std 1 (set init_actor to a standardised offline policy, or standardise_inputs: false)")  # fmt: skip
         return self
 
+    def run_length(self) -> int:
+        """The updates (offline and imitation runs) or episodes (online ones) the run is set to reach:
+        what its progress bar counts to."""
+        return getattr(self, "updates", self.episodes)
+
+    def trained_on(self) -> str:
+        """Where the run learns, as its progress bar names it."""
+        return self.scenario
+
+    def outputs(self) -> dict[str, str]:
+        """The paths the run writes to, by key (two runs side by side must not share one)."""
+        return {"run_dir": self.run_dir, "policy_out": self.policy_out}
+
     def ignored_keys(self) -> dict[str, str]:
         if self.mode == "centralised":
             return {"central_critic": "only decentralised runs choose their critic"}

@@ -620,6 +620,9 @@ class Args(C.RunArgs):
                              "vehicle short apart (set imitation: l1, or shortfall_weight: 0)")  # fmt: skip
         return self
 
+    def trained_on(self) -> str:
+        return f"{len(self.cities)} training cities"  # the scenario is only where its card is evaluated
+
     def ignored_keys(self) -> dict[str, str]:
         return {"actor": "meta-RL always uses the recurrent GNN", "mode": "meta-RL is centralised",
                 "central_critic": "meta-RL is centralised", "critic_time": "the recurrent critic reads t / horizon already",

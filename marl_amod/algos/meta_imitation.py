@@ -547,6 +547,12 @@ class Args(meta.Args):
     faster at hidden 64 x 16 trials per city, 1.4-1.8x at 4 trials (``benchmarks/meta_update.py``);
     False: one city after another, as fast at hidden 128 x 16 trials (0.97x padded)"""
 
+    def run_length(self) -> int:
+        return min(self.updates, self.stop_after or self.updates)
+
+    def outputs(self) -> dict[str, str]:
+        return super().outputs() | {"demos": self.demos}  # missing demonstrations are collected into it
+
     @model_validator(mode="after")
     def _consistent(self) -> Args:
         if twice := sorted({c for c in self.cities if self.cities.count(c) > 1}):  # an update draws from the distinct tasks
@@ -757,7 +763,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         return C.state_path(args), step
 
     dagger_wall = sum(dagger_round(args, model, k, data, cities) for k in range(1, started_rounds(args, step) + 1))  # resumed: read back
-    last = min(args.updates, args.stop_after or args.updates)
+    last = args.run_length()
     amp = C.autocast(args.precision)
     with C.interruptible(save):
         while step < last:

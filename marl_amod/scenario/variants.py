@@ -77,16 +77,13 @@ def hotspot(city: City, region: int, multiplier: float, start: int | None = None
         raise ConfigError(f"hotspot of {city.name}: region {region} (0..{city.n_regions - 1}) and multiplier {multiplier} (> 0)")
     if (start is None) != (end is None):
         raise ConfigError(f"hotspot of {city.name}: a window needs both start and end, got start {start}, end {end}")
-    if start is None:
-        factor = np.ones(city.n_regions)
-        factor[region] = multiplier
-        return _reweighted(city, factor, hotspot_name(city.name, region, multiplier), {"hotspot": {"region": region, "multiplier": multiplier}})
-    if not 0 <= start < end or start >= city.horizon:
+    if start is not None and (not 0 <= start < end or start >= city.horizon):
         raise ConfigError(f"hotspot of {city.name}: window [{start}, {end}) must satisfy 0 <= start < end and start < the horizon {city.horizon}")
     factor = np.ones((city.n_steps, city.n_regions))
-    factor[start:end, region] = multiplier
-    meta = {"hotspot": {"region": region, "multiplier": multiplier, "start": start, "end": end}}
-    return _reweighted(city, factor, hotspot_name(city.name, region, multiplier, start, end), meta)
+    factor[slice(start, end), region] = multiplier  # all day without a window
+    window = {} if start is None else {"start": start, "end": end}
+    return _reweighted(city, factor, hotspot_name(city.name, region, multiplier, start, end),
+                       {"hotspot": {"region": region, "multiplier": multiplier, **window}})  # fmt: skip
 
 
 def skew(city: City, gamma: float) -> City:
