@@ -22,7 +22,7 @@ from rich.table import Table
 
 from marl_amod.data import ENV_VAR
 from marl_amod.errors import ConfigError, DataError, MarlAmodError
-from marl_amod.files import check_destination, save_or_fallback, write_json
+from marl_amod.files import atomic_write, check_destination, save_or_fallback, write_json
 from marl_amod.policies import policy_names
 
 if TYPE_CHECKING:
@@ -172,6 +172,40 @@ def scenarios(data_dir: DataDir = None) -> None:
         console.print(f"[yellow]{need}[/yellow]: {escape(hint)}")
     if broken:
         console.print(f"[red]{broken} scenario file(s) could not be read[/red]; the others are listed.")
+
+
+@app.command("policies")
+def policies_(
+    folder: Annotated[Path, typer.Argument(help="the policy folder")] = Path("policies"),
+    scenario: Annotated[list[str] | None, typer.Option(help="only policies trained in this scenario (repeat for more)", show_default=False)] = None,
+    algorithm: Annotated[list[str] | None, typer.Option(help="only this algorithm, e.g. a2c, sac, iql, meta-bc (repeat for more)", show_default=False)] = None,
+    seeds: Annotated[bool, typer.Option("--seeds", help="also the training-seed members in FOLDER/seeds/")] = False,
+    results: Annotated[Path, typer.Option(help="results tables whose equal-distribution and MPC-Oracle rows normalise the scores")] = Path("docs/results"),
+    markdown: Annotated[Path | None, typer.Option(help="write the folder's whole index here (e.g. policies/README.md) instead", show_default=False)] = None,
+) -> None:
+    """List the trained policies of a folder from their cards: where each trained, how, and what it scored."""
+    from marl_amod import policy_catalogue as pc
+
+    if markdown is not None:
+        atomic_write(check_destination(markdown, what="policy index"), pc.markdown(folder, results) + "\n")
+        console.print(f"wrote {markdown}")
+        return
+    entries = pc.read_entries(folder, seeds=seeds)
+    known = {e.card["algorithm"] for e in entries}
+    for name in algorithm or []:
+        if name not in known:
+            raise ConfigError(f"no policy in {folder} was trained with {name!r}; there are: {', '.join(sorted(known))}")
+    shown = [e for e in entries if (not scenario or e.trained_in in scenario or e.card["scenario"] in scenario)
+             and (not algorithm or e.card["algorithm"] in algorithm)]  # fmt: skip
+    table = Table(title=f"policies in {folder} ({len(shown)} of {len(entries)})")
+    for col in pc.COLUMNS:
+        table.add_column(col, justify="right" if col == "score" else "left", no_wrap=col == "policy", overflow="fold")
+    anchors = pc.read_anchors(results)
+    for e in shown:
+        table.add_row(*(escape(v.strip("`")) for v in pc.cells(e, anchors).values()))
+    console.print(table)
+    if not anchors:
+        console.print(f"[yellow]no scores[/yellow]: {results} holds no results table with equal distribution and MPC-Oracle")
 
 
 NO_WAIT_NOTE = (
@@ -480,6 +514,8 @@ def train(
             soft_wrap=True,  # one line, however long the paths
         )
         raise typer.Exit(130) from None
+    from marl_amod.policy_catalogue import trained_on
+
     card = summary["card"]
     console.print(
         f"{card['scenario']}: profit {card['profit_mean']:,.1f} ± {card['profit_std']:,.1f} over {card['eval_episodes']} episodes "
@@ -487,23 +523,6 @@ def train(
     )
     if "policy" in summary:
         console.print(f"wrote {summary['policy']} (+ .json, .md); logs in {args.run_dir}")
-
-
-def trained_on(card: dict[str, Any]) -> str:
-    """What a policy card says it was trained on and how long, for the line ``train`` ends with: a
-    meta-imitation counts every demonstration (the cities' and each variant kind's) and its DAgger
-    episodes, and names the demonstrations' collection time, which its training time leaves out."""
-    minutes = f"in {card['training_wall_s'] / 60:.1f} min"
-    if "dataset" in card:
-        return f"{card['updates']} updates on {card['dataset']['transitions']} logged transitions {minutes}"
-    if "demonstrations" in card:
-        from marl_amod.transfer import meta_used
-
-        used, demos = meta_used([card]), card["demonstrations"]
-        dagger = f" and {used['dagger_episodes']:,} DAgger episodes" if used.get("dagger_episodes") else ""
-        collected = f" (+ {demos['collection_wall_s'] / 60:.1f} min collecting the demonstrations)" if demos.get("collection_wall_s") else ""
-        return f"{card['updates']:,} updates on {used.get('demonstrations', 0):,} MPC-Forecast demonstration episodes{dagger} {minutes}{collected}"
-    return f"{card['episodes_trained']} episodes {minutes}"
 
 
 @app.command()

@@ -284,7 +284,7 @@ def test_wait_column_is_explained_only_when_requests_cannot_wait(tmp_path):
 def test_the_train_summary_counts_every_demonstration_and_dagger_episode():
     """A meta-imitation's closing line counts the variants' demonstrations and the DAgger episodes
     beside the cities' (its card holds them apart), and names the collection time its wall leaves out."""
-    from marl_amod.cli import trained_on
+    from marl_amod.policy_catalogue import trained_on
 
     demos = {"policy": "mpc-forecast", "cities": [f"c{i}" for i in range(10)], "episodes_per_city": 64, "collection_wall_s": 750.0,
              "hotspot_variants": [f"c{i}~hot1x2" for i in range(10)], "episodes_per_variant": 32}  # fmt: skip
@@ -292,7 +292,7 @@ def test_the_train_summary_counts_every_demonstration_and_dagger_episode():
             "dagger": {"rounds": 5, "episodes_per_city": 4, "shock_prob": 0.3, "collection_wall_s": 400.0}}  # fmt: skip
     assert trained_on(card) == ("2,664 updates on 960 MPC-Forecast demonstration episodes and 400 DAgger episodes in 55.0 min "
                                 "(+ 12.5 min collecting the demonstrations)")  # fmt: skip
-    assert trained_on({"updates": 10, "training_wall_s": 60.0, "dataset": {"transitions": 4000}}) == "10 updates on 4000 logged transitions in 1.0 min"
+    assert trained_on({"updates": 10, "training_wall_s": 60.0, "dataset": {"transitions": 4000}}) == "10 updates on 4,000 logged transitions in 1.0 min"
     assert trained_on({"episodes_trained": 512, "training_wall_s": 90.0}) == "512 episodes in 1.5 min"
 
 
