@@ -191,10 +191,11 @@ def policies_(
         console.print(f"wrote {markdown}")
         return
     entries = pc.read_entries(folder, seeds=seeds)
-    known = {e.card["algorithm"] for e in entries}
-    for name in algorithm or []:
-        if name not in known:
-            raise ConfigError(f"no policy in {folder} was trained with {name!r}; there are: {', '.join(sorted(known))}")
+    for asked, what, known in ((algorithm, "trained with", {e.card["algorithm"] for e in entries}),
+                               (scenario, "trained in", {e.trained_in for e in entries} | {e.card["scenario"] for e in entries})):
+        for name in asked or []:
+            if name not in known:
+                raise ConfigError(f"no policy in {folder} was {what} {name!r}; there are: {', '.join(sorted(known))}")
     shown = [e for e in entries if (not scenario or e.trained_in in scenario or e.card["scenario"] in scenario)
              and (not algorithm or e.card["algorithm"] in algorithm)]  # fmt: skip
     table = Table(title=f"policies in {folder} ({len(shown)} of {len(entries)})")

@@ -81,7 +81,9 @@ def test_the_command_filters_and_names_what_it_could_list(tmp_path, tiny_city):
     assert out.exit_code == 0, out.output
     assert "sac_one" in out.output and "a2c_one" not in out.output and "1 of 2" in out.output and "no scores" in out.output
     out = runner.invoke(app, ["policies", str(folder), "--algorithm", "ppo"])
-    assert isinstance(out.exception, ConfigError) and "there are: a2c, sac" in str(out.exception)
+    assert isinstance(out.exception, ConfigError) and "trained with 'ppo'; there are: a2c, sac" in str(out.exception)
+    out = runner.invoke(app, ["policies", str(folder), "--scenario", "atlantis"])
+    assert isinstance(out.exception, ConfigError) and f"trained in 'atlantis'; there are: {tiny_city.name}" in str(out.exception)
     index = tmp_path / "index.md"
     assert runner.invoke(app, ["policies", str(folder), "--markdown", str(index)]).exit_code == 0
     assert "`sac_one`" in index.read_text()
