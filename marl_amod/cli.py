@@ -177,7 +177,7 @@ def scenarios(data_dir: DataDir = None) -> None:
 @app.command("policies")
 def policies_(
     folder: Annotated[Path, typer.Argument(help="the policy folder")] = Path("policies"),
-    scenario: Annotated[list[str] | None, typer.Option(help="only policies trained in this scenario (repeat for more)", show_default=False)] = None,
+    scenario: Annotated[list[str] | None, typer.Option(help="only policies trained in this scenario, or scored on it (a meta-policy: its card's city; repeat for more)", show_default=False)] = None,
     algorithm: Annotated[list[str] | None, typer.Option(help="only this algorithm, e.g. a2c, sac, iql, meta-bc (repeat for more)", show_default=False)] = None,
     seeds: Annotated[bool, typer.Option("--seeds", help="also the training-seed members in FOLDER/seeds/")] = False,
     results: Annotated[Path, typer.Option(help="results tables whose equal-distribution and MPC-Oracle rows normalise the scores")] = Path("docs/results"),
