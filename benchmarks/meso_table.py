@@ -19,7 +19,8 @@ from typing import Any
 
 import numpy as np
 
-FLOOR, CEILING = "equal-distribution", "mpc-oracle"
+from marl_amod.metrics import SCORE_ANCHORS
+
 ORDER = ("no-rebalancing", "plus-one", "equal-distribution")  # then trained policies, then the MPCs
 
 
@@ -51,7 +52,7 @@ def cell(metrics: dict[str, Any], key: str, digits: int = 0, percent: bool = Fal
 
 def markdown(rows: list[dict[str, Any]]) -> str:
     by_name = {r["policy"]: r for r in rows}
-    floor, ceiling = by_name.get(FLOOR), by_name.get(CEILING)
+    floor, ceiling = (by_name.get(name) for name in SCORE_ANCHORS)
     head = (
         "| policy | episodes | profit | vs ED, paired (wins) | % of MPC-Oracle | rebalancing cost | wait (min) "
         "| utilisation | wait Gini | service-rate Gini |"

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from marl_amod.evaluation import evaluate
+from marl_amod.metrics import SCORE_ANCHORS, normalised_score
 from marl_amod.scenario import load_city
 
 SCENARIOS = ["san_francisco", "nyc_brooklyn", "shenzhen_downtown_west", "nyc_brooklyn_event"]
@@ -54,7 +55,7 @@ def table(rows: dict, noises: list[float], episodes: int, seed: int) -> str:
         cells = []
         for s in noises:
             p = r["mpc-forecast"][f"{s:g}"]
-            score = 100 * (p - r["equal-distribution"]) / (r["mpc-oracle"] - r["equal-distribution"])
+            score = normalised_score(p, *(r[name] for name in SCORE_ANCHORS))
             cells.append(f"{100 * (1 - p / r['mpc-oracle']):.1f}% ({score:.0f})")
         forecast, oracle = PAPER_GAP[scenario]
         lines.append(f"| {scenario} | " + " | ".join(cells) + f" | {100 * (1 - forecast / oracle):.1f}% |")
@@ -75,7 +76,7 @@ def main() -> None:
 
     rows = {}
     for scenario in args.scenarios:
-        refs = {p: mean_profit(p, scenario, args.episodes, args.seed) for p in ("equal-distribution", "mpc-oracle")}
+        refs = {p: mean_profit(p, scenario, args.episodes, args.seed) for p in SCORE_ANCHORS}
         noisy = {f"{s:g}": mean_profit("mpc-forecast", scenario, args.episodes, args.seed, noise=s) for s in args.noises}
         rows[scenario] = {**refs, "mpc-forecast": noisy}
         print(scenario, {k: round(v) for k, v in refs.items()}, {k: round(v) for k, v in noisy.items()}, flush=True)

@@ -26,7 +26,7 @@ import numpy as np
 
 from marl_amod.datasets import normalised_score
 from marl_amod.errors import ConfigError
-from marl_amod.metrics import score_points
+from marl_amod.metrics import SCORE_ANCHORS, score_points
 
 ROOT = Path(__file__).resolve().parent.parent
 DATASETS = ["inf", "dtv", "prop", "mpc_forecast", "prop_noise"]
@@ -155,7 +155,7 @@ def groups(table: dict) -> dict[str, list[tuple[str, float, float]]]:
     """The first table's cells for :func:`marl_amod.plots.score_bars`: per dataset, the behaviour
     policy and BC / IQL / CQL in normalised score with the episode std in score points; SAC
     online, which reads no dataset, is left out."""
-    ed, oracle = (table["reference_scores"][k]["mean"] for k in ("equal-distribution", "mpc-oracle"))
+    ed, oracle = (table["reference_scores"][name]["mean"] for name in SCORE_ANCHORS)
     return {
         r["dataset"].upper().replace("_", "-"): [
             (name, r[key]["normalised"], score_points(r[key]["std"], ed, oracle))

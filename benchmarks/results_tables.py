@@ -25,12 +25,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from marl_amod.metrics import normalised_score, score_points
+from marl_amod.metrics import normalised_score, score_anchors, score_points
 
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "docs" / "results"
 DOCUMENTS = (ROOT / "README.md", ROOT / "docs" / "results.md")
-FLOOR, CEILING = "equal-distribution", "mpc-oracle"
 BLOCK = re.compile(r"(<!-- results:(full|summary) (\w+) -->\n)(.*?)(<!-- /results -->)", re.DOTALL)
 
 
@@ -39,12 +38,16 @@ def load(folder: Path = RESULTS) -> dict[str, dict[str, Any]]:
     return {p.stem: json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))}
 
 
+def anchors(table: dict[str, Any]) -> tuple[float, float] | None:
+    """The table's (equal distribution, MPC-Oracle) mean profits; None without both, or where they coincide."""
+    pair = score_anchors({r["policy"]: r["metrics"]["profit"]["mean"] for r in table["results"]})
+    return pair if pair is not None and pair[0] != pair[1] else None
+
+
 def score(profit: float, table: dict[str, Any]) -> float | None:
     """Normalised score: equal distribution 0, MPC-Oracle 100; None without both anchors."""
-    anchors = {r["policy"]: r["metrics"]["profit"]["mean"] for r in table["results"]}
-    if FLOOR not in anchors or CEILING not in anchors or anchors[CEILING] == anchors[FLOOR]:
-        return None
-    return normalised_score(profit, anchors[FLOOR], anchors[CEILING])
+    pair = anchors(table)
+    return None if pair is None else normalised_score(profit, *pair)
 
 
 def _mean_std(metric: dict[str, float] | None, digits: int = 0, percent: bool = False) -> str:
@@ -101,10 +104,10 @@ def figure(name: str, table: dict[str, Any], folder: Path = RESULTS) -> Path | N
     anchors). Written with the tables, not checked by ``--check`` (image bytes vary with matplotlib)."""
     from marl_amod.plots import score_ranking
 
-    if score(0.0, table) is None:
+    pair = anchors(table)
+    if pair is None:
         return None
-    anchors = {r["policy"]: r["metrics"]["profit"]["mean"] for r in table["results"]}
-    rows = [(r["policy"], score(r["metrics"]["profit"]["mean"], table), score_points(r["metrics"]["profit"].get("std", 0.0), anchors[FLOOR], anchors[CEILING]),
+    rows = [(r["policy"], score(r["metrics"]["profit"]["mean"], table), score_points(r["metrics"]["profit"].get("std", 0.0), *pair),
              r.get("kind") or "baseline") for r in table["results"]]  # fmt: skip
     episodes = f", {table['episodes']} episodes" if table.get("episodes") else ""
     return score_ranking(rows, folder / f"{name}.png", f"{table.get('title', name)}{episodes}")

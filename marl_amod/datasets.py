@@ -76,7 +76,7 @@ ARRAY_KEYS = (
     "terminations", "truncations", "episode_ids", "step_ids",
 )  # fmt: skip
 DTYPES = {"terminations": np.bool_, "truncations": np.bool_, "episode_ids": np.int64, "step_ids": np.int64}
-REFERENCES = ("equal-distribution", "mpc-oracle")  # normalised score 0 and 100
+REFERENCES = metrics.SCORE_ANCHORS  # the reference scores a card holds: normalised score 0 and 100
 
 
 @dataclass
@@ -518,7 +518,7 @@ def reference_scores(city: City, episodes: int, seed: int, cache: dict | None = 
 def normalised_score(profit: float, references: dict[str, dict[str, float]]) -> float:
     """D4RL-style: 0 = equal distribution, 100 = MPC-Oracle (same evaluation seeds): :func:`marl_amod.metrics.normalised_score`
     with a dataset card's ``reference_scores``."""
-    return metrics.normalised_score(profit, references["equal-distribution"]["mean"], references["mpc-oracle"]["mean"])
+    return metrics.normalised_score(profit, *(references[name]["mean"] for name in REFERENCES))
 
 
 def write_card(

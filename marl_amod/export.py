@@ -26,6 +26,7 @@ import numpy as np
 from marl_amod.datasets import OfflineDataset, action_share
 from marl_amod.env.observations import split_local, state_from_features
 from marl_amod.errors import ConfigError
+from marl_amod.metrics import SCORE_ANCHORS
 
 
 def centralised_arrays(data: OfflineDataset) -> dict[str, np.ndarray]:
@@ -98,7 +99,7 @@ def to_minari(data: OfflineDataset, dataset_id: str, *, card: dict[str, Any] | N
     refs = (card or {}).get("reference_scores", {})
     if refs:  # Minari stores ref_min/max_score only beside an eval env (we have no gymnasium id): written apart
         dataset.storage.update_metadata(
-            {"ref_min_score": refs["equal-distribution"]["mean"], "ref_max_score": refs["mpc-oracle"]["mean"]}
+            dict(zip(("ref_min_score", "ref_max_score"), (refs[name]["mean"] for name in SCORE_ANCHORS), strict=True))
         )
     return dataset
 

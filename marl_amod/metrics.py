@@ -10,6 +10,7 @@ everything.
 from __future__ import annotations
 
 import functools
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -35,6 +36,16 @@ DISPLAY_NAMES: dict[str, str] = {
     "served_demand": "served", "rebalancing_cost": "reb. cost", "wait_time": "wait min",
     "utilization": "util.", "wait_time_gini": "wait Gini", "service_rate_gini": "service Gini",
 }
+
+
+SCORE_ANCHORS = ("equal-distribution", "mpc-oracle")  # the policies a normalised score puts at 0 and 100
+
+
+def score_anchors(profits: Mapping[str, float]) -> tuple[float, float] | None:
+    """(equal distribution's, MPC-Oracle's) profit from profits by policy name (on one set of episodes),
+    or None where either is missing: what :func:`normalised_score` scales by."""
+    floor, ceiling = SCORE_ANCHORS
+    return (profits[floor], profits[ceiling]) if floor in profits and ceiling in profits else None
 
 
 def normalised_score(profit: float, ed: float, oracle: float) -> float:

@@ -21,9 +21,8 @@ from typing import Any
 from marl_amod.checkpoints import read_card
 from marl_amod.ensemble import ENSEMBLE_SUFFIXES, read_spec
 from marl_amod.errors import ConfigError
-from marl_amod.metrics import normalised_score
+from marl_amod.metrics import normalised_score, score_anchors
 
-FLOOR, CEILING = "equal-distribution", "mpc-oracle"
 SEEDS = "seeds"  # the sub-folder of training-seed members
 
 
@@ -99,8 +98,9 @@ def read_anchors(results: str | Path) -> dict[tuple[str, int, int], tuple[float,
         table = json.loads(path.read_text())
         rows = table.get("results", []) if isinstance(table, dict) else []
         profit = {r["policy"]: r["metrics"]["profit"]["mean"] for r in rows if "metrics" in r}
-        if FLOOR in profit and CEILING in profit and table.get("episodes") is not None:
-            anchors.setdefault((table["scenario"], int(table["episodes"]), int(table["seed"])), (profit[FLOOR], profit[CEILING]))
+        pair = score_anchors(profit)
+        if pair is not None and table.get("episodes") is not None:
+            anchors.setdefault((table["scenario"], int(table["episodes"]), int(table["seed"])), pair)
     return anchors
 
 

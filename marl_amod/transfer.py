@@ -25,7 +25,7 @@ from typing import Any, Literal
 
 from marl_amod.errors import ConfigError
 from marl_amod.evaluation import evaluate
-from marl_amod.metrics import normalised_score, score_points
+from marl_amod.metrics import normalised_score, score_anchors, score_points
 from marl_amod.scenario import load_city
 
 Strategy = Literal["zero-shot", "fine-tune", "meta-rl", "single-city", "mpc-forecast", "mpc-oracle"]
@@ -209,12 +209,17 @@ def run_study(study: str, *, episodes: int = 10, seed: int = 0, meta_policy: str
                     progress(scenario, strategy, rows[strategy]["metrics"]["profit"]["mean"])
             elif strategy in old:
                 rows[strategy] = old[strategy]  # a row not asked for: kept from the previous run
-        if "mpc-oracle" in rows:
-            ed, oracle = (rows[k]["metrics"]["profit"]["mean"] for k in ("equal-distribution", "mpc-oracle"))
+        pair = score_anchors(mean_profits(rows))
+        if pair is not None:
             for rec in rows.values():
-                rec["normalised_score"] = normalised_score(rec["metrics"]["profit"]["mean"], ed, oracle)
+                rec["normalised_score"] = normalised_score(rec["metrics"]["profit"]["mean"], *pair)
         out["targets"][scenario] = rows
     return out
+
+
+def mean_profits(rows: dict[str, dict[str, Any]]) -> dict[str, float]:
+    """A target's mean profit by strategy (and equal distribution), from its evaluation records."""
+    return {name: rec["metrics"]["profit"]["mean"] for name, rec in rows.items()}
 
 
 def study_scores(payload: dict[str, Any]) -> dict[str, list[tuple[str, float, float]]]:
@@ -223,10 +228,10 @@ def study_scores(payload: dict[str, Any]) -> dict[str, list[tuple[str, float, fl
     a target without both anchors (a partial run: ``--strategy`` on a fresh folder) has no scores."""
     groups = {}
     for scenario, rows in payload["targets"].items():
-        if not {"equal-distribution", "mpc-oracle"} <= set(rows):
+        pair = score_anchors(mean_profits(rows))
+        if pair is None:
             continue
-        ed, oracle = (rows[k]["metrics"]["profit"]["mean"] for k in ("equal-distribution", "mpc-oracle"))
-        groups[scenario] = [(name, rec["normalised_score"], score_points(rec["metrics"]["profit"]["std"], ed, oracle))
+        groups[scenario] = [(name, rec["normalised_score"], score_points(rec["metrics"]["profit"]["std"], *pair))
                             for name, rec in rows.items() if name != "equal-distribution"]  # fmt: skip
     return groups
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from marl_amod.evaluation import evaluate
-from marl_amod.metrics import METRICS, episode_metrics, gini, metric_arrays, region_metrics
+from marl_amod.metrics import METRICS, episode_metrics, gini, metric_arrays, normalised_score, region_metrics, score_anchors
 from marl_amod.sim.macro import EpisodeTotals
 
 
@@ -86,3 +86,11 @@ def test_batch_metrics_equal_each_episode_alone_to_the_last_bit():
         alone = EpisodeTotals(**{f: getattr(totals, f)[k].copy() for f in EpisodeTotals.__dataclass_fields__})
         for key, value in episode_metrics(alone, fleet=30, horizon=10).items():
             assert batch[key][k] == value, (k, key)
+
+
+def test_the_normalised_score_reads_equal_distribution_and_mpc_oracle_by_name():
+    profits = {"mpc-oracle": 200.0, "no-rebalancing": 50.0, "equal-distribution": 100.0}
+    assert score_anchors(profits) == (100.0, 200.0)  # (0, 100) whatever the order the rows came in
+    assert normalised_score(250.0, *score_anchors(profits)) == 150.0
+    assert score_anchors({"equal-distribution": 100.0, "mpc-forecast": 190.0}) is None  # no oracle: no score
+    assert np.isnan(normalised_score(5.0, 100.0, 100.0))
