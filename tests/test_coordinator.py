@@ -137,7 +137,10 @@ def test_coordinator_backends_agree_on_a_city_step(small_city):
 def test_revenue_objective_ignores_trip_cost(small_city):
     c = Coordinator(small_city, objective="revenue")
     assert np.array_equal(c.margin(0), small_city.price[0])
-    assert np.all(Coordinator(small_city).margin(0) < small_city.price[0] + 1e-12)
+    profit = Coordinator(small_city).margin(0)  # the fare minus beta x step length x trip time, by hand
+    np.testing.assert_allclose(profit, small_city.price[0] - small_city.beta * small_city.tstep * small_city.trip_time[0])
+    off_diagonal = ~np.eye(small_city.n_regions, dtype=bool)
+    assert np.all(profit[off_diagonal] < small_city.price[0][off_diagonal])  # every trip off the diagonal costs something
 
 
 def test_rebalancing_with_a_paid_stay_still_solves_when_nobody_is_short() -> None:

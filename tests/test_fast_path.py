@@ -216,16 +216,17 @@ def test_local_layout_equals_block_copies_with_padding_single_and_batched(tiny_c
         layout(feats[0, :, :12], ctx)
 
 
-@pytest.mark.parametrize("lookahead", [2, 6, 12])
+@pytest.mark.parametrize("lookahead", [2, 6, 12, 24])
 def test_state_features_equal_the_definition_including_past_the_arrivals_buffer(lookahead) -> None:
     city = grid_city(2, 3, seed=3, horizon=10, vehicles_per_region=4)
     sim = MacroSim(city)
     sim.reset(np.random.default_rng(1))
     rng = np.random.default_rng(2)
     sim.arrivals[:] = rng.integers(0, 5, size=sim.arrivals.shape)
-    for t in (0, 4, city.horizon - 1, sim.arrivals.shape[0] - 2):  # the last ones reach past the buffer
-        if t >= city.n_steps:
-            continue
+    steps = (0, 4, city.n_steps - 1)
+    if lookahead == 24:  # the look-ahead reaches past the arrivals buffer: the branch that pads with nothing
+        assert city.n_steps - 1 + lookahead >= sim.arrivals.shape[0]
+    for t in steps:
         got = state_features(city, t, sim.idle, sim.arrivals, lookahead)
         assert got.tobytes() == reference_features(city, t, sim.idle, sim.arrivals, lookahead).tobytes(), t
 

@@ -101,7 +101,9 @@ def test_cli_trains_an_offline_config(tmp_path, tiny):
 def test_shipped_offline_configs_validate():
     from marl_amod.algos.registry import load_train_config
 
-    for path in sorted(Path("configs").glob("[bic][cq]*/nyc_brooklyn_*.yaml")):
+    paths = sorted((Path(__file__).resolve().parent.parent / "configs").glob("[bic][cq]*/nyc_brooklyn_*.yaml"))
+    assert len(paths) >= 15, paths  # BC, IQL and CQL on the five datasets at least, wherever pytest runs from
+    for path in paths:
         algo, args = load_train_config(path)
         assert algo in ("bc", "iql", "cql") and args.dataset.startswith("runs/datasets/nyc_brooklyn_"), path
 
