@@ -1,4 +1,4 @@
-"""The ``marl-amod`` command line: scenarios, evaluate (and train, compare, collect as they land)."""
+"""The ``marl-amod`` command line: every subcommand (``marl-amod --help`` lists them), built with typer."""
 
 from __future__ import annotations
 

@@ -6,7 +6,7 @@ in meso the clone of MPC-Forecast wins 8 of 10 paired episodes against ED, but b
 spread). DAgger (Ross, Gordon & Bagnell, 2011) closes that gap by rounds. Round k:
 
 1. roll the current policy (round k-1's; round 1 starts from ``start``) through the env for
-   ``episodes`` episodes on collection seed ``seed + k`` (demand streams disjoint from the base
+   ``episodes`` episodes on collection seed ``seed + k - 1`` (demand streams disjoint from the base
    dataset's and from evaluation's), logging at every state the *expert's* action at that state
    (:func:`marl_amod.datasets.collect` with ``labeller``; the env steps with the learner's);
 2. aggregate: the base dataset (the expert's own episodes) plus rounds 1..k;
