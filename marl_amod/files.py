@@ -44,12 +44,30 @@ def check_destination(path: str | Path, *, what: str = "output") -> Path:
     return path
 
 
+def _umask() -> int:
+    """The process's umask (read by setting it and putting it back: there is no other portable way)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _permissions(path: Path) -> int:
+    """The mode a plain ``open(path, "w")`` would leave: the existing file's, else 0o666 less the umask.
+    Why: ``mkstemp`` creates its file owner-only (0o600), and ``os.replace`` would carry that over."""
+    try:
+        return path.stat().st_mode & 0o7777
+    except OSError:
+        return 0o666 & ~_umask()
+
+
 @contextlib.contextmanager
 def atomic_open(path: str | Path, mode: str = "wb") -> Iterator[IO[Any]]:
-    """A file handle whose content replaces ``path`` only when the ``with`` block succeeds."""
+    """A file handle whose content replaces ``path`` only when the ``with`` block succeeds; the
+    file ends with the permissions a plain write would give it (:func:`_permissions`)."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        os.chmod(tmp, _permissions(path))
         with os.fdopen(fd, mode) as fh:
             yield fh
             fh.flush()

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import os
+import stat
 from pathlib import Path
 
 import pytest
@@ -37,3 +39,19 @@ def test_bad_destinations_are_refused_before_any_work(tmp_path: Path) -> None:
     with pytest.raises(OutputError, match="is a file, not a folder"):
         check_destination(tmp_path / "file" / "out.json")
     assert check_destination(tmp_path / "new" / "deep" / "out.json").parent.is_dir()
+
+
+def test_written_files_get_the_permissions_a_plain_write_gives(tmp_path: Path) -> None:
+    """mkstemp's owner-only temporary file must not make results unreadable to the group: a new file
+    follows the umask, a replaced one keeps its mode."""
+    old = os.umask(0o022)
+    try:
+        fresh = write_json(tmp_path / "fresh.json", {"a": 1})
+        assert stat.S_IMODE(fresh.stat().st_mode) == 0o644
+        kept = tmp_path / "kept.json"
+        kept.write_text("{}")
+        kept.chmod(0o640)
+        atomic_write(kept, b"{}")
+        assert stat.S_IMODE(kept.stat().st_mode) == 0o640
+    finally:
+        os.umask(old)
