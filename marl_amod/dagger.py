@@ -29,6 +29,7 @@ from typing import Any
 
 import torch
 
+from marl_amod.algos.offline import check_fits
 from marl_amod.algos.registry import args_for, run_training
 from marl_amod.checkpoints import write_policy
 from marl_amod.config import read_config
@@ -50,22 +51,33 @@ def dagger(
         raise ConfigError(f"{config}: DAgger retrains behaviour cloning; algo: is {raw.get('algo')!r}")
     if rounds < 1 or episodes < 1:
         raise ConfigError(f"rounds and episodes must be >= 1, got {rounds} and {episodes}")
-    base = dict(raw["args"])
+    base = dict(raw.get("args") or {})
     root = Path(run_root)
+    bc = args_for("bc", {**base, "run_dir": str(root / "bc1"), "policy_out": str(root / "round1.pt")}, where=str(config))  # now, not after round 1
+    if base.get("policy_out") and Path(base["policy_out"]).resolve() == Path(start).resolve():
+        raise ConfigError(f"{config}: policy_out {base['policy_out']} is the --start policy, which the kept round would overwrite; "
+                          "give the DAgger result its own policy_out")  # fmt: skip
+    city = load_city(bc.scenario)
+    expert_data = OfflineDataset.load(bc.dataset)
+    check_fits(expert_data, bc.dataset, city, bc.lookahead, bc.arrivals_now)  # each round's data is collected with these features
+    settings = {"config": str(config), "start": start, "expert": expert, "episodes": episodes, "seed": seed}
     root.mkdir(parents=True, exist_ok=True)
-    city = load_city(base["scenario"])
     say = progress or (lambda _msg: None)
     summary_path = root / "dagger.json"
-    done = json.loads(summary_path.read_text())["rounds"] if summary_path.is_file() else []
-    parts = [OfflineDataset.load(base["dataset"])]
+    saved = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+    if changed := [k for k, v in settings.items() if k in saved and saved[k] != v]:
+        raise ConfigError(f"{run_root} holds DAgger rounds made with other {', '.join(changed)} "
+                          f"({', '.join(f'{k} {saved[k]!r}' for k in changed)}); resume with those or give another --run-root")  # fmt: skip
+    done = saved.get("rounds", [])
+    parts = [expert_data]
     policy = start
     for k in range(1, rounds + 1):
         data_path, policy_path = root / f"round{k}.npz", root / f"round{k}.pt"
         if not data_path.is_file():
             say(f"round {k}: rolling {policy} for {episodes} episodes, labels from {expert}")
-            part = collect(city, make_policy(policy, city), episodes=episodes, seed=seed + k - 1,
-                           lookahead=base.get("lookahead", 6), labeller=make_policy(expert, city),
-                           arrivals_now=bool(base.get("arrivals_now", False)))  # the base data's features  # fmt: skip
+            part = collect(city, make_policy(policy, city), episodes=episodes, seed=seed + k - 1, lookahead=bc.lookahead,
+                           max_wait=int(expert_data.meta.get("max_wait", 0)), labeller=make_policy(expert, city),
+                           arrivals_now=bc.arrivals_now)  # the base data's features  # fmt: skip
             part.save(data_path)
         parts.append(OfflineDataset.load(data_path))
         if not policy_path.is_file() or len(done) < k:
@@ -80,11 +92,10 @@ def dagger(
                 "transitions": card["dataset"]["transitions"], "validation_profit": card["best_validation"],
                 "wall_s": card["training_wall_s"],
             }]  # fmt: skip
-            write_json(summary_path, {"config": str(config), "start": start, "expert": expert, "rounds": done})
+            write_json(summary_path, {**settings, "rounds": done})
         policy = str(policy_path)
     best = max(done[:rounds], key=lambda r: r["validation_profit"])
-    summary = {"config": str(config), "start": start, "expert": expert, "rounds": done[:rounds], "kept": best["round"],
-               "policy_out": base.get("policy_out")}  # fmt: skip
+    summary = {**settings, "rounds": done[:rounds], "kept": best["round"], "policy_out": base.get("policy_out")}
     if summary["policy_out"]:
         ship(best["policy"], summary["policy_out"], summary, f"marl-amod dagger --config {config} --start {start} --expert {expert} "
              f"--rounds {rounds} --episodes {episodes} --seed {seed} --run-root {run_root}")  # fmt: skip

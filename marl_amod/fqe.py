@@ -153,7 +153,7 @@ def policy_actions(path: str | Path, dataset: OfflineDataset, dataset_path: str 
     actor, card = load_actor(path, city)
     args = O.OfflineArgs(scenario=city.name, dataset=str(dataset_path), lookahead=card["lookahead"],
                          arrivals_now=bool(card.get("arrivals_now")), mode=card.get("mode", "centralised"))  # fmt: skip
-    data = O.Data(args, city, loaded=dataset)
+    data = O.Data(args, city, loaded=dataset, reader="policy")
     local, time = args.mode == "decentralised", bool(card.get("time_context"))
     graph = city_graph(city)
     batch = O.Batch(data.tensors)
@@ -169,5 +169,6 @@ def estimate(policy: str | Path | None, dataset_path: str | Path, city: City | s
     policies on it has it), on ``city`` (default: the dataset's scenario by name)."""
     dataset = loaded if loaded is not None else OfflineDataset.load(dataset_path)
     city = city if isinstance(city, City) else load_city(city or dataset.meta["scenario"])
+    O.check_fits(dataset, dataset_path, city)  # the behaviour's estimate reads no policy: the city is checked here
     actions = behaviour_actions(dataset) if policy is None else policy_actions(policy, dataset, dataset_path, city)
     return fit(transitions(dataset, *actions), city_graph(city), settings)

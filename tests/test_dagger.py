@@ -82,6 +82,10 @@ def test_dagger_rounds_aggregate_keep_the_best_and_resume(tmp_path, bc_config):
     again = dagger(config, start=str(clone), expert="prop", rounds=3, episodes=2, run_root=root)
     assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
     assert [r["round"] for r in again["rounds"]] == [1, 2, 3] and again["rounds"][:2] == rounds
+    # rounds made with another expert, episodes or seed are not reused under the new settings' name
+    for changed in ({"expert": "dtv"}, {"episodes": 3}, {"seed": 5}):
+        with pytest.raises(ConfigError, match=f"other {next(iter(changed))}"):
+            dagger(config, **{"start": str(clone), "expert": "prop", "rounds": 3, "episodes": 2, "run_root": root, **changed})
 
 
 def test_dagger_refuses_a_config_that_is_not_bc(tmp_path, bc_config):
@@ -89,6 +93,23 @@ def test_dagger_refuses_a_config_that_is_not_bc(tmp_path, bc_config):
     config.write_text(yaml.safe_dump({"algo": "a2c", "args": {"scenario": "synthetic"}}))
     with pytest.raises(ConfigError, match="behaviour cloning"):
         dagger(config, start=str(bc_config[1]))
+
+
+def test_dagger_checks_its_config_before_collecting(tmp_path, bc_config):
+    """A config DAgger cannot retrain fails before round 1's episodes are collected, naming the file."""
+    config, clone = bc_config
+    args = yaml.safe_load(config.read_text())["args"]
+    bad = {
+        "misspelt": ({**args, "updats": 5}, "updats"),
+        "lookahead": ({**args, "lookahead": 2}, "set lookahead: 6"),
+        "own start": ({**args, "policy_out": str(clone)}, "would overwrite"),
+    }
+    for name, (values, message) in bad.items():
+        path = tmp_path / f"{name.replace(' ', '_')}.yaml"
+        path.write_text(yaml.safe_dump({"algo": "bc", "args": values}))
+        with pytest.raises(ConfigError, match=message):
+            dagger(path, start=str(clone), expert="prop", rounds=1, episodes=1, run_root=tmp_path / name)
+        assert not (tmp_path / name / "round1.npz").exists()
 
 
 def test_cli_runs_dagger(tmp_path, bc_config):

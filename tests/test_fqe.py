@@ -44,6 +44,22 @@ def test_a_policy_file_is_scored_from_the_dataset_deterministically_by_seed(tmp_
     assert start.shape == (4, city.n_regions)
 
 
+def test_a_dataset_of_another_city_or_other_features_is_refused_before_fitting(tmp_path, tiny_prop_dataset):
+    from marl_amod.algos.registry import ALGOS, args_for
+    from marl_amod.errors import ConfigError, DataError
+
+    scenario, path = tiny_prop_dataset
+    with pytest.raises(DataError, match="collected on tiny .9 regions., this run is on synthetic .16"):
+        fqe.estimate(None, path, "synthetic")
+    ALGOS["bc"].train(args_for("bc", {"scenario": scenario, "dataset": path, "updates": 2, "batch_size": 8, "eval_every": 2,
+                                      "eval_episodes": 1, "final_eval_episodes": 1, "hidden": 8, "run_dir": str(tmp_path / "run"),
+                                      "policy_out": str(tmp_path / "bc.pt")}))  # fmt: skip
+    data = OfflineDataset.load(path)
+    other = OfflineDataset(**{**data.__dict__, "meta": {**data.meta, "lookahead": 2}})  # as if collected with --lookahead 2
+    with pytest.raises(ConfigError, match="the policy reads lookahead 6: collect the data with --lookahead 6"):
+        fqe.estimate(tmp_path / "bc.pt", path, scenario, loaded=other)
+
+
 def test_the_fqe_command_prints_the_estimates_and_writes_them(tmp_path, tiny_prop_dataset):
     import json
 

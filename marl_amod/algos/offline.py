@@ -125,21 +125,37 @@ class Batch(dict):
     own, nbrs, mask and their next_ versions (B, N, F), (B, N, K, F), (B, N, K)."""
 
 
+def check_fits(data: OfflineDataset, path: str | Path, city: City, lookahead: int | None = None, arrivals_now: bool | None = None,
+               reader: str = "config") -> None:  # fmt: skip
+    """Refuse, before any work, a dataset that cannot serve: empty, of another city, or with other
+    features than the reader's (``None``: not checked). ``reader`` names what the user would change:
+    ``"config"`` (a training run's keys) or ``"policy"`` (a trained policy reads fixed features:
+    collect the data again)."""
+    meta = data.meta
+    if len(data) == 0:
+        raise DataError(f"{path} holds no transitions")
+    if meta["scenario"] != city.name or meta["n_agents"] != city.n_regions:
+        raise DataError(f"{path} was collected on {meta['scenario']} ({meta['n_agents']} regions), this run is on {city.name} ({city.n_regions})")
+    for key, ours, flag in (("lookahead", lookahead, "--lookahead {}"), ("arrivals_now", arrivals_now, "--arrivals-now")):
+        theirs = meta.get(key) if key == "lookahead" else bool(meta.get(key))  # older datasets lack arrivals_now: off
+        if ours is None or theirs == ours:
+            continue
+        value = str(theirs).lower() if isinstance(theirs, bool) else theirs
+        fix = (f"set {key}: {value} in the config" if reader == "config"
+               else f"the policy reads {key} {ours}: collect the data with {flag.format(ours)}" if ours is not False
+               else f"the policy reads {key} false: collect the data without {flag}")  # fmt: skip
+        raise ConfigError(f"{path} has {key} {value}; {fix}")
+
+
 class Data:
     """The dataset as float tensors (the global view, plus the local one for decentralised runs)."""
 
-    def __init__(self, args: OfflineArgs, city: City, loaded: OfflineDataset | None = None) -> None:
-        """``loaded``: ``args.dataset`` already read (its caller's copy, not read again)."""
+    def __init__(self, args: OfflineArgs, city: City, loaded: OfflineDataset | None = None, reader: str = "config") -> None:
+        """``loaded``: ``args.dataset`` already read (its caller's copy, not read again); ``reader``: as :func:`check_fits`."""
         path = Path(args.dataset)
         data = loaded if loaded is not None else OfflineDataset.load(path)
         self.card = read_card(path) if path.with_suffix(".json").is_file() else {}
-        meta = data.meta
-        if meta["scenario"] != city.name or meta["n_agents"] != city.n_regions:
-            raise DataError(f"{path} was collected on {meta['scenario']} ({meta['n_agents']} regions), this run is on {city.name}")
-        if meta["lookahead"] != args.lookahead:
-            raise ConfigError(f"{path} has lookahead {meta['lookahead']}; set lookahead: {meta['lookahead']} in the config")
-        if bool(meta.get("arrivals_now")) != args.arrivals_now:
-            raise ConfigError(f"{path} has arrivals_now {bool(meta.get('arrivals_now'))}; set arrivals_now: {str(bool(meta.get('arrivals_now'))).lower()} in the config")
+        check_fits(data, path, city, args.lookahead, args.arrivals_now, reader)
         view = data.global_view()
         t = lambda a: torch.tensor(a, dtype=torch.float32)  # noqa: E731 - a copy: npz arrays are read-only
         self.tensors: dict[str, torch.Tensor] = {
@@ -152,7 +168,7 @@ class Data:
                 own, _ctx, nbrs, mask = split_local(t(obs), f)
                 self.tensors.update({f"{prefix}own": own, f"{prefix}nbrs": nbrs, f"{prefix}mask": mask})
         self.size = len(data)
-        self.meta = meta
+        self.meta = data.meta
         self.prices = receiver_prices(city, self.tensors["x"], t(data.actions)) if args.surplus_price else None
         # the weight of a receiving region's surplus vehicle beyond 1 (imitation_loss's surplus)
         self.surplus = args.shortfall_weight * self.prices["move"] / self.prices["trip"] if self.prices else 0.0
