@@ -22,7 +22,7 @@ from rich.table import Table
 
 from marl_amod.data import ENV_VAR
 from marl_amod.errors import ConfigError, DataError, MarlAmodError
-from marl_amod.files import atomic_write, check_destination, save_or_fallback, write_json
+from marl_amod.files import atomic_write, check_destination, check_folder, save_or_fallback, write_json
 from marl_amod.policies import policy_names
 
 if TYPE_CHECKING:
@@ -795,7 +795,7 @@ def transfer_table(
     from marl_amod.transfer import META_POLICY, STRATEGIES, run_study, study_markdown, study_scores
 
     _use_data_dir(data_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    check_folder(out, what="--out")
     saved = out / f"{study}.json"
     if redraw:
         if strategy or meta_policy:

@@ -35,7 +35,7 @@ from marl_amod.checkpoints import write_policy
 from marl_amod.config import read_config
 from marl_amod.datasets import OfflineDataset, collect, concatenate
 from marl_amod.errors import ConfigError
-from marl_amod.files import write_json
+from marl_amod.files import check_folder, write_json
 from marl_amod.policies import make_policy
 from marl_amod.scenario import load_city
 
@@ -61,7 +61,7 @@ def dagger(
     expert_data = OfflineDataset.load(bc.dataset)
     check_fits(expert_data, bc.dataset, city, bc.lookahead, bc.arrivals_now)  # each round's data is collected with these features
     settings = {"config": str(config), "start": start, "expert": expert, "episodes": episodes, "seed": seed}
-    root.mkdir(parents=True, exist_ok=True)
+    check_folder(root, what="--run-root")
     say = progress or (lambda _msg: None)
     summary_path = root / "dagger.json"
     saved = json.loads(summary_path.read_text()) if summary_path.is_file() else {}

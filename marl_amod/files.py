@@ -60,6 +60,24 @@ def _permissions(path: Path) -> int:
         return 0o666 & ~_umask()
 
 
+def check_folder(path: str | Path, *, what: str = "output folder") -> Path:
+    """``path`` as a folder that exists now (created with its parents), else an :class:`OutputError`
+    naming it and the reason (a file in the way, no permission): before the work that fills it."""
+    path = Path(path).expanduser()
+    for ancestor in (path, *path.parents):
+        if ancestor.exists():
+            if not ancestor.is_dir():
+                raise OutputError(f"{what} {path}: {ancestor} is a file, not a folder")
+            break
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{what} {path}: cannot create it ({exc.strerror or exc})") from exc
+    if not os.access(path, os.W_OK | os.X_OK):
+        raise OutputError(f"{what} {path} is not writable")
+    return path
+
+
 @contextlib.contextmanager
 def atomic_open(path: str | Path, mode: str = "wb") -> Iterator[IO[Any]]:
     """A file handle whose content replaces ``path`` only when the ``with`` block succeeds; the

@@ -197,7 +197,9 @@ def run_study(study: str, *, episodes: int = 10, seed: int = 0, meta_policy: str
     if unknown:
         raise ConfigError(f"unknown strategy {unknown[0]!r}; known: {', '.join(STRATEGIES)}")
     if previous is not None and (previous.get("study"), previous.get("episodes"), previous.get("seed")) != (study, episodes, seed):
-        previous = None  # another run's rows are not comparable
+        raise ConfigError(f"the saved {previous.get('study')} table was run with {previous.get('episodes')} episodes, seed {previous.get('seed')}: "
+                          "rows of other episodes are not comparable with it; rerun these rows with its episodes and seed, "
+                          "or every row (no --strategy), or write elsewhere (--out)")  # fmt: skip
     out: dict[str, Any] = {"study": study, "episodes": episodes, "seed": seed, "targets": {}}
     for scenario in STUDIES[study]:
         old = (previous or {}).get("targets", {}).get(scenario, {})

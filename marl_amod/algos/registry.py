@@ -16,7 +16,7 @@ from marl_amod.algos import a2c, bc, cql, iql, meta, meta_imitation, sac
 from marl_amod.algos.common import Progress, RunArgs
 from marl_amod.config import load_config, make_args
 from marl_amod.errors import ConfigError
-from marl_amod.files import check_destination
+from marl_amod.files import check_destination, check_folder
 
 
 class TrainFn(Protocol):
@@ -71,9 +71,11 @@ def run_training(
 ) -> dict[str, Any]:
     """Train with the registered algorithm ``name``; returns the summary (card, final evaluation, policy path).
 
-    The policy's destination is checked first, so a bad ``policy_out`` fails now, not after training.
+    The policy's destination and the run folder are checked first, so a bad ``policy_out`` or
+    ``run_dir`` fails now, not after training.
     """
     entry = algorithm(name)
     if args.policy_out:
         check_destination(args.policy_out, what="policy_out")
+    check_folder(args.run_dir, what="run_dir")
     return entry.train(args, resume=resume, progress=progress, config_path=config_path)
