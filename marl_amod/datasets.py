@@ -229,12 +229,13 @@ def streams(meta: dict[str, Any]) -> list[list[int]]:
     return [[int(meta["seed"]), int(meta.get("first_episode", 0)), int(meta["episodes"])]]
 
 
-def _overlap(held: list[tuple[int, int, str]], start: int, count: int, name: str) -> tuple[str, int, int] | None:
-    """(other part, first, last episode) shared by episodes [start, start + count) of part ``name``
-    and a range ``held`` by another part, or None. A part's own ranges never clash: a DAgger
-    aggregate may revisit its streams, and a collection's ranges are disjoint anyway."""
+def _overlap(held: list[tuple[int, int, int]], start: int, count: int, part: int) -> tuple[int, int, int] | None:
+    """(other part's index, first, last episode) shared by episodes [start, start + count) of part
+    ``part`` and a range ``held`` by another part, or None. Parts are told apart by their place in
+    the list, not their names (one file given twice is two parts). A part's own ranges never clash: a
+    DAgger aggregate may revisit its streams, and a collection's ranges are disjoint anyway."""
     for a, b, other in held:
-        if other != name and start < b and a < start + count:
+        if other != part and start < b and a < start + count:
             return other, max(a, start), min(b, start + count) - 1
     return None
 
@@ -265,15 +266,15 @@ def merge(parts: list[OfflineDataset], names: list[str] | None = None) -> Offlin
                 raise DataError(f"{names[0]} and {name} are not one collection: {key} {first.get(key)!r} != {p.meta.get(key)!r}")
         if not (np.array_equal(p.edge_index, parts[0].edge_index) and np.array_equal(p.edge_attr, parts[0].edge_attr)):
             raise DataError(f"{names[0]} and {name} are not one collection: their region graphs differ")
-    held: dict[int, list[tuple[int, int, str]]] = {}  # seed -> (first, end, piece)
-    for p, name in zip(parts, names, strict=True):
+    held: dict[int, list[tuple[int, int, int]]] = {}  # seed -> (first, end, piece's index)
+    for i, (p, name) in enumerate(zip(parts, names, strict=True)):
         for seed, start, count in streams(p.meta):
-            if clash := _overlap(held.setdefault(seed, []), start, count, name):
+            if clash := _overlap(held.setdefault(seed, []), start, count, i):
                 raise DataError(
-                    f"{clash[0]} and {name} both hold episodes {clash[1]}..{clash[2]} of seed "
+                    f"{names[clash[0]]} and {name} both hold episodes {clash[1]}..{clash[2]} of seed "
                     f"{seed}: collect pieces with different --seed, or resume one with --first-episode"
                 )
-            held[seed].append((start, start + count, name))
+            held[seed].append((start, start + count, i))
     order = sorted(range(len(parts)), key=lambda i: streams(parts[i].meta))
     parts = [parts[i] for i in order]
     ranges = sorted(r for p in parts for r in streams(p.meta))
@@ -313,13 +314,13 @@ def mix(parts: list[OfflineDataset], names: list[str] | None = None) -> OfflineD
     if len(parts) < 2:
         raise DataError(f"a mixture needs at least two datasets, got {len(parts)}: to use one, train on it directly")
     names = names or [f"part {i}" for i in range(len(parts))]
-    held: dict[tuple[str, int], list[tuple[int, int, str]]] = {}  # (behaviour, seed) -> (first, end, part)
-    for p, name in zip(parts, names, strict=True):
+    held: dict[tuple[str, int], list[tuple[int, int, int]]] = {}  # (behaviour, seed) -> (first, end, part's index)
+    for i, (p, name) in enumerate(zip(parts, names, strict=True)):
         for behaviour, policy, seed, start, count in _behaviour_streams(p.meta):
-            if clash := _overlap(held.setdefault((behaviour, seed), []), start, count, name):
-                raise DataError(f"{clash[0]} and {name} both hold {policy}'s episodes {clash[1]}..{clash[2]} of seed {seed}: "
+            if clash := _overlap(held.setdefault((behaviour, seed), []), start, count, i):
+                raise DataError(f"{names[clash[0]]} and {name} both hold {policy}'s episodes {clash[1]}..{clash[2]} of seed {seed}: "
                                 "they would weigh twice")  # fmt: skip
-            held[(behaviour, seed)].append((start, start + count, name))
+            held[(behaviour, seed)].append((start, start + count, i))
     data = concatenate(parts)
     data.meta["policy"] = " & ".join(dict.fromkeys(p.meta["policy"] for p in parts))
     data.meta.pop("noise", None)

@@ -218,6 +218,8 @@ def test_merge_refuses_overlapping_or_foreign_pieces(tiny_city):
     a = collect(tiny_city, prop, episodes=2, seed=3)
     with pytest.raises(DataError, match=r"a and b both hold episodes 1\.\.1 of seed 3"):
         merge([a, collect(tiny_city, prop, episodes=2, seed=3, first_episode=1)], names=["a", "b"])
+    with pytest.raises(DataError, match=r"a and a both hold episodes 0\.\.1 of seed 3"):  # one file given twice
+        merge([a, a], names=["a", "a"])
     with pytest.raises(DataError, match="policy"):
         merge([a, collect(tiny_city, make_policy("dtv", tiny_city), episodes=1, seed=4)])
     with pytest.raises(DataError, match="noise"):
