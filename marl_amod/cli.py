@@ -331,6 +331,8 @@ def fqe(
     _use_data_dir(data_dir)
     if output is not None:
         output = check_destination(output, what="--output")  # before the fits, not after them
+        if output.resolve() == dataset.with_suffix(".json").resolve():
+            raise ConfigError(f"--output {output} is the dataset's own card; write the estimates elsewhere")
     for p in policy or []:  # every policy file read before the first fit, so a typo in the last does not wait for the others
         read_card(p)
     settings, loaded = F.FQESettings(updates=updates, seed=seed), OfflineDataset.load(dataset)
@@ -432,6 +434,9 @@ def _collect_one(
         card = write_card(path, data, city, pol, eval_episodes=eval_episodes, eval_seed=eval_seed, cache=cache)
         b = card["behaviour_score"]
         console.print(f"card {path.with_suffix('.json')}: behaviour {b['mean']:,.0f} (normalised {b['normalised']:.1f})")
+    elif (stale := path.with_suffix(".json")).is_file():  # an earlier dataset's card would describe this one
+        stale.unlink()
+        console.print(f"removed {stale}: the card of the dataset this one replaced (--eval-episodes 0 writes none)")
 
 
 @app.command()

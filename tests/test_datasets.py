@@ -148,6 +148,10 @@ def test_cli_collect_writes_a_dataset_and_its_card(tmp_path):
     data = OfflineDataset.load(out)
     assert data.meta["policy"] == "dtv" and data.truncations.sum() == 1
     assert read_card(out)["behaviour_score"]["mean"] > 0
+    # collected again over it without a card: the first dataset's card is not left to describe the new one
+    again = CliRunner().invoke(app, [*args[:2], "prop", *args[3:-1], "0"])
+    assert again.exit_code == 0, again.output
+    assert OfflineDataset.load(out).meta["policy"] == "prop" and not out.with_suffix(".json").exists()
 
 
 def test_a_dataset_named_like_its_card_is_refused_before_collecting(tmp_path, dataset):

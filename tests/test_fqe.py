@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -79,3 +81,7 @@ def test_the_fqe_command_prints_the_estimates_and_writes_them(tmp_path, tiny_pro
     assert bad.exit_code != 0 and "no dataset" in str(bad.exception)
     typo = CliRunner().invoke(app, ["fqe", "--dataset", path, "--scenario", scenario, "--policy", str(tmp_path / "gone.pt")])
     assert typo.exit_code != 0 and "gone.pt" in str(typo.exception) and "logged behaviour" not in typo.output  # before any fit
+    card = str(Path(path).with_suffix(".json"))
+    before = Path(card).read_bytes()
+    own = CliRunner().invoke(app, ["fqe", "--dataset", path, "--scenario", scenario, "--updates", "2", "--output", card])
+    assert own.exit_code != 0 and "dataset's own card" in str(own.exception) and Path(card).read_bytes() == before
