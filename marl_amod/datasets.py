@@ -627,8 +627,3 @@ def read_card(path: str | Path) -> dict[str, Any]:
     if not p.is_file():
         raise DataError(f"no dataset card at {p} (collect writes it beside the .npz)")
     return json.loads(p.read_text())
-
-
-def agent_transitions(dataset: OfflineDataset) -> dict[str, dict[str, np.ndarray]]:
-    """The per-agent view (:meth:`OfflineDataset.agent_view`), under the name format 1 used."""
-    return dataset.agent_view()

@@ -252,7 +252,11 @@ class CvxpyMPC:
 
 # ---------------------------------------------------------------------------------- policies
 class MPCPolicy(FlowPolicy):
-    """Receding-horizon MPC: solve the fleet LP after each dispatch and apply its first rebalancing."""
+    """Receding-horizon MPC: solve the fleet LP after each dispatch and apply its first rebalancing.
+
+    After each decision ``last_plan`` holds the whole plan it came from (every step's passenger and
+    rebalancing flows, and the objective) and ``solve_seconds`` each solve's time, for inspection.
+    """
 
     name = "mpc"
 

@@ -23,7 +23,7 @@ neighbour mask       K          1.0 for a real neighbour slot, 0.0 for padding
 :func:`split_local` cuts such a vector (or a batch of them, numpy or torch) back into the blocks,
 so a shared-parameter message-passing layer runs from one agent's observation alone. The global
 state (:func:`global_state`) is the N x F feature matrix, flattened, followed by the 3 time values.
-:func:`local_from_features` and :func:`state_from_features` build both layouts from features with
+:class:`LocalLayout` and :func:`state_from_features` build both layouts from features with
 leading batch axes (B, N, F): the batched env (:mod:`marl_amod.env.vector`) and the single env run
 the same code.
 """
@@ -109,12 +109,6 @@ def local_observations(
         layout = LocalLayout(table if table is not None else neighbour_table(system.city, max_degree), n_features(lookahead, arrivals_now))
     city = system.city
     return layout(node_features(system, lookahead, arrivals_now=arrivals_now), _time_features(city.start_hour, city.tstep, city.horizon, system.t))
-
-
-def local_from_features(feats: np.ndarray, context: np.ndarray, table: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """(..., N, D) float32 local observations from features (..., N, F), time features (3,) and a
-    :func:`neighbour_table`; the leading axes are a batch of episodes in lockstep (or none)."""
-    return LocalLayout(table, feats.shape[-1])(feats, context)
 
 
 class LocalLayout:

@@ -12,7 +12,7 @@ from marl_amod.models.gnn import (
     TwinQ,
     batch_edge_index,
 )
-from marl_amod.models.local import LocalActor, LocalValueCritic, local_from_global
+from marl_amod.models.local import LocalActor, LocalValueCritic
 from marl_amod.models.mlp import MLPActor
 
 ACTORS = {"gnn": GNNActor, "local": LocalActor, "mlp": MLPActor, "cnn": CNNActor}
@@ -48,5 +48,4 @@ def build_actor(
 __all__ = [
     "ACTORS", "READOUTS", "FleetReadout", "RegionIdentity", "TwinQ", "build_actor", "CNNActor", "GNNActor", "GNNQCritic", "GNNValueCritic", "LocalActor", "LocalValueCritic", "MLPActor",
     "batch_edge_index", "dirichlet", "dirichlet_log_prob_from_gammas", "dirichlet_mean", "gamma", "gamma_log_prob",
-    "local_from_global",
 ]

@@ -13,18 +13,10 @@ The neighbour table is :func:`marl_amod.env.observations.neighbour_table`.
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 
 from marl_amod.models.gnn import GNNActor, GNNValueCritic, concentration
-
-
-def local_from_global(x: torch.Tensor, idx: np.ndarray, mask: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Global features (..., N, F) -> own (..., N, F), neighbours (..., N, K, F), mask (..., N, K)."""
-    nbrs = x[..., torch.as_tensor(idx), :]  # (..., N, K, F)
-    m = torch.as_tensor(mask).expand(*x.shape[:-1], mask.shape[-1])
-    return x, nbrs, m
 
 
 def _mean_conv_local(conv, own: torch.Tensor, nbrs: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:

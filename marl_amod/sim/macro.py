@@ -24,7 +24,6 @@ from marl_amod.scenario.types import City
 from marl_amod.sim.flows import as_flows, check_dispatch, check_rebalance
 from marl_amod.validation import as_count
 
-_TOL = 1e-9
 # cities up to this many regions keep each step's leg tables (4 small N x N arrays per step): for
 # them the per-step numpy calls, not the arithmetic, are the cost; bigger cities recompute
 LEG_TABLE_REGIONS = 64
