@@ -271,7 +271,7 @@ def evaluate(
                 )
             )
     console.print(metrics_table(results, f"{city.name}: {episodes} episodes, seed {seed}"))
-    if max_wait == 0:
+    if max_wait == 0 and all(r["metrics"].get("wait_time", {}).get("mean", 0.0) == 0.0 for r in results):  # SUMO cities: waits anyway
         console.print(NO_WAIT_NOTE)
     if output is not None:
         payload = results_payload(results)

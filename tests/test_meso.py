@@ -105,6 +105,17 @@ def test_meso_evaluate_gives_the_macro_json_schema():
     assert len(res["per_region"]["wait_time"]) == 4
 
 
+def test_the_evaluate_command_says_waits_are_zero_only_where_they_are():
+    from typer.testing import CliRunner
+
+    from marl_amod.cli import app
+
+    for scenario, note in (("sumo_grid", False), ("synthetic", True)):  # SUMO's requests wait for their pickup at --max-wait 0 too
+        result = CliRunner().invoke(app, ["evaluate", "--scenario", scenario, "--episodes", "1"])
+        assert result.exit_code == 0, result.output
+        assert ("wait min and wait Gini are 0" in " ".join(result.output.split())) is note, scenario
+
+
 @pytest.mark.parametrize("taxi_device", [False, True], ids=["legs", "taxi_device"])
 def test_mpc_plans_on_meso_with_the_requests_that_will_still_wait(taxi_device):
     city = load_city("sumo_grid", fleet=6, requests_per_hour=900, max_wait_min=3, taxi_device=taxi_device)
