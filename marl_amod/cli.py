@@ -492,7 +492,10 @@ def train(
         raise ConfigError("--num-env-runners and --address need --backend rllib")
     from marl_amod.algos.common import TrainingInterrupted
     from marl_amod.algos.registry import load_train_config, run_training
+    from marl_amod.config import read_config
 
+    if read_config(config).get("algo") == "ppo":  # the reverse of load_rllib_config's hint
+        raise ConfigError(f"{config}: algo: ppo trains on Ray RLlib; add --backend rllib")
     algo, args = load_train_config(config)
     last_eval: dict[str, float] = {}
     try:

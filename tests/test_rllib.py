@@ -50,6 +50,9 @@ def test_train_cli_keeps_rllib_options_to_the_rllib_backend() -> None:
     assert isinstance(out.exception, ConfigError) and "--backend rllib" in str(out.exception)
     out = CliRunner().invoke(app, ["train", "--config", native, "--backend", "spark"])
     assert isinstance(out.exception, ConfigError) and "native or rllib" in str(out.exception)
+    ppo = str(Path(__file__).parents[1] / "configs" / "ppo_rllib" / "synthetic.yaml")
+    out = CliRunner().invoke(app, ["train", "--config", ppo])  # the native backend names the one that trains it
+    assert isinstance(out.exception, ConfigError) and "add --backend rllib" in str(out.exception)
 
 
 def test_scaled_gamma_is_the_density_of_the_action_the_env_receives() -> None:
