@@ -142,6 +142,12 @@ def run_strategy(
     """
     if strategy not in STRATEGIES:
         raise ConfigError(f"unknown strategy {strategy!r}; known: {', '.join(STRATEGIES)}")
+    if strategy in ("mpc-forecast", "mpc-oracle") and (policy is not None or adapt_episodes is not None):
+        raise ConfigError(f"{strategy} plans with no trained policy and no adaptation: drop --policy and --adapt-episodes")
+    if strategy in ("zero-shot", "single-city") and adapt_episodes is not None:
+        raise ConfigError(f"{strategy} adapts nothing in the new city: --adapt-episodes is for fine-tune and meta-rl")
+    if strategy == "fine-tune" and adapt_episodes is not None and adapt_episodes < 1:
+        raise ConfigError(f"fine-tune needs at least one online episode in the new city, got --adapt-episodes {adapt_episodes} (K = 0 is zero-shot)")
     city = load_city(scenario)
     target = TARGETS.get(city.name)
     needs = {"zero-shot": "zero_shot", "fine-tune": "zero_shot", "single-city": "single_city"}
@@ -156,6 +162,8 @@ def run_strategy(
     elif strategy in ("zero-shot", "single-city"):
         pol = policy
         card = _card(policy)
+        if strategy == "zero-shot" and card["scenario"] == city.name:
+            raise ConfigError(f"{policy} was trained on {city.name} itself: that is the single-city strategy, not zero-shot")
         used.update(source=policy, source_city=card["scenario"], source_episodes=card.get("episodes_trained"))
         if strategy == "single-city" and card["scenario"] == city.name:
             used["target_episodes"] = card.get("episodes_trained")

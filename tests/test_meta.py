@@ -541,6 +541,15 @@ def test_transfer_strategies_and_the_normalised_score(tmp_path):
     with pytest.raises(ConfigError, match="needs --policy"):
         run_strategy("zero-shot", "synthetic")
     assert len(STRATEGIES) == 6
+    ignored = {  # an option the strategy would not use is refused, not silently dropped
+        ("mpc-forecast", "policies/a2c_gnn_synthetic.pt", None): "drop --policy",
+        ("zero-shot", "policies/a2c_gnn_synthetic.pt", 3): "adapts nothing",
+        ("fine-tune", "policies/a2c_gnn_synthetic.pt", 0): "at least one online episode",
+        ("zero-shot", "policies/a2c_gnn_synthetic.pt", None): "single-city strategy",  # trained on the target itself
+    }
+    for (strategy, policy, k), message in ignored.items():
+        with pytest.raises(ConfigError, match=message):
+            run_strategy(strategy, "synthetic", policy=policy, adapt_episodes=k, episodes=1)
     rec = run_strategy("mpc-forecast", "synthetic", episodes=1)
     assert rec["transfer"]["target_episodes"] == 0
 
