@@ -11,7 +11,7 @@ import torch
 import yaml
 
 from marl_amod.checkpoints import load_policy, save_policy
-from marl_amod.errors import ConfigError
+from marl_amod.errors import ConfigError, DataError
 from marl_amod.evaluation import evaluate
 from marl_amod.models import build_actor
 from marl_amod.scenario import load_city
@@ -122,6 +122,9 @@ def test_a2c_resume_continues_from_saved_episode(tmp_path, tiny_yaml):
     assert summary["card"]["episodes_trained"] == 8
     episodes = [int(line.split(",")[0]) for line in (tmp_path / "run" / "log.csv").read_text().splitlines()[1:]]
     assert episodes == sorted(episodes) and max(episodes) == 8  # resumed at 4, not restarted at 0
+    wider = a2c.Args(**_common(tmp_path, tiny_yaml, episodes=12, episodes_per_update=2, hidden=16))  # not the run that saved it
+    with pytest.raises(DataError, match="state.pt was saved by a run whose actor differs"):
+        a2c.train(wider, resume=str(tmp_path / "run" / "state.pt"))
 
 
 @pytest.mark.parametrize("kind", ["gnn", "mlp", "cnn"])

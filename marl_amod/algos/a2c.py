@@ -194,8 +194,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         best.validate(actor, city, args)  # actor is never worse on the validation seeds than it
     if resume:
         st = C.load_state(resume, "a2c")
-        actor.load_state_dict(st["actor"]), critic.load_state_dict(st["critic"])
-        opt_a.load_state_dict(st["opt_a"]), opt_c.load_state_dict(st["opt_c"])
+        C.restore(resume, st, actor=actor, critic=critic, opt_a=opt_a, opt_c=opt_c)
         start_ep, prior_wall, best = st["episode"], st["wall_s"], C.BestActor(st["best_val"], st["best_actor"])
     log = C.Logger(args.run_dir, resume_from=start_ep if resume else None)
     timer = C.Timer(prior_wall)

@@ -438,6 +438,18 @@ def load_state(path: str | Path, algorithm: str) -> dict[str, Any]:
     return state
 
 
+def restore(path: str | Path, state: dict[str, Any], **parts: Any) -> None:
+    """Load each network or optimiser of ``parts`` from ``state[name]``. A state saved by a run of another
+    architecture (conv, width, actor kind) is a DataError naming the file, not torch's key listing."""
+    for name, part in parts.items():
+        try:
+            part.load_state_dict(state[name])
+        except (RuntimeError, ValueError, KeyError) as exc:  # missing or unexpected keys, shapes, parameter groups
+            detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise DataError(f"{path} was saved by a run whose {name} differs from this config's (another conv, width or actor?): "
+                            f"{detail}; resume with the config that made it") from None  # fmt: skip
+
+
 class TrainingInterrupted(MarlAmodError):
     """Ctrl-C during training; the state of the last finished update is saved at ``path``."""
 

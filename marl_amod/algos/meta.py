@@ -797,7 +797,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         imitation, fit = load_all(args, cities), Fit(imitation=args.imitation, shortfall=args.shortfall_weight)
     if resume:
         st = C.load_state(resume, "meta")
-        model.load_state_dict(st["model"]), opt.load_state_dict(st["opt"])
+        C.restore(resume, st, model=model, opt=opt)
         start_ep, prior_wall, best = st["episode"], st["wall_s"], C.BestActor(st["best_val"], st["best_actor"])
         rng.bit_generator.state = st["city_rng"]
     log = C.Logger(args.run_dir, resume_from=start_ep if resume else None)

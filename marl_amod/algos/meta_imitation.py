@@ -747,7 +747,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
             if st.get(key, Args.model_fields[key].default) != getattr(args, key):  # older states: as the defaults
                 raise DataError(f"{resume} drew its {drawn} with {key} {st.get(key)}; this config sets "
                                 f"{getattr(args, key)}: resume with the run's setting (the card names it)")  # fmt: skip
-        model.load_state_dict(st["model"]), opt.load_state_dict(st["opt"])
+        C.restore(resume, st, model=model, opt=opt)
         step, prior_wall, best = st["episode"], st["wall_s"], C.BestActor(st["best_val"], st["best_actor"])
         rng.bit_generator.state = st["city_rng"]
     log = C.Logger(args.run_dir, resume_from=step if resume else None)

@@ -316,8 +316,7 @@ def fit(
         best.validate(actor, city, args)  # is a candidate, so the shipped actor never validates below it
     if resume:
         st = C.load_state(resume, algorithm)
-        for name, part in parts.items():
-            part.load_state_dict(st[name])
+        C.restore(resume, st, **parts)
         step, prior_wall, best = st["episode"], st["wall_s"], C.BestActor(st["best_val"], st["best_actor"])
         gen.set_state(st["gen"])
     log = C.Logger(args.run_dir, resume_from=step if resume else None)

@@ -312,8 +312,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         st = C.load_state(resume, "sac")
         if critic is not twin and "q1.value.out.weight" in st["critic"]:
             st = stack_twin_state(st, twin)  # saved before the critics were stacked
-        actor.load_state_dict(st["actor"]), critic.load_state_dict(st["critic"]), critic_targ.load_state_dict(st["critic_targ"])
-        opt_a.load_state_dict(st["opt_a"]), opt_c.load_state_dict(st["opt_c"]), opt_alpha.load_state_dict(st["opt_alpha"])
+        C.restore(resume, st, actor=actor, critic=critic, critic_targ=critic_targ, opt_a=opt_a, opt_c=opt_c, opt_alpha=opt_alpha)
         start_ep, prior_wall, best = st["episode"], st["wall_s"], C.BestActor(st["best_val"], st["best_actor"])
         log_alpha.data.fill_(st["log_alpha"])
         buffer.load_state_dict(st["replay"])
