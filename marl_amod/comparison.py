@@ -57,6 +57,7 @@ def _resolve_run(path: Path, run: RunSpec) -> RunSpec:
 
 
 def load_compare_config(path: str | Path) -> CompareConfig:
+    from marl_amod.algos.common import check_separate_outputs
     from marl_amod.algos.registry import args_for
 
     path = Path(path)
@@ -66,12 +67,15 @@ def load_compare_config(path: str | Path) -> CompareConfig:
     except ValidationError as exc:
         raise problems(str(path), exc) from None
     cfg.runs = [_resolve_run(path, run) for run in cfg.runs]
+    validated = []
     for run in cfg.runs:  # fail on a typo or a scenario mismatch before any training starts
         if run.args.get("scenario", cfg.scenario) != cfg.scenario:
             raise ConfigError(f"{path} run {run.label!r}: args.scenario: {run.args['scenario']} is not the comparison's {cfg.scenario}")
         args = args_for(run.algo, {**run.args, "scenario": cfg.scenario}, f"{path} run {run.label!r}")
         if not args.policy_out:
             raise ConfigError(f"{path} run {run.label!r}: args.policy_out is required (where the trained policy lives)")
+        validated.append((f"{path} run {run.label!r}", args))
+    check_separate_outputs(validated)  # two runs writing one policy would show one policy twice
     return cfg
 
 

@@ -22,7 +22,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 from marl_amod.errors import ConfigError
@@ -40,8 +40,6 @@ class Member:
     policy_out: Path
     total: int
     """the updates (or episodes) the run is set to reach: what its progress counts to"""
-    writes: dict[str, Path] = field(default_factory=dict, compare=False)  # out of the hash: members key dicts
-    """every path the run writes to, by its config key (``RunArgs.outputs``)"""
 
     @property
     def state(self) -> Path:
@@ -98,26 +96,19 @@ def plan(configs: Sequence[str | Path]) -> list[Member]:
     """The members, every config validated before any run starts: each must write a policy
     (``policy_out``), and no two may share a path they write to (``RunArgs.outputs``: the run
     folder, the policy file, meta-bc's demonstrations folder), or one run would overwrite the other's."""
+    from marl_amod.algos.common import check_separate_outputs
     from marl_amod.algos.registry import load_train_config
     from marl_amod.files import check_destination
 
     if len(configs) < 2:
         raise ConfigError(f"an ensemble takes two or more training configs, got {len(configs)}")
-    members = []
-    for config in map(Path, configs):
-        algo, args = load_train_config(config)
+    loaded = [(config, *load_train_config(config)) for config in map(Path, configs)]
+    for config, _, args in loaded:
         if not args.policy_out:
             raise ConfigError(f"{config}: policy_out is empty, so the run would write no policy to put in the ensemble")
         check_destination(args.policy_out, what=f"{config}: policy_out")  # now, not when that member's run ends
-        writes = {key: Path(path) for key, path in args.outputs().items()}
-        members.append(Member(config, algo, Path(args.run_dir), Path(args.policy_out), args.run_length(), writes))
-    seen: dict[Path, Path] = {}  # a path written to -> the config of the member writing it
-    for m in members:
-        for key, path in m.writes.items():
-            if (where := path.resolve()) in seen:
-                raise ConfigError(f"{seen[where]} and {m.config} share {key} {path}: each member needs its own")
-            seen[where] = m.config
-    return members
+    check_separate_outputs((str(config), args) for config, _, args in loaded)
+    return [Member(config, algo, Path(args.run_dir), Path(args.policy_out), args.run_length()) for config, algo, args in loaded]
 
 
 def train_side_by_side(

@@ -38,6 +38,18 @@ def test_compare_no_train_skips_missing_policies_and_says_so(compare_config: Pat
     assert [r["label"] for r in rows] == ["equal-distribution"]
 
 
+def test_two_runs_writing_one_policy_are_refused_before_any_training(compare_config: Path, tmp_path: Path) -> None:
+    from marl_amod.comparison import load_compare_config
+    from marl_amod.errors import ConfigError
+
+    raw = yaml.safe_load(compare_config.read_text())
+    mlp = {"label": "mlp", "algo": "a2c", "args": {**raw["runs"][0]["args"], "actor": "mlp", "run_dir": str(tmp_path / "run_mlp")}}
+    raw["runs"].append(mlp)  # its own run folder, the gnn run's policy file
+    compare_config.write_text(yaml.safe_dump(raw))
+    with pytest.raises(ConfigError, match="run 'gnn'.* and .*run 'mlp'.* share policy_out"):
+        load_compare_config(compare_config)
+
+
 def test_compare_announces_training_before_it_starts(compare_config: Path, tmp_path: Path) -> None:
     res = CliRunner().invoke(app, ["compare", "--config", str(compare_config)])
     assert res.exit_code == 0, res.output

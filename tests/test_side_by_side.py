@@ -11,6 +11,7 @@ import pytest
 import yaml
 from typer.testing import CliRunner
 
+from marl_amod.algos.registry import load_train_config
 from marl_amod.cli import app
 from marl_amod.ensemble import read_members
 from marl_amod.errors import ConfigError
@@ -136,6 +137,7 @@ def test_meta_bc_members_that_would_collect_into_one_demonstrations_folder_are_r
     root = Path(__file__).resolve().parent.parent / "configs" / "meta"
     with pytest.raises(ConfigError, match="share demos runs/meta_demos_seed1"):
         plan([root / "bc_dagger_l1_hot36.yaml", root / "bc_dagger_l1_ens1.yaml"])  # seed 1's two arms, one folder
-    assert plan([root / "bc_dagger_l1_whole_rep4.yaml", root / "bc_dagger_l1_whole_rep5.yaml"])[0].writes["demos"] == Path("runs/meta_demos_seed4")
-    rl2 = plan([root / "rl2_whole_rep4.yaml", root / "rl2_whole_rep5.yaml"])
-    assert all("demos" not in m.writes for m in rl2)
+    assert load_train_config(root / "bc_dagger_l1_whole_rep4.yaml")[1].outputs()["demos"] == "runs/meta_demos_seed4"
+    assert len(plan([root / "bc_dagger_l1_whole_rep4.yaml", root / "bc_dagger_l1_whole_rep5.yaml"])) == 2
+    assert all("demos" not in load_train_config(root / c)[1].outputs() for c in ("rl2_whole_rep4.yaml", "rl2_whole_rep5.yaml"))
+    assert len(plan([root / "rl2_whole_rep4.yaml", root / "rl2_whole_rep5.yaml"])) == 2

@@ -18,7 +18,7 @@ import csv
 import ctypes
 import io
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Protocol
@@ -31,7 +31,7 @@ from marl_amod.algos.rollout import BatchRollout, Mode, Rollout
 from marl_amod.checkpoints import ActorPolicy, actor_inputs, check_torch_file, make_card, save_policy, with_context
 from marl_amod.config import CommonArgs
 from marl_amod.env.features import n_features
-from marl_amod.errors import DataError, MarlAmodError
+from marl_amod.errors import ConfigError, DataError, MarlAmodError
 from marl_amod.files import atomic_write, file_sha256, torch_save, write_json
 from marl_amod.models import LocalActor, build_actor
 from marl_amod.models.dense import DenseGraph
@@ -138,6 +138,19 @@ class RunArgs(CommonArgs):
         if self.mode == "centralised":
             return {"central_critic": "only decentralised runs choose their critic"}
         return {"actor": "decentralised runs always use the local GNN actor", "actor_time": "the local actor reads its own observation"}
+
+
+def check_separate_outputs(runs: Iterable[tuple[str, Any]]) -> None:
+    """Refuse (ConfigError) runs, given as (name, args), that would write to one path: the run folder,
+    the policy file, meta-imitation's demonstrations (``outputs()``); one would overwrite the other's."""
+    seen: dict[Path, str] = {}  # a path written to -> the run writing it
+    for name, args in runs:
+        for key, path in args.outputs().items():
+            if not path:
+                continue
+            if (where := Path(path).resolve()) in seen:
+                raise ConfigError(f"{seen[where]} and {name} share {key} {path}: each run needs its own")
+            seen[where] = name
 
 
 def make_rollout(city: City, args: RunArgs) -> Rollout | BatchRollout:
