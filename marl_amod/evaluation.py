@@ -64,6 +64,7 @@ def evaluate(
     seed = as_seed(seed)
     city = scenario if isinstance(scenario, City) else load_city(str(scenario))
     system_options = {key: options.pop(key) for key in SYSTEM_OPTIONS if key in options}
+    policy_options = dict(options)  # before make_policy: what the user asked for, as given
     pol = make_policy(policy, city, **options)
     system = FleetSystem(city, **system_options)
     per_episode, per_region = [], []
@@ -73,7 +74,19 @@ def evaluate(
         per_region.append(r)
         if progress is not None:
             progress(k)
-    return result_record(city.name, pol.name, seed, per_episode, per_region)
+    return result_record(city.name, pol.name, seed, per_episode, per_region, settings=run_settings(policy, system, system_options.get("max_wait", 0), policy_options))
+
+
+def run_settings(policy: PolicyLike, system: FleetSystem, max_wait: int, policy_options: dict[str, Any]) -> dict[str, Any]:
+    """What else decided the numbers, so two records can be told apart: the system's options, the
+    policy's, and a checkpoint's path (two files may share a name)."""
+    settings: dict[str, Any] = {
+        "max_wait": int(max_wait), "objective": system.coordinator.objective, "solver": system.coordinator.solver,
+        "policy_options": {k: v if isinstance(v, bool | int | float | str | type(None)) else repr(v) for k, v in policy_options.items()},
+    }  # fmt: skip
+    if isinstance(policy, str | Path) and Path(policy).suffix in (".pt", ".yaml", ".yml") and Path(policy).is_file():
+        settings["checkpoint"] = str(policy)
+    return settings
 
 
 def results_payload(results: list[dict[str, Any]]) -> dict[str, Any]:

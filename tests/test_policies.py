@@ -41,7 +41,9 @@ def _saved_actor(tmp_path: Path, city: City, time_context: bool = False) -> Path
 
 
 def _without_name(result: dict) -> dict:
-    return {k: v for k, v in result.items() if k != "policy"}
+    """The record without what names the policy (its name, and a checkpoint's path among the settings)."""
+    settings = {k: v for k, v in result.get("settings", {}).items() if k != "checkpoint"}
+    return {k: v for k, v in result.items() if k != "policy"} | {"settings": settings}
 
 
 # ------------------------------------------------------------------------------------------ registry
@@ -208,3 +210,13 @@ def test_plus_one_sends_k_back_to_a_region_that_dispatched_k_and_differs_from_no
     none = marl_amod.evaluate(NoRebalancing(), city, episodes=2)["metrics"]
     assert plus_one["rebalancing_cost"]["mean"] > 0 == none["rebalancing_cost"]["mean"]
     assert plus_one["profit"]["mean"] != none["profit"]["mean"]
+
+
+def test_an_evaluation_records_what_else_decided_its_numbers(tmp_path):
+    """Two records of one policy name differ by their settings: the system's options, the policy's
+    options, and which checkpoint file was played."""
+    path = "policies/a2c_gnn_synthetic.pt"
+    played = marl_amod.evaluate(path, "synthetic", episodes=1, max_wait=2, objective="revenue")
+    assert played["settings"] == {"max_wait": 2, "objective": "revenue", "solver": "fast", "policy_options": {}, "checkpoint": path}
+    mpc = marl_amod.evaluate("mpc-forecast", "synthetic", episodes=1, horizon=4)["settings"]
+    assert mpc["policy_options"] == {"horizon": 4} and "checkpoint" not in mpc and mpc["max_wait"] == 0
