@@ -139,6 +139,11 @@ def write_ensemble(out: str | Path, members: list[str | Path], adaptation: Adapt
         EnsembleFile(members=[str(m) for m in members], adaptation=adaptation, together=together)
     except ValidationError as exc:
         raise ConfigError(f"ensemble {out}: {pydantic_problems(exc)}") from None
+    for m in members:  # before any card is read or anything written
+        if Path(m).suffix != ".pt":
+            raise ConfigError(f"ensemble {out}: member {m} is not a checkpoint (.pt); ensembles do not nest, and a card is not its policy")
+    if len({Path(m).resolve() for m in members}) < len(members):
+        raise ConfigError(f"ensemble {out}: a member is given twice; each member's distribution weighs once")
     cards = [read_card(m) for m in members]
     others = [str(m) for m, c in zip(members, cards, strict=True) if c["algorithm"] not in ("meta", "meta-bc")]
     for asked, what in ((adaptation is not None, "adaptation is how meta-policies act while they adapt"), (together, "together is how meta-policies adapt")):

@@ -119,6 +119,11 @@ def test_the_ensemble_command_writes_a_file_that_loads_and_a_card_of_its_members
     assert "marl-amod evaluate --scenario synthetic --policy" in card
     bad = CliRunner().invoke(app, ["ensemble", str(members[0]), str(tmp_path / "none.pt"), "--out", str(tmp_path / "x.yaml")])
     assert bad.exit_code != 0 and not (tmp_path / "x.yaml").exists()
+    cards = [str(m).removesuffix(".pt") + ".json" for m in members]
+    for given, message in ((cards, "not a checkpoint"), ([str(members[0])] * 2, "given twice")):
+        refused = CliRunner().invoke(app, ["ensemble", *given, "--out", str(tmp_path / "y.yaml")])
+        assert isinstance(refused.exception, ConfigError) and message in str(refused.exception)
+        assert not (tmp_path / "y.yaml").exists()  # refused before anything is written
 
 
 def test_an_ensemble_of_actor_policies_acts_on_the_envs_observations_as_its_members_mean(tmp_path):
