@@ -458,11 +458,17 @@ def datasets(
     names = [p.strip() for p in policies.split(",") if p.strip()]
     if not names:
         raise ConfigError(f"--policies names no policy: {policies!r}")
+    if len(set(names)) < len(names):
+        raise ConfigError(f"--policies names a policy twice: {policies!r} (each dataset is one file)")
     _make_policies(names, load_city(scenario), {})  # a typo in the last name fails before the first dataset
+    check_folder(out_dir, what="--out-dir")
+    suffix = f"_noise{noise:g}" if noise else ""
+    # a checkpoint's dataset is named by its file's stem, not its path
+    outs = {name: out_dir / f"{Path(scenario).stem}_{Path(name).stem.replace('-', '_')}{suffix}.npz" for name in names}
+    if len(set(outs.values())) < len(outs):
+        raise ConfigError(f"--policies {policies!r}: two of them would write one dataset ({', '.join(map(str, outs.values()))})")
     cache: dict = {}
-    for name in names:
-        suffix = f"_noise{noise:g}" if noise else ""
-        out = out_dir / f"{Path(scenario).stem}_{name.replace('-', '_')}{suffix}.npz"
+    for name, out in outs.items():
         _collect_one(scenario, name, episodes, seed, out, 0, eval_episodes, eval_seed, cache, noise)
 
 

@@ -203,7 +203,8 @@ def test_a_bad_last_policy_fails_before_the_others_run(monkeypatch, tmp_path, co
     assert bad in str(result.exception) and ran == []
 
 
-@pytest.mark.parametrize("policies, message", [("inf,teleport", "teleport"), (" , ", "no policy")])
+@pytest.mark.parametrize("policies, message", [("inf,teleport", "teleport"), (" , ", "no policy"), ("inf,inf", "twice"),
+                                              ("policies/a2c_gnn_synthetic.pt,./policies/a2c_gnn_synthetic.pt", "would write one dataset")])  # fmt: skip
 def test_datasets_checks_every_behaviour_policy_before_collecting(monkeypatch, tmp_path, policies, message):
     import marl_amod.datasets
     from marl_amod.errors import ConfigError
@@ -321,3 +322,11 @@ def test_long_commands_log_a_line_a_tenth_when_not_on_a_terminal(terminal):
     else:
         assert [ln.split(":")[0] for ln in lines] == ["collect"] * 5 + ["train"]
         assert "10/20 (50%)" in lines[4] and "750/1,000 (70%)" in lines[5]
+
+
+def test_a_checkpoints_dataset_is_named_by_its_file_not_its_path(monkeypatch, tmp_path):
+    written = []
+    monkeypatch.setattr("marl_amod.cli._collect_one", lambda scenario, name, episodes, seed, out, *a: written.append(out))
+    result = runner.invoke(app, ["datasets", "--scenario", "synthetic", "--policies", "policies/a2c_gnn_synthetic.pt,prop", "--out-dir", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert written == [tmp_path / "synthetic_a2c_gnn_synthetic.npz", tmp_path / "synthetic_prop.npz"]
