@@ -190,7 +190,10 @@ def policies_(
         atomic_write(check_destination(markdown, what="policy index"), pc.markdown(folder, results) + "\n")
         console.print(f"wrote {markdown}")
         return
-    entries = pc.read_entries(folder, seeds=seeds)
+    unreadable: list[tuple[Path, str]] = []
+    entries = pc.read_entries(folder, seeds=seeds, unreadable=unreadable)
+    for path, why in unreadable:
+        console.print(f"[yellow]left out {escape(str(path))}[/yellow]: {escape(why)}", soft_wrap=True)
     for asked, what, known in ((algorithm, "trained with", {e.card["algorithm"] for e in entries}),
                                (scenario, "trained in", {e.trained_in for e in entries} | {e.card["scenario"] for e in entries})):
         for name in asked or []:

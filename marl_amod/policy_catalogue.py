@@ -20,7 +20,7 @@ from typing import Any
 
 from marl_amod.checkpoints import read_card
 from marl_amod.ensemble import ENSEMBLE_SUFFIXES, read_spec
-from marl_amod.errors import ConfigError
+from marl_amod.errors import ConfigError, MarlAmodError
 from marl_amod.metrics import normalised_score, score_anchors
 
 SEEDS = "seeds"  # the sub-folder of training-seed members
@@ -75,13 +75,26 @@ def trained_on(card: dict[str, Any]) -> str:
     return f"{card['episodes_trained']:,} episodes {minutes}"
 
 
-def read_entries(folder: str | Path, *, seeds: bool = False) -> list[Entry]:
-    """Every checkpoint of ``folder`` (and of its ``seeds/`` with ``seeds``), by name, cards checked against their files."""
+def read_entries(folder: str | Path, *, seeds: bool = False, unreadable: list[tuple[Path, str]] | None = None) -> list[Entry]:
+    """Every checkpoint of ``folder`` (and of its ``seeds/`` with ``seeds``), by name, cards checked against their files.
+
+    A file that is not a readable policy with its card raises, unless ``unreadable`` is given: then it
+    is left out and noted there as (path, why), so one damaged file does not hide the rest of a listing."""
     folder = Path(folder)
+    if folder.is_file():
+        raise ConfigError(f"{folder} is a file; give the policy folder that holds it (marl-amod policies {folder.parent})")
     if not folder.is_dir():
         raise ConfigError(f"policy folder {folder} not found")
     paths = sorted(folder.glob("*.pt")) + (sorted((folder / SEEDS).glob("*.pt")) if seeds else [])
-    return [Entry(p, read_card(p)) for p in paths]
+    entries = []
+    for p in paths:
+        try:
+            entries.append(Entry(p, read_card(p)))
+        except MarlAmodError as exc:
+            if unreadable is None:
+                raise
+            unreadable.append((p, str(exc)))
+    return entries
 
 
 def read_ensembles(folder: str | Path) -> dict[Path, list[str]]:

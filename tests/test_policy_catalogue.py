@@ -89,6 +89,14 @@ def test_the_command_filters_and_names_what_it_could_list(tmp_path, tiny_city):
     assert "`sac_one`" in index.read_text()
     with pytest.raises(ConfigError, match="policy folder .* not found"):
         pc.read_entries(tmp_path / "missing")
+    with pytest.raises(ConfigError, match="is a file; give the policy folder that holds it"):
+        pc.read_entries(folder / "a2c_one.pt")
+    (folder / "broken.pt").write_bytes(b"not a checkpoint")  # one damaged file: the listing goes on without it
+    out = runner.invoke(app, ["policies", str(folder), "--results", str(tmp_path)])
+    assert out.exit_code == 0, out.output
+    assert "left out" in out.output and "broken.pt" in out.output and "a2c_one" in out.output and "sac_one" in out.output
+    index = runner.invoke(app, ["policies", str(folder), "--markdown", str(tmp_path / "index2.md")])  # the index leaves nothing out
+    assert index.exit_code != 0 and "broken.pt" in str(index.exception)
 
 
 def test_training_is_described_in_the_units_each_trainer_counts():
