@@ -25,6 +25,7 @@ from marl_amod.coordinator.rebalance import check_target
 from marl_amod.errors import ConfigError
 from marl_amod.scenario.types import City
 from marl_amod.sim.batch import BatchMacroSim
+from marl_amod.validation import as_flag
 
 Seed = int | np.random.SeedSequence | None
 
@@ -58,7 +59,7 @@ class BatchFleetSystem:
         if city.simulator.kind != "macro":
             raise ConfigError(f"{city.name} runs in its own simulator; the batched path is macro only")
         self.city = city
-        self.validate = bool(validate)  # as FleetSystem's: re-check the coordinator's inputs and flows
+        self.validate = as_flag(validate, "validate")  # as FleetSystem's: re-check the coordinator's inputs and flows
         self.num_envs = int(num_envs)
         self.sim = BatchMacroSim(city, num_envs, max_wait=max_wait)
         self.coordinator = Coordinator(city, objective=objective)  # the fast exact path; cvxpy checks it in tests

@@ -422,8 +422,7 @@ def collect(
     from marl_amod import parallel_env
     from marl_amod.env.features import n_features
 
-    if as_count(episodes, "episodes") < 1:
-        raise ConfigError(f"episodes must be >= 1, got {episodes}")
+    as_count(episodes, "episodes", lower=1)
     seed, first_episode = as_seed(seed), as_count(first_episode, "first_episode")
     env = parallel_env(city, reward_mode="local", action_mode="weight", lookahead=lookahead, max_wait=max_wait, arrivals_now=arrivals_now)
     behaviour = EnvActionPolicy(policy, noise)

@@ -59,8 +59,7 @@ def evaluate(
     """
     if isinstance(policy, City) or isinstance(scenario, Policy):
         raise ConfigError("evaluate(policy, scenario, ...) takes the policy first, then the scenario")
-    if as_count(episodes, "episodes") < 1:
-        raise ConfigError(f"episodes must be >= 1, got {episodes}")
+    as_count(episodes, "episodes", lower=1)
     seed = as_seed(seed)
     city = scenario if isinstance(scenario, City) else load_city(str(scenario))
     system_options = {key: options.pop(key) for key in SYSTEM_OPTIONS if key in options}

@@ -23,6 +23,7 @@ from marl_amod.coordinator.coordinator import Backend, Coordinator, Objective
 from marl_amod.coordinator.rebalance import check_target
 from marl_amod.scenario.types import City
 from marl_amod.sim.base import Simulator, make_simulator
+from marl_amod.validation import as_flag
 
 
 @dataclass(frozen=True)
@@ -73,7 +74,7 @@ class FleetSystem:
         validate: bool = False,
     ) -> None:
         self.city = city
-        self.validate = bool(validate)  # re-check the coordinator's inputs and flows every step (debugging)
+        self.validate = as_flag(validate, "validate")  # re-check the coordinator's inputs and flows every step (debugging)
         # the city's own simulator (macro unless the scenario says otherwise), or one passed in
         self.sim = sim if sim is not None else make_simulator(city, max_wait)
         self.coordinator = Coordinator(city, objective=objective, solver=solver)

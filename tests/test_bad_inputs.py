@@ -335,6 +335,11 @@ def test_numpy_seeds_are_seeds_and_negative_seeds_a_clear_error():
         evaluate("equal-distribution", "synthetic", episodes=1, seed=-1)
     result = runner.invoke(app, ["evaluate", "--episodes", "1", "--seed", "-1"])
     assert result.exit_code == 2 and "--seed" in result.output
+    for episodes in (0, -1):  # one message for every count below one
+        with pytest.raises(ConfigError, match=f"episodes must be an integer >= 1, got {episodes}"):
+            evaluate("equal-distribution", "synthetic", episodes=episodes)
+    with pytest.raises(ConfigError, match="validate must be True or False, got 'false'"):  # bool("false") would switch it on
+        evaluate("equal-distribution", "synthetic", episodes=1, validate="false")
 
 
 def test_max_wait_and_episode_counts_are_bounded_up_front(tiny_city):
@@ -343,9 +348,9 @@ def test_max_wait_and_episode_counts_are_bounded_up_front(tiny_city):
     with pytest.raises(ConfigError, match="max_wait"):
         MacroSim(tiny_city, max_wait=True)
     assert FleetSystem(tiny_city, max_wait=np.int64(6)).sim.max_wait == 6
-    with pytest.raises(ConfigError, match="episodes must be >= 1"):
+    with pytest.raises(ConfigError, match="episodes must be an integer >= 1"):
         evaluate("equal-distribution", tiny_city, episodes=0)
-    with pytest.raises(ConfigError, match="episodes must be >= 1"):
+    with pytest.raises(ConfigError, match="episodes must be an integer >= 1"):
         collect(tiny_city, NanPolicy(), episodes=0)
 
 
