@@ -123,6 +123,12 @@ def test_user_yaml_scenario(tmp_path):
     mine.write_text("name: mine\nsource: synthetic\nrows: 2\ncols: 3\nhorizon: 5\n")
     city = load_city(str(mine))
     assert (city.name, city.n_regions, city.horizon) == ("mine", 6, 5)
+    (tmp_path / "empty.yaml").write_text("")
+    with pytest.raises(ConfigError, match="empty.yaml: the scenario file is empty"):
+        load_city(str(tmp_path / "empty.yaml"))
+    (tmp_path / "typo.yaml").write_text("sorce: synthetic\n")
+    with pytest.raises(ConfigError, match="'source' must be 'json', 'synthetic' or 'sumo', got None"):
+        load_city(str(tmp_path / "typo.yaml"))
 
 
 def test_a_scenario_extends_another_and_changes_only_what_it_names(tmp_path):

@@ -187,6 +187,8 @@ def load_spec(name_or_path: str, **overrides: Any) -> ScenarioSpec:
     source = raw.get("source")
     model = {"json": JsonScenario, "synthetic": SyntheticScenario, "sumo": SumoScenario}.get(source)
     if model is None:
+        if not raw:
+            raise ConfigError(f"{path}: the scenario file is empty; a scenario needs at least 'source' (json, synthetic or sumo)")
         raise ConfigError(f"{path}: 'source' must be 'json', 'synthetic' or 'sumo', got {source!r}")
     try:
         spec = model(**raw)
