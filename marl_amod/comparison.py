@@ -38,7 +38,8 @@ class CompareConfig(BaseModel):
     scenario: str
     episodes: int = Field(10, ge=1, description="evaluation episodes per policy (demand streams (seed, k))")
     seed: int = 0
-    baselines: list[str] = Field(default_factory=lambda: ["equal-distribution", "plus-one", "no-rebalancing"])
+    baselines: list[str] = Field(default_factory=lambda: ["equal-distribution", "plus-one", "no-rebalancing"], min_length=1,
+                                 description="at least one: every row's gap is to the best of them")  # fmt: skip
     runs: list[RunSpec] = Field(default_factory=list)
     output: str = Field("results/compare", description="folder for compare.md, compare.json and plots")
 

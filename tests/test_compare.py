@@ -50,6 +50,16 @@ def test_two_runs_writing_one_policy_are_refused_before_any_training(compare_con
         load_compare_config(compare_config)
 
 
+def test_a_comparison_without_baselines_is_refused(compare_config: Path) -> None:
+    from marl_amod.comparison import load_compare_config
+    from marl_amod.errors import ConfigError
+
+    raw = yaml.safe_load(compare_config.read_text())
+    compare_config.write_text(yaml.safe_dump({**raw, "baselines": []}))  # the gap column would be nan
+    with pytest.raises(ConfigError, match="baselines: List should have at least 1 item"):
+        load_compare_config(compare_config)
+
+
 def test_compare_announces_training_before_it_starts(compare_config: Path, tmp_path: Path) -> None:
     res = CliRunner().invoke(app, ["compare", "--config", str(compare_config)])
     assert res.exit_code == 0, res.output
