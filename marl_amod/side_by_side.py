@@ -99,11 +99,18 @@ def plan(configs: Sequence[str | Path]) -> list[Member]:
     from marl_amod.algos.common import check_separate_outputs
     from marl_amod.algos.registry import load_train_config
     from marl_amod.files import check_destination
+    from marl_amod.scenario import load_spec
+    from marl_amod.scenario.variants import base_city
 
     if len(configs) < 2:
         raise ConfigError(f"an ensemble takes two or more training configs, got {len(configs)}")
     loaded = [(config, *load_train_config(config)) for config in map(Path, configs)]
     for config, _, args in loaded:
+        for scenario in (args.scenario, *getattr(args, "cities", [])):  # here, not in a member's process
+            try:
+                load_spec(base_city(scenario))
+            except ConfigError as exc:
+                raise ConfigError(f"{config}: {exc}") from None
         if not args.policy_out:
             raise ConfigError(f"{config}: policy_out is empty, so the run would write no policy to put in the ensemble")
         check_destination(args.policy_out, what=f"{config}: policy_out")  # now, not when that member's run ends

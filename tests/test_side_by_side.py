@@ -91,6 +91,8 @@ def test_one_config_or_one_without_a_policy_is_no_ensemble(tmp_path, tiny_yaml):
         plan([first])
     with pytest.raises(ConfigError, match="policy_out is empty"):
         plan([first, _config(tmp_path, tiny_yaml, 1, policy_out="")])
+    with pytest.raises(ConfigError, match="member1.yaml: unknown scenario 'atlantis'"):  # here, not in the member's process
+        plan([first, _config(tmp_path, "atlantis", 1)])
 
 
 def test_resume_keeps_the_done_member_and_resumes_the_stopped_one_from_its_state(tmp_path, tiny_yaml, monkeypatch):
