@@ -57,22 +57,16 @@ def test_members_train_side_by_side_and_become_one_ensemble(tmp_path, tiny_yaml)
 
 def test_a_member_that_fails_writes_no_ensemble_and_names_its_log(tmp_path, tiny_yaml):
     good = _config(tmp_path, tiny_yaml, 0)
-    bad = _config(tmp_path, tiny_yaml, 1)
-    tiny_yaml_path = Path(tiny_yaml)
-    bad_args = yaml.safe_load(bad.read_text())
-    bad_args["args"]["scenario"] = str(tmp_path / "gone.yaml")  # valid as a config, fails when the run builds its city
-    (tmp_path / "gone.yaml").write_text(tiny_yaml_path.read_text())
-    bad.write_text(yaml.safe_dump(bad_args))
+    bad = _config(tmp_path, tiny_yaml, 1, init_actor=str(tmp_path / "gone.pt"))  # valid as a config, fails when the run loads its start
     out = tmp_path / "policies" / "pair.yaml"
     members = plan([good, bad])
-    (tmp_path / "gone.yaml").unlink()
     assert members[1].config == bad
     res = CliRunner().invoke(app, ["train-ensemble", str(good), str(bad), "--out", str(out)])
     assert res.exit_code == 1, res.output
     assert not out.exists() and (tmp_path / "policies" / "p0.pt").is_file()
     assert "1 member(s) failed" in res.output
     said = next(line for line in res.output.splitlines() if line.startswith(f"{bad} failed"))
-    assert str(tmp_path / "run1" / "train.log") in said and "gone.yaml" in said  # the child's own error, its last line
+    assert str(tmp_path / "run1" / "train.log") in said and "gone.pt" in said  # the child's own error, its last line
 
 
 @pytest.mark.parametrize("clash", ["run_dir", "policy_out"])
