@@ -161,6 +161,23 @@ def test_supersuit_seed_forwarding_makes_resets_reproducible() -> None:
     vec.close()
 
 
+def test_copies_of_a_seeded_env_draw_their_own_unseeded_episodes() -> None:
+    """SuperSuit pickles the env into each copy: after a seeded reset (e.g. checking the env first),
+    the copies' unseeded episodes must differ, or every copy replays one demand stream."""
+    pytest.importorskip("stable_baselines3")
+    from marl_amod.integrations.sb3 import sb3_vec_env
+
+    env = marl_amod.parallel_env(horizon=6)
+    env.reset(seed=0)
+    vec = sb3_vec_env(env, copies=2)
+    obs = vec.reset()  # no seed: each copy's own stream
+    n = len(env.possible_agents)
+    for _ in range(3):  # past step 0: the idle fleets then differ by the requests served
+        obs, *_ = vec.step(np.full((2 * n, 1), 0.5, np.float32))
+    assert not np.array_equal(obs[:n], obs[n:])
+    vec.close()
+
+
 def test_torchrl_pettingzoo_wrapper_rollout() -> None:
     pytest.importorskip("torchrl")
     import torch

@@ -91,10 +91,13 @@ def test_max_cycles_truncates_at_the_cap_or_the_horizon(small_city, max_cycles) 
         env.reset(seed=seed)
         steps = 0
         while env.agents:
-            _, _, term, trunc, _ = env.step(_const(env, 0.5))
+            _, _, term, trunc, infos = env.step(_const(env, 0.5))
             steps += 1
             assert all(trunc.values()) == (env.agents == []) and not any(term.values())
         assert steps == min(max_cycles, small_city.horizon - 1)
+        # the episode's rates are over the steps it ran (step 0 and each control step), not the whole horizon
+        busy = env.system.sim.totals.busy_vehicle_steps.sum()
+        assert infos["region_0"]["system_utilization"] == pytest.approx(busy / (small_city.fleet_size * (steps + 1)))
 
 
 def test_reward_scale_multiplies_rewards_and_leaves_infos_in_money(small_city) -> None:

@@ -262,7 +262,8 @@ class AmodParallelEnv(HasEnvOptions, ParallelEnv):
         reb_cost = outcome.region_rebalancing_cost.astype(float, copy=False).tolist()
         new = sim.demand[sim.t].sum(axis=1).astype(np.int64, copy=False).tolist()
         idle = np.asarray(sim.idle).astype(np.int64, copy=False).tolist()
-        metrics = metric_arrays(sim.totals, city.fleet_size, city.horizon)  # as episode_metrics, as floats below
+        # as episode_metrics, as floats below; over the episode's steps as run (max_cycles + step 0: the horizon by default)
+        metrics = metric_arrays(sim.totals, city.fleet_size, self.max_cycles + 1)
         system = {key: float(metrics[name]) for name, key in _SYSTEM_INFOS.items()}
         return {
             a: {"served": s, "demand": d, "rebalancing_cost": c, "idle": i, **system}
@@ -270,8 +271,13 @@ class AmodParallelEnv(HasEnvOptions, ParallelEnv):
         }
 
     def __getstate__(self) -> dict:
+        """A copy continues the running episode exactly, and draws its own later unseeded episodes: vector
+        wrappers (SuperSuit's, SB3's) pickle one env into several copies, which would otherwise
+        replay one demand stream in every copy. Each copy takes the next child of this env's stream."""
         state = self.__dict__.copy()
         state["_viewer"] = None  # a window cannot travel; a copy opens its own
+        if self._seeds is not None:
+            state["_seeds"] = self._seeds.spawn(1)[0]
         return state
 
 

@@ -181,7 +181,7 @@ class AmodVectorEnv(HasEnvOptions):
 
     def _infos(self, outcome: BatchOutcome) -> dict[str, np.ndarray]:
         sim, city = self.system.sim, self.city
-        metrics = metric_arrays(sim.totals, city.fleet_size, city.horizon)
+        metrics = metric_arrays(sim.totals, city.fleet_size, self.max_cycles + 1)  # the episode's steps as run (the horizon by default)
         return {
             "served": outcome.dispatch.sum(axis=-1),
             "demand": sim.demand[:, sim.t].sum(axis=-1),
