@@ -13,6 +13,7 @@ from pettingzoo.test import api_test, max_cycles_test, render_test, state_test
 
 import marl_amod
 from marl_amod.env.parallel import AmodParallelEnv
+from marl_amod.errors import ConfigError
 from tests.conftest import needs_data
 
 SCENARIOS = [
@@ -176,6 +177,9 @@ def test_copies_of_a_seeded_env_draw_their_own_unseeded_episodes() -> None:
         obs, *_ = vec.step(np.full((2 * n, 1), 0.5, np.float32))
     assert not np.array_equal(obs[:n], obs[n:])
     vec.close()
+    for bad in (0, -1, 1.5, True):  # a count, as everywhere else
+        with pytest.raises(ConfigError, match="copies must be"):
+            sb3_vec_env(marl_amod.parallel_env(horizon=6), copies=bad)
 
 
 def test_torchrl_pettingzoo_wrapper_rollout() -> None:

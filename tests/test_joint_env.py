@@ -56,3 +56,32 @@ def test_joint_env_keeps_the_action_rules(tiny_city) -> None:
     for wrong in (np.full(n, "0.5"), np.full(n, 0.5 + 1j), np.ones(n, dtype=bool)):  # refused as the ParallelEnv does
         with pytest.raises(ActionError, match="real numbers"):
             env.step(wrong)
+
+
+def test_joint_actions_are_read_as_given_and_only_in_the_envs_shapes(tiny_city) -> None:
+    """No float32 cast before the checks: a huge finite value is clipped (not made inf), a tiny one is a
+    weight (not rounded to 0); a (4, 4) array for 16 regions is not a joint action."""
+    n = tiny_city.n_regions
+    for values in (np.full(n, 1e39), np.full(n, 1e-46)):  # both: equal weights everywhere
+        joint, parallel = joint_env(tiny_city), marl_amod.parallel_env(tiny_city)
+        joint.reset(seed=1), parallel.reset(seed=1)
+        got = joint.step(values)[1]
+        assert got == parallel.step({a: values[i : i + 1] for i, a in enumerate(parallel.possible_agents)})[1]["region_0"]
+    env = joint_env(tiny_city)
+    env.reset(seed=0)
+    for shape in ((1, n), (n, 1, 1)):
+        with pytest.raises(ActionError, match=f"shape \\({n},\\) or \\({n}, 1\\)"):
+            env.step(np.full(shape, 0.5))
+    assert env.metadata["render_fps"] == marl_amod.parallel_env(tiny_city).metadata["render_fps"]
+
+
+def test_an_action_that_requires_grad_says_to_detach_it(tiny_city) -> None:
+    torch = pytest.importorskip("torch")
+    env = marl_amod.parallel_env(tiny_city)
+    env.reset(seed=0)
+    with pytest.raises(ActionError, match="action of region_0: a tensor that requires grad; pass action.detach"):
+        env.step({a: torch.tensor([0.5], requires_grad=True) for a in env.agents})
+    joint = joint_env(tiny_city)
+    joint.reset(seed=0)
+    with pytest.raises(ActionError, match="requires grad"):
+        joint.step(torch.rand(tiny_city.n_regions, requires_grad=True))

@@ -54,7 +54,7 @@ def joint_action(actions: Mapping[str, Any], agents: Sequence[str], *, strict: b
         raise ActionError(f"actions given for unknown or finished agent(s): {', '.join(map(str, unknown[:5]))}")
     out = np.empty(len(agents))
     for k, agent in enumerate(agents):
-        value = np.asarray(actions[agent], dtype=np.float64) if _numeric(actions[agent]) else None
+        value = np.asarray(actions[agent], dtype=np.float64) if _numeric(actions[agent], f"action of {agent}") else None
         if value is None:
             raise ActionError(f"action of {agent} must be a number or an array of shape (1,), got {actions[agent]!r}")
         if value.shape not in ((), (1,)):
@@ -121,14 +121,21 @@ def real_array(actions: Any, what: str = "actions") -> np.ndarray:
         a = np.asarray(actions)
     except (TypeError, ValueError) as exc:  # ragged lists, tensors that live on another device
         raise ActionError(f"{what} must be a numeric array: {exc}") from exc
+    except RuntimeError as exc:  # a torch tensor that requires grad
+        raise ActionError(f"{what}: {GRAD_HINT} ({str(exc).splitlines()[0]})") from exc
     if a.dtype.kind not in "iuf":
         raise ActionError(f"{what} must be real numbers (an int or float array), got dtype {a.dtype}")
     return a
 
 
-def _numeric(value: Any) -> bool:
+GRAD_HINT = "a tensor that requires grad; pass action.detach() (or act under torch.no_grad())"
+
+
+def _numeric(value: Any, what: str) -> bool:
     """Real numbers only: numpy would read "0.5" as 0.5 and drop a complex number's imaginary part."""
     try:
         return np.asarray(value).dtype.kind in "iuf"
     except (TypeError, ValueError):
         return False
+    except RuntimeError as exc:  # a torch tensor that requires grad: say so, not "not a number"
+        raise ActionError(f"{what}: {GRAD_HINT}") from exc

@@ -36,7 +36,7 @@ from marl_amod.errors import ActionError
 class JointEnv(gymnasium.Env):
     """A marl_amod ParallelEnv seen as one agent acting for all N regions (see module doc)."""
 
-    metadata = {"render_modes": ["human", "rgb_array"], "name": "amod_joint_v0"}
+    metadata = {"render_modes": ["human", "rgb_array"], "name": "amod_joint_v0", "render_fps": AmodParallelEnv.metadata["render_fps"]}
 
     def __init__(self, env: AmodParallelEnv) -> None:
         self.parallel = env
@@ -55,10 +55,11 @@ class JointEnv(gymnasium.Env):
         return self._stack(obs), self._info(infos)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        action = real_array(action, "the joint action").astype(np.float32, copy=False)
-        if action.size != len(self.agents):
-            raise ActionError(f"the joint action needs one value per region ({len(self.agents)}), got shape {action.shape}")
-        action = action.reshape(len(self.agents), 1)  # (N,) or (N, 1): one (1,) action per region
+        action = real_array(action, "the joint action")  # as given: a float32 cast first would turn 1e39 into inf, 1e-46 into 0
+        n = len(self.agents)
+        if action.shape not in ((n,), (n, 1)):
+            raise ActionError(f"the joint action needs one value per region, shape ({n},) or ({n}, 1), got shape {action.shape}")
+        action = action.reshape(n, 1)  # one (1,) action per region
         obs, rewards, terms, truncs, infos = self.parallel.step({a: action[i] for i, a in enumerate(self.agents)})
         reward = sum(rewards.values()) if self.parallel.reward_mode == "local" else rewards[self.agents[0]]
         return self._stack(obs), float(reward), all(terms.values()), all(truncs.values()), self._info(infos)

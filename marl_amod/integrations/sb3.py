@@ -13,6 +13,7 @@ from __future__ import annotations
 from typing import Any
 
 from marl_amod.errors import ConfigError
+from marl_amod.validation import as_count
 
 
 def _import_backends() -> tuple[Any, Any]:
@@ -26,6 +27,7 @@ def _import_backends() -> tuple[Any, Any]:
 
 def sb3_vec_env(env: Any, copies: int = 1) -> Any:
     """An SB3 ``VecEnv`` with ``copies`` x N rows over a marl_amod ParallelEnv, seeds forwarded."""
+    copies = as_count(copies, "copies", lower=1)
     ss, vec_env_wrapper = _import_backends()
 
     class SeedForwarding(vec_env_wrapper):
