@@ -217,6 +217,24 @@ def test_record_episode_writes_an_animated_gif(tiny_city, tmp_path) -> None:
     assert len(frames) == tiny_city.horizon  # reset frame + one per step
     back = imageio.mimread(path)
     assert len(back) == len(frames) and back[0].shape[:2] == frames[0].shape[:2]
+    with pytest.raises(ValueError, match="not the AEC env"):  # it plays all agents at once
+        record_episode(marl_amod.env(tiny_city, render_mode="rgb_array"), seed=0)
+
+
+def test_options_the_envs_cannot_use_are_clear_errors(tiny_city) -> None:
+    env = marl_amod.parallel_env(tiny_city)
+    with pytest.raises(ConfigError, match="takes a dict or None, got str"):
+        env.reset(seed=0, options="fast")
+    env.reset(seed=0, options={"from_a_wrapper": 1})  # a wrapper's keys pass (the env reads none)
+    venv = marl_amod.vector_env(tiny_city, num_envs=2)
+    with pytest.raises(ConfigError, match="takes a dict or None"):
+        venv.reset(seed=0, options=[1])
+    with pytest.raises(ConfigError, match="num_envs must be an integer >= 1, got True"):
+        marl_amod.vector_env(tiny_city, num_envs=True)
+    with pytest.raises(ConfigError, match="the vector env does not render"):
+        marl_amod.vector_env(tiny_city, render_mode="rgb_array")
+    with pytest.raises(ConfigError, match="lookahead must be a positive number of steps, got True"):
+        marl_amod.evaluate(lambda obs: {a: [1.0] for a in obs}, tiny_city, episodes=1, lookahead=True)
 
 
 def test_human_mode_renders_on_reset_and_step_without_a_display(tiny_city) -> None:

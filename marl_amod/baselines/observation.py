@@ -39,7 +39,7 @@ class ObservationPolicy(Policy):
             raise ConfigError(f"a policy must be a name, a checkpoint path or a callable, got {type(fn).__name__}")
         if action_mode not in act.ACTION_MODES:
             raise ConfigError(f"action_mode must be one of {act.ACTION_MODES}, got {action_mode!r}")
-        if not isinstance(lookahead, (int, np.integer)) or lookahead < 1:
+        if isinstance(lookahead, (bool, np.bool_)) or not isinstance(lookahead, (int, np.integer)) or lookahead < 1:
             raise ConfigError(f"lookahead must be a positive number of steps, got {lookahead!r}")
         self.fn, self.lookahead, self.action_mode = fn, int(lookahead), action_mode
         self.arrivals_now = as_flag(arrivals_now, "arrivals_now")

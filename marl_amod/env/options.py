@@ -8,6 +8,7 @@ them as (:class:`HasEnvOptions`) live here.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -96,3 +97,11 @@ class HasEnvOptions:
 
 
 ENV_ATTRIBUTES = tuple(name for name in EnvOptions.__dataclass_fields__ if name != "city")
+
+
+def check_reset_options(options: Any) -> None:
+    """``reset(options=...)``: a dict or None, as the PettingZoo and Gymnasium APIs type it. The envs read
+    none of its keys (everything an episode depends on is set when the env is made, or by the seed), so
+    wrappers may pass theirs; anything but a dict is a mistake worth saying."""
+    if options is not None and not isinstance(options, Mapping):
+        raise ConfigError(f"reset(options=...) takes a dict or None, got {type(options).__name__}; the env reads no reset options")

@@ -88,7 +88,7 @@ from marl_amod.env import actions as act
 from marl_amod.env import observations as ob
 from marl_amod.env.features import feature_high as feature_bounds
 from marl_amod.env.features import n_features
-from marl_amod.env.options import HasEnvOptions, env_options
+from marl_amod.env.options import HasEnvOptions, check_reset_options, env_options
 from marl_amod.env.rewards import RewardMode, agent_rewards
 from marl_amod.errors import ConfigError
 from marl_amod.metrics import METRICS, metric_arrays
@@ -177,6 +177,7 @@ class AmodParallelEnv(HasEnvOptions, ParallelEnv):
 
     # ------------------------------------------------------------------ episode
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
+        check_reset_options(options)
         if seed is not None:
             seed = as_seed(seed)  # numpy integers welcome; a negative seed is a clear error
             self._seeds = np.random.SeedSequence(seed)

@@ -126,8 +126,12 @@ def record_episode(
     path: str | Path | None = None, fps: float = 4.0,
 ) -> list[np.ndarray]:
     """Roll out ``policy`` (observations -> actions; random if None) on an rgb_array env; optionally write a GIF."""
-    if env.render_mode != "rgb_array":
+    from pettingzoo import ParallelEnv
+
+    if getattr(env, "render_mode", None) != "rgb_array":
         raise ValueError("record_episode needs an env made with render_mode='rgb_array'")
+    if not isinstance(env, ParallelEnv):
+        raise ValueError("record_episode plays a ParallelEnv (all agents act at once), not the AEC env: use marl_amod.parallel_env(...)")
     obs, _ = env.reset(seed=seed)
     frames = [env.render()]
     while env.agents:

@@ -38,12 +38,12 @@ from marl_amod.coordinator.coordinator import Objective
 from marl_amod.env import actions as act
 from marl_amod.env import observations as ob
 from marl_amod.env.features import feature_high, n_features, state_features
-from marl_amod.env.options import HasEnvOptions, env_options
+from marl_amod.env.options import HasEnvOptions, check_reset_options, env_options
 from marl_amod.env.rewards import RewardMode
 from marl_amod.errors import ActionError, ConfigError
 from marl_amod.metrics import metric_arrays
 from marl_amod.scenario import City
-from marl_amod.validation import as_seed
+from marl_amod.validation import as_count, as_seed
 
 
 class AmodVectorEnv(HasEnvOptions):
@@ -68,8 +68,9 @@ class AmodVectorEnv(HasEnvOptions):
         validate: bool = False,
         **scenario_overrides: Any,
     ) -> None:
-        if not isinstance(num_envs, (int, np.integer)) or num_envs < 1:
-            raise ConfigError(f"num_envs must be a positive integer, got {num_envs!r}")
+        if "render_mode" in scenario_overrides:  # would read as a scenario key otherwise
+            raise ConfigError("the vector env does not render: drop render_mode (a ParallelEnv of one episode does: marl_amod.parallel_env(..., render_mode=...))")
+        num_envs = as_count(num_envs, "num_envs", lower=1)  # a bool is not a count
         opts = env_options(
             scenario, reward_mode=reward_mode, action_mode=action_mode, lookahead=lookahead, reward_scale=reward_scale,
             strict_actions=strict_actions, max_cycles=max_cycles, scenario_overrides=scenario_overrides,
@@ -100,6 +101,7 @@ class AmodVectorEnv(HasEnvOptions):
     # ------------------------------------------------------------------ episode
     def reset(self, seed: int | Sequence[Seed] | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
         """B new episodes; returns observations (B, N, D) and infos."""
+        check_reset_options(options)
         b = self.num_envs
         if seed is None:
             if self._seeds is None:
