@@ -29,19 +29,23 @@ def check_destination(path: str | Path, *, what: str = "output") -> Path:
     path = Path(path).expanduser()
     if path.is_dir():
         raise OutputError(f"{what} {path} is a directory; give a file name")
-    parent = path.parent
-    for ancestor in (parent, *parent.parents):
+    _make_folder(path.parent, f"{what} {path}")
+    return path
+
+
+def _make_folder(folder: Path, label: str) -> None:
+    """Create ``folder`` (and its parents) or raise an :class:`OutputError` starting with ``label``."""
+    for ancestor in (folder, *folder.parents):
         if ancestor.exists():
             if not ancestor.is_dir():
-                raise OutputError(f"{what} {path}: {ancestor} is a file, not a folder")
+                raise OutputError(f"{label}: {ancestor} is a file, not a folder")
             break
     try:
-        parent.mkdir(parents=True, exist_ok=True)
+        folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise OutputError(f"{what} {path}: cannot create folder {parent} ({exc.strerror or exc})") from exc
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise OutputError(f"{what} {path}: folder {parent} is not writable")
-    return path
+        raise OutputError(f"{label}: cannot create folder {folder} ({exc.strerror or exc})") from exc
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise OutputError(f"{label}: folder {folder} is not writable")
 
 
 def _umask() -> int:
@@ -64,17 +68,7 @@ def check_folder(path: str | Path, *, what: str = "output folder") -> Path:
     """``path`` as a folder that exists now (created with its parents), else an :class:`OutputError`
     naming it and the reason (a file in the way, no permission): before the work that fills it."""
     path = Path(path).expanduser()
-    for ancestor in (path, *path.parents):
-        if ancestor.exists():
-            if not ancestor.is_dir():
-                raise OutputError(f"{what} {path}: {ancestor} is a file, not a folder")
-            break
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise OutputError(f"{what} {path}: cannot create it ({exc.strerror or exc})") from exc
-    if not os.access(path, os.W_OK | os.X_OK):
-        raise OutputError(f"{what} {path} is not writable")
+    _make_folder(path, f"{what} {path}")
     return path
 
 
