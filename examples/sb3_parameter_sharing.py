@@ -10,7 +10,7 @@ the policy saturates at weight 1 everywhere, which is equal distribution exactly
 agent-steps (200k, about 1 CPU-minute) and small rollouts; ``reward_scale="auto"`` (rewards divided
 by the city's expected fares per step, so near 1 as SB3's defaults assume) helps a little.
 Measured on the synthetic city through ``marl_amod.evaluate`` (the README's 10 episodes, seed 0):
-8,613 vs equal distribution 8,266 (+4.2%). Earlier, on the env's seeds 1000-1009: 8,717 vs 8,330
+8,613 vs equal distribution 8,266 (+4.2%; 8,600 on an AMD EPYC: the CPU decides PPO's floats). Earlier, on the env's seeds 1000-1009: 8,717 vs 8,330
 (+4.7%); in dollars (``--reward-scale 1``) 8,646 (+3.8%).
 
     pip install "marl-amod[sb3]"

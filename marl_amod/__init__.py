@@ -67,13 +67,14 @@ def evaluate(
     return run(policy, scenario, episodes, seed, **options)
 
 
-def load_policy(path: str | Path, scenario: str | City | None = None) -> WeightPolicy:
+def load_policy(path: str | Path, scenario: str | City | None = None, **options: Any) -> WeightPolicy:
     """A trained policy (``.pt``, or an ensemble ``.yaml`` of them) for the simulator and, unless
     it is a meta-policy (which reads the simulator), as a callable on the env's observations
-    (default city: its card's)."""
+    (default city: its card's). ``options``: ``selection`` and ``adaptation``, as
+    :func:`marl_amod.checkpoints.load_policy` takes them."""
     from marl_amod.checkpoints import load_policy as load
 
-    return load(path, scenario)
+    return load(path, scenario, **options)
 
 
 def __getattr__(name: str) -> Any:

@@ -153,8 +153,14 @@ def write_ensemble(out: str | Path, members: list[str | Path], adaptation: Adapt
     atomic_write(out, "members:\n" + "".join(f"  - {r}\n" for r in relative) + (f"adaptation: {adaptation}\n" if adaptation else "")
                  + ("together: true\n" if together else ""))  # fmt: skip
     read_members(out)  # what loading will check, checked now
-    atomic_write(out.with_suffix(".md"), ensemble_markdown(out, [str(m) for m in members], cards, adaptation, together))
+    card = out.with_suffix(".md")
+    kept = card.read_text().partition(NOTES)[2] if card.is_file() and NOTES in card.read_text() else ""
+    atomic_write(card, ensemble_markdown(out, [str(m) for m in members], cards, adaptation, together) + (f"\n{NOTES}{kept}" if kept else ""))
     return out
+
+
+NOTES = "<!-- notes: what follows is kept when marl-amod ensemble writes this card again -->"
+"""Where an ensemble card's written notes (a score, where it is used) begin: generated text above, kept text below."""
 
 
 def ensemble_markdown(path: Path, members: list[str], cards: list[dict[str, Any]], adaptation: Adaptation | None = None, together: bool = False) -> str:

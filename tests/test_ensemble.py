@@ -10,7 +10,7 @@ import torch
 
 from marl_amod.algos import meta
 from marl_amod.baselines import EqualDistribution, Proportional
-from marl_amod.ensemble import PolicyEnsemble, write_ensemble
+from marl_amod.ensemble import NOTES, PolicyEnsemble, write_ensemble
 from marl_amod.errors import ConfigError
 from marl_amod.evaluation import evaluate
 from marl_amod.policies import make_policy
@@ -117,6 +117,11 @@ def test_the_ensemble_command_writes_a_file_that_loads_and_a_card_of_its_members
     card = out.with_suffix(".md").read_text()
     assert all(f"| {m} | meta | {seed} |" in card for m, seed in zip(members, (0, 1), strict=True))
     assert "marl-amod evaluate --scenario synthetic --policy" in card
+    notes = f"\n{NOTES}\nScore: written by hand, kept.\n"
+    out.with_suffix(".md").write_text(card + notes)
+    again = CliRunner().invoke(app, ["ensemble", str(members[0]), str(members[1]), "--out", str(out)])
+    assert again.exit_code == 0, again.output
+    assert out.with_suffix(".md").read_text() == card + notes  # the generated part again, the notes kept
     bad = CliRunner().invoke(app, ["ensemble", str(members[0]), str(tmp_path / "none.pt"), "--out", str(tmp_path / "x.yaml")])
     assert bad.exit_code != 0 and not (tmp_path / "x.yaml").exists()
     cards = [str(m).removesuffix(".pt") + ".json" for m in members]

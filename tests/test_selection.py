@@ -45,6 +45,9 @@ def test_no_candidates_is_the_deterministic_policy(trained):
     """candidates 0 (the mean only) plays exactly today's action, from the file and from a selector."""
     city, _, cql, _ = trained
     plain, chosen = load_policy(cql, city), load_policy(cql, city, selection={"candidates": 0, "concentration": 5.0})
+    import marl_amod  # the top-level load_policy takes the same options
+
+    assert isinstance(marl_amod.load_policy(cql, city, selection=SELECT).selector, QSelector) and plain.selector is None
     critic, _ = load_critic(cql)
     only_mean = QSelector(critic, city, Selection(candidates=0, concentration=5.0))
     for x in _states(city):
