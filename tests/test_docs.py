@@ -223,3 +223,38 @@ def test_every_relative_link_and_image_of_the_guide_resolves() -> None:
     assert len(relative) > 100  # the guide's cross-references, figures included
     dead = [f"{page.relative_to(ROOT)}: {t}" for page, t in relative if not (page.parent / t.split("#")[0]).exists()]
     assert not dead, dead
+
+
+SCRIPT = re.compile(r"python (?:-m )?((?:benchmarks|examples)/[\w/]+\.py)((?:[ \t]+[^\s`|;)&]+)*)")
+
+
+def stale_script_mentions(text: str) -> list[str]:
+    """``python benchmarks/x.py --flag`` (or examples/) mentions whose script is gone or has no such
+    flag (read from the script's ``add_argument`` calls, without running it)."""
+    stale = []
+    for m in SCRIPT.finditer(text.replace("\\\n", " ")):
+        script, rest = ROOT / m.group(1), m.group(2)
+        if not script.is_file():
+            stale.append(f"no script {m.group(1)}")
+            continue
+        source = script.read_text()
+        stale += [f"{m.group(1)}: no flag {flag}" for flag in re.findall(r"(?<![\w-])(--[a-z][\w-]*)", rest)
+                  if flag != "--help" and f'"{flag}"' not in source]  # fmt: skip
+    return stale
+
+
+def missing_configs(text: str) -> list[str]:
+    """``--config configs/...yaml`` paths a page tells users to train or compare with that are not in the
+    repository (one the page writes out itself, headed ``# configs/....yaml``, is an example to copy)."""
+    return sorted({p for p in re.findall(r"--config (configs/[\w./-]+\.yaml)", text) if not (ROOT / p).is_file() and f"# {p}" not in text})
+
+
+def test_every_script_flag_and_config_the_pages_mention_exists() -> None:
+    assert stale_script_mentions("python benchmarks/results_tables.py --check --chekc; python benchmarks/nope.py") == [
+        "benchmarks/results_tables.py: no flag --chekc", "no script benchmarks/nope.py"]  # fmt: skip
+    assert missing_configs("marl-amod train --config configs/a2c/synthetic.yaml --config configs/a2c/atlantis.yaml") == [
+        "configs/a2c/atlantis.yaml"]  # fmt: skip
+    assert missing_configs("# configs/mine/x.yaml\nalgo: a2c\n... marl-amod train --config configs/mine/x.yaml") == []
+    for page in ALL_PAGES:
+        text = page.read_text()
+        assert stale_script_mentions(text) == [] and missing_configs(text) == [], page.relative_to(ROOT)
