@@ -96,6 +96,8 @@ class CommonArgs(BaseModel):
 def _read_config(path: Path, chain: tuple[Path, ...] = ()) -> dict[str, Any]:
     """The file's keys over those of the config it ``extends:`` (``args`` merged key by key)."""
     raw = read_yaml(path)
+    if "args" in raw and raw["args"] is None:  # "args:" with only comments under it: no keys, not "no args"
+        raw["args"] = {}
     base = raw.pop("extends", None)
     if base is None:
         return raw
@@ -104,6 +106,8 @@ def _read_config(path: Path, chain: tuple[Path, ...] = ()) -> dict[str, Any]:
     base_path = (path.parent / base).resolve()
     if base_path in (*chain, path.resolve()):
         raise ConfigError(f"{path}: extends: {base} makes a cycle")
+    if not base_path.is_file():
+        raise ConfigError(f"{path}: extends: {base} not found (looked for {base_path})")
     parent = _read_config(base_path, (*chain, path.resolve()))
     merged = {**parent, **raw}
     if isinstance(parent.get("args"), Mapping) and isinstance(raw.get("args"), Mapping):

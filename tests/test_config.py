@@ -82,6 +82,9 @@ def test_extends_starts_from_the_base_and_merges_args(tmp_path):
     algo, args = load_train_config(path)
     assert (algo, args.episodes, args.hidden, args.run_dir) == ("a2c", 10, 6, "runs/base")
     assert "hidden" in args.model_fields_set and "lookahead" not in args.model_fields_set
+    commented = tmp_path / "v" / "commented.yaml"
+    commented.write_text("extends: ../base.yaml\nargs:\n  # hidden: 8\n")  # args: with only a comment is no keys, not no args
+    assert load_train_config(commented)[1].run_dir == "runs/base"
 
 
 def test_extends_cycle_and_missing_base_are_clear(tmp_path):
@@ -90,7 +93,7 @@ def test_extends_cycle_and_missing_base_are_clear(tmp_path):
     with pytest.raises(ConfigError, match="makes a cycle"):
         load_train_config(tmp_path / "a.yaml")
     path = _write(tmp_path, "c.yaml", {"extends": "nowhere.yaml", "algo": "a2c"})
-    with pytest.raises(ConfigError, match=r"nowhere\.yaml not found"):
+    with pytest.raises(ConfigError, match=r"c\.yaml: extends: nowhere\.yaml not found"):  # names the file that says it
         load_train_config(path)
 
 
