@@ -147,21 +147,22 @@ def test_learner_update_marks_its_parts_in_order_and_moves_actor_critics_and_tar
         assert any(not torch.equal(p, q) for p, q in zip(m.parameters(), before[k], strict=True)), k
 
 
-@pytest.mark.parametrize(("at_limit", "validations"), [(True, 1), (False, 0)])
-def test_episode_book_validates_when_due_and_the_out_of_time_batch_only_if_asked(tmp_path, at_limit, validations):
+def test_episode_book_validates_when_due_and_the_batch_that_runs_out_of_time(tmp_path):
+    """Both trainers: a run stopped by its time limit before its first validation must not ship the untrained start."""
     from marl_amod.algos.a2c import Args
 
     args = Args(scenario="synthetic", episodes=100, eval_every=50, time_limit_s=1.0)
     saved, best = [], _Best()
     book = C.EpisodeBook(args, "a2c", torch.nn.Linear(1, 1), None, SimpleNamespace(env=None), C.Logger(tmp_path, tensorboard=False),
-                         lambda: 5.0, best, lambda: saved.append(1) or (Path("s"), 0), validate_at_time_limit=at_limit)
+                         lambda: 5.0, best, lambda: saved.append(1) or (Path("s"), 0))
     stats = {"loss": 1.0}
     assert book.close(4, 4, stats) is True  # 5 s > the 1 s limit: stop
-    assert best.calls == validations and len(saved) == validations and ("eval/profit" in stats) == bool(validations)
+    assert best.calls == 1 and len(saved) == 1 and "eval/profit" in stats
     assert stats["time/wall_s"] == 5.0
     long = Args(scenario="synthetic", episodes=100, eval_every=50)
     book.args = long
-    assert book.close(52, 4, {}) is False and best.calls == validations + 1  # crossed episode 50: validated
+    assert book.close(30, 4, {}) is False and best.calls == 1  # no limit, not due: no validation
+    assert book.close(52, 4, {}) is False and best.calls == 2  # crossed episode 50: validated
 
 
 def test_retained_heap_reuses_freed_activations_without_page_faults():

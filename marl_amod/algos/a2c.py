@@ -208,7 +208,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
         )
         return path, done_ep
 
-    book = C.EpisodeBook(args, "a2c", actor, city, rollout, log, timer, best, save, progress, validate_at_time_limit=True)
+    book = C.EpisodeBook(args, "a2c", actor, city, rollout, log, timer, best, save, progress)
     with C.interruptible(save):
         while ep < args.episodes:
             # ---- collect a batch of whole episodes, num_envs at a time ----

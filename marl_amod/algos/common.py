@@ -338,13 +338,13 @@ class EpisodeBook:
     best: BestActor
     save: Callable[[], tuple[Path, int]]
     progress: Progress | None = None
-    validate_at_time_limit: bool = False
-    """also validate (and save) the batch that runs out of time, so the last actor competes (A2C)"""
 
     def close(self, ep: int, step: int, stats: dict[str, float]) -> bool:
         """After ``step`` more episodes (``ep`` done): validate if due, log; True when time is up."""
         args = self.args
-        out_of_time = self.validate_at_time_limit and bool(args.time_limit_s) and self.timer() > args.time_limit_s
+        # the batch that runs out of time is validated (and saved) too: the last actor competes, and a run stopped
+        # before its first validation does not ship the untrained start
+        out_of_time = bool(args.time_limit_s) and self.timer() > args.time_limit_s
         if crossed(ep, step, args.eval_every) or ep >= args.episodes or out_of_time:
             stats["eval/profit"] = self.best.validate(self.actor, self.city, args)
             self.save()
