@@ -373,11 +373,17 @@ def test_ctrl_c_saves_state_prints_one_line_and_resume_logs_each_episode_once(tm
     assert torch.load(state, map_location="cpu", weights_only=False)["episode"] == 4
 
     monkeypatch.undo()
+    fresh = CliRunner().invoke(app, ["train", "--config", str(cfg)])  # without --resume: the saved state is not erased
+    assert isinstance(fresh.exception, ConfigError) and f"interrupted at episode 4: continue it with --resume {state}" in str(fresh.exception)
+    assert torch.load(state, map_location="cpu", weights_only=False)["episode"] == 4
     res = CliRunner().invoke(app, ["train", "--config", str(cfg), "--resume", str(state)])
     assert res.exit_code == 0, res.output
     rows = [tuple(line.split(",")[:2]) for line in (tmp_path / "run" / "log.csv").read_text().splitlines()[1:]]
     assert len(rows) == len(set(rows))
     assert sorted({int(e) for e, _ in rows}) == [2, 4, 6, 8]
+    again = CliRunner().invoke(app, ["train", "--config", str(cfg)])  # resumed and finished: a fresh run may start there
+    assert again.exit_code == 0, again.output
+    assert len(list((tmp_path / "run").glob("events.out.tfevents.*"))) == 1  # the fresh run's curves alone
 
 
 def test_resume_from_an_older_state_drops_the_rows_logged_after_it(tmp_path, tiny_yaml):

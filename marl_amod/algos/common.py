@@ -218,8 +218,10 @@ class Logger:
             out = io.StringIO()
             csv.writer(out).writerows(kept)
             atomic_write(path, out.getvalue())
-        elif resume_from is None and path.exists():
-            path.unlink()  # a fresh run starts a fresh log
+        elif resume_from is None:  # a fresh run starts a fresh log, and TensorBoard curves of its own
+            path.unlink(missing_ok=True)
+            for old in self.dir.glob("events.out.tfevents.*"):
+                old.unlink()
         self.writer = None
         if tensorboard:
             from torch.utils.tensorboard import SummaryWriter
@@ -463,6 +465,22 @@ def restore(path: str | Path, state: dict[str, Any], **parts: Any) -> None:
                             f"{detail}; resume with the config that made it") from None  # fmt: skip
 
 
+INTERRUPTED = "INTERRUPTED"  # in a run folder: the episode a Ctrl-C saved the state at, until a run resumes it
+
+
+def check_not_interrupted(run_dir: str | Path, resume: str | None) -> None:
+    """A run folder holding an interrupted run is resumed (its marker cleared) or refused: a fresh run
+    there would overwrite the saved state and the log without a word."""
+    marker = Path(run_dir) / INTERRUPTED
+    if not marker.is_file():
+        return
+    if resume is None:
+        episode = marker.read_text().strip()
+        raise ConfigError(f"{run_dir} holds a run interrupted at episode {episode}: continue it with --resume "
+                          f"{Path(run_dir) / 'state.pt'}, or remove {run_dir} (or give another run_dir) to start over")  # fmt: skip
+    marker.unlink()
+
+
 class TrainingInterrupted(MarlAmodError):
     """Ctrl-C during training; the state of the last finished update is saved at ``path``."""
 
@@ -481,6 +499,7 @@ def interruptible(save: Callable[[], tuple[Path, int]]) -> Iterator[None]:
         yield
     except KeyboardInterrupt:
         path, episode = save()
+        atomic_write(path.parent / INTERRUPTED, f"{episode}\n")  # a later fresh run in this folder would erase the state: refused
         raise TrainingInterrupted(path, episode) from None
 
 

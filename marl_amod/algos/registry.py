@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from marl_amod.algos import a2c, bc, cql, iql, meta, meta_imitation, sac
-from marl_amod.algos.common import Progress, RunArgs
+from marl_amod.algos.common import Progress, RunArgs, check_not_interrupted
 from marl_amod.config import load_config, make_args
 from marl_amod.errors import ConfigError
 from marl_amod.files import check_destination, check_folder
@@ -78,4 +78,5 @@ def run_training(
     if args.policy_out:
         check_destination(args.policy_out, what="policy_out")
     check_folder(args.run_dir, what="run_dir")
+    check_not_interrupted(args.run_dir, resume)
     return entry.train(args, resume=resume, progress=progress, config_path=config_path)
