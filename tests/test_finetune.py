@@ -189,5 +189,10 @@ def test_a_critic_pretrained_on_the_dataset_starts_the_fine_tuned_run(tmp_path, 
         loss = {k: F.smooth_l1_loss(c(x, graph), target).item() for k, c in (("fresh", fresh), ("fitted", fitted))}
     assert loss["fitted"] < 0.5 * loss["fresh"]
     wide = a2c.make_critic(args.model_copy(update={"hidden": 16}), city)
-    with pytest.raises(DataError, match="does not fit"):
+    with pytest.raises(DataError, match="does not fit this run's critic .*: size mismatch"):  # says which weights differ
         a2c.load_critic_state(wide, str(tmp_path / "c.pt"))
+    (tmp_path / "text.pt").write_text("not a critic")
+    (tmp_path / "empty.pt").write_bytes(b"")
+    for bad, message in ((tmp_path / "text.pt", "text file"), (tmp_path / "empty.pt", "empty"), (offline_policy, "no critic state there")):
+        with pytest.raises(DataError, match=message):  # one line each, not a KeyError, EOFError or unpickling traceback
+            a2c.load_critic_state(wide, str(bad))

@@ -29,6 +29,7 @@ from pydantic import Field, model_validator
 
 from marl_amod.algos import common as C
 from marl_amod.algos.rollout import Obs, train_seed
+from marl_amod.checkpoints import check_torch_file
 from marl_amod.errors import DataError
 from marl_amod.models import GNNValueCritic, LocalValueCritic, dirichlet, gamma, gamma_log_prob
 from marl_amod.models.gnn import Graph
@@ -163,13 +164,18 @@ def make_critic(args: Args, city: City) -> torch.nn.Module:
 
 def load_critic_state(critic: torch.nn.Module, path: str) -> None:
     """``init_critic``: the weights of a critic of this run's shape, or a DataError that says which differ."""
-    state = torch.load(path, map_location="cpu", weights_only=True) if Path(path).is_file() else None
-    if not isinstance(state, dict):
-        raise DataError(f"init_critic {path}: no critic state there (a torch.save of a critic's state_dict)")
+    check_torch_file(Path(path), "init_critic")  # missing, empty, text or damaged: said plainly
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception:  # noqa: BLE001 - e.g. a training state (pickled objects): not a critic's weights
+        state = None
+    if not isinstance(state, dict) or {"card", "state_dict"} <= set(state):  # nothing readable, or a policy file
+        raise DataError(f"init_critic {path}: no critic state there (a torch.save of a critic's state_dict, not a policy or training state)")
     try:
         critic.load_state_dict(state)
     except RuntimeError as exc:
-        raise DataError(f"init_critic {path} does not fit this run's critic (hidden, conv, readout, critic_time): {str(exc).splitlines()[0]}") from None
+        detail = " ".join(line.strip() for line in str(exc).splitlines()[1:3]) or str(exc)  # line 0 only names the class
+        raise DataError(f"init_critic {path} does not fit this run's critic (hidden, conv, readout, critic_time): {detail}") from None
 
 
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:
