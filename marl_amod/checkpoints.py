@@ -28,7 +28,7 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, ValidationError
 
-from marl_amod.baselines.base import WeightPolicy
+from marl_amod.baselines.base import WeightPolicy, check_bound_city
 from marl_amod.env import observations as ob
 from marl_amod.env.features import n_features, node_features
 from marl_amod.errors import ConfigError, DataError, pydantic_problems
@@ -396,6 +396,11 @@ class ActorPolicy(WeightPolicy):
         self.min_degree = ob.max_in_degree(city)  # the env's neighbour slots: this many, or more when padded
         self.edge_index = torch.tensor(np.array(city.edge_index), dtype=torch.long)
         self.agents = ob.agent_names(city.n_regions)
+        self.city = city
+
+    def reset(self, system: FleetSystem, rng: np.random.Generator) -> None:
+        check_bound_city(self.name, self.city, system)
+        super().reset(system, rng)
 
     def weights(self, system: FleetSystem) -> np.ndarray:
         return self._mean(node_features(system, self.lookahead, arrivals_now=self.arrivals_now), ob.time_features(system.city, system.t))

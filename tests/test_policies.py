@@ -220,3 +220,13 @@ def test_an_evaluation_records_what_else_decided_its_numbers(tmp_path):
     assert played["settings"] == {"max_wait": 2, "objective": "revenue", "solver": "fast", "policy_options": {}, "checkpoint": path}
     mpc = marl_amod.evaluate("mpc-forecast", "synthetic", episodes=1, horizon=4)["settings"]
     assert mpc["policy_options"] == {"horizon": 4} and "checkpoint" not in mpc and mpc["max_wait"] == 0
+
+
+def test_a_policy_loaded_for_one_city_refuses_another():
+    """Its graph and region count are the city's it was loaded for: another city's system is a clear
+    error (it was a torch shape error deep in the actor), and loading it for that city plays there."""
+    policy = marl_amod.load_policy("policies/a2c_gnn_synthetic.pt")
+    grid = marl_amod.scenario.grid_city(3, 3, seed=0, horizon=4)
+    with pytest.raises(ConfigError, match="loaded for synthetic .16 regions.; this system is grid3x3 .9 regions."):
+        marl_amod.evaluate(policy, grid, episodes=1)
+    assert marl_amod.evaluate(marl_amod.load_policy("policies/a2c_gnn_synthetic.pt", grid), grid, episodes=1)["episodes"] == 1

@@ -93,7 +93,7 @@ from pydantic import Field, model_validator
 from marl_amod.algos import common as C
 from marl_amod.algos import offline as O
 from marl_amod.algos.rollout import train_seed
-from marl_amod.baselines.base import WeightPolicy
+from marl_amod.baselines.base import WeightPolicy, check_bound_city
 from marl_amod.batch_system import BatchFleetSystem
 from marl_amod.data import resolve
 from marl_amod.ensemble import Adaptation, PolicyEnsemble, is_ensemble, load_ensemble, read_members, read_spec
@@ -902,6 +902,7 @@ class MetaPolicy(WeightPolicy):
         self.adapted = agent.memory.detach().clone()
 
     def reset(self, system: FleetSystem, rng: np.random.Generator) -> None:
+        check_bound_city(self.name, self.agent.city, system)  # adapted there: its memory is of that city
         super().reset(system, rng)
         self.agent.memory = self.adapted.clone()
         self.agent.new_episode()

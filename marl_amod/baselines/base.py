@@ -20,7 +20,19 @@ from abc import ABC, abstractmethod
 
 import numpy as np
 
+from marl_amod.errors import ConfigError
+from marl_amod.scenario.types import City
 from marl_amod.system import FleetSystem
+
+
+def check_bound_city(name: str, bound: City, system: FleetSystem) -> None:
+    """A policy built for ``bound`` (its graph, its region count, its adaptation) refuses a system of another
+    city, which it would read with the wrong graph or fail on with a shape error deep in torch. The
+    system's view of the same city (a SUMO city's travel times change) has the same regions and graph."""
+    city = system.city
+    if city.n_regions != bound.n_regions or not np.array_equal(np.asarray(city.edge_index), np.asarray(bound.edge_index)):
+        raise ConfigError(f"{name} was loaded for {bound.name} ({bound.n_regions} regions); this system is {city.name} "
+                          f"({city.n_regions} regions): load it for that city, e.g. marl_amod.load_policy(path, {city.name!r})")  # fmt: skip
 
 
 class Policy(ABC):
