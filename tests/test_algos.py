@@ -123,8 +123,16 @@ def test_a2c_resume_continues_from_saved_episode(tmp_path, tiny_yaml):
     episodes = [int(line.split(",")[0]) for line in (tmp_path / "run" / "log.csv").read_text().splitlines()[1:]]
     assert episodes == sorted(episodes) and max(episodes) == 8  # resumed at 4, not restarted at 0
     wider = a2c.Args(**_common(tmp_path, tiny_yaml, episodes=12, episodes_per_update=2, hidden=16))  # not the run that saved it
-    with pytest.raises(DataError, match="state.pt was saved by a run whose actor differs"):
+    with pytest.raises(DataError, match="state.pt was saved by a run with other settings .hidden: 8 -> 16."):
         a2c.train(wider, resume=str(tmp_path / "run" / "state.pt"))
+    for changed in ({"seed": 5}, {"scenario": f"{tiny_yaml}~hot1x3"}, {"lr_actor": 0.1}):  # any setting that makes another run
+        with pytest.raises(DataError, match=f"{next(iter(changed))}: "):
+            a2c.train(a2c.Args(**{**_common(tmp_path, tiny_yaml, episodes=12, episodes_per_update=2), **changed}), resume=str(tmp_path / "run" / "state.pt"))
+    saved = torch.load(tmp_path / "run" / "state.pt", weights_only=False)
+    del saved["args"]  # a state of before states held their args: the architecture is still checked by the weights
+    torch.save(saved, tmp_path / "older.pt")
+    with pytest.raises(DataError, match="older.pt was saved by a run whose actor differs"):
+        a2c.train(wider, resume=str(tmp_path / "older.pt"))
 
 
 @pytest.mark.parametrize("kind", ["gnn", "mlp", "cnn"])

@@ -630,10 +630,17 @@ def test_a_resume_refuses_a_config_that_names_other_tasks(tasks, tmp_path):
     args = tiny_args(tasks, tmp_path, "bc", eval_every=2, eval_episodes=2, hotspot_variants=1, hotspot_episodes=2)
     ALGOS["meta-bc"].train(args)
     state = str(tmp_path / "bc" / "state.pt")
-    with pytest.raises(DataError, match="hotspot"):
+    with pytest.raises(DataError, match="hotspot_variants: 1 -> 0"):  # the state's own args name what changed
         ALGOS["meta-bc"].train(args.model_copy(update={"updates": 2, "hotspot_variants": 0}), resume=state)
+    events = {"updates": 2, "event_tasks": 1, "event_episodes": 1, "event_share": 0.5}
+    with pytest.raises(DataError, match="event_tasks: 0 -> 1"):
+        ALGOS["meta-bc"].train(args.model_copy(update=events), resume=state)
+    older = tmp_path / "older.pt"  # a state saved before states held their args: the tasks it names still refuse
+    saved = torch.load(state, weights_only=False)
+    del saved["args"]
+    torch.save(saved, older)
     with pytest.raises(DataError, match=r"event settings \(event_tasks, event_multipliers\)"):  # the message names what made them
-        ALGOS["meta-bc"].train(args.model_copy(update={"updates": 2, "event_tasks": 1, "event_episodes": 1, "event_share": 0.5}), resume=state)
+        ALGOS["meta-bc"].train(args.model_copy(update=events), resume=str(older))
     assert ALGOS["meta-bc"].train(args.model_copy(update={"updates": 2}), resume=state)["card"]["updates"] == 2
 
 

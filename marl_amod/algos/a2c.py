@@ -199,7 +199,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     if args.init_actor and not resume:  # fine-tuning: the start is validated first, so the kept
         best.validate(actor, city, args)  # actor is never worse on the validation seeds than it
     if resume:
-        st = C.load_state(resume, "a2c")
+        st = C.load_state(resume, "a2c", args)
         C.restore(resume, st, actor=actor, critic=critic, opt_a=opt_a, opt_c=opt_c)
         start_ep, prior_wall, best = st["episode"], st["wall_s"], C.BestActor(st["best_val"], st["best_actor"])
     log = C.Logger(args.run_dir, resume_from=start_ep if resume else None)
@@ -209,7 +209,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     def save() -> tuple[Path, int]:
         path = C.state_path(args)
         C.save_state(
-            path, algorithm="a2c", actor=actor.state_dict(), critic=critic.state_dict(), opt_a=opt_a.state_dict(),
+            path, args, algorithm="a2c", actor=actor.state_dict(), critic=critic.state_dict(), opt_a=opt_a.state_dict(),
             opt_c=opt_c.state_dict(), episode=done_ep, best_val=best.value, best_actor=best.state, wall_s=timer(),
         )
         return path, done_ep

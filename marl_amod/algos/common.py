@@ -427,16 +427,37 @@ def state_path(args: CommonArgs) -> Path:
     return Path(args.run_dir) / "state.pt"
 
 
-def save_state(path: str | Path, **state: Any) -> Path:
-    """Full training state (networks, optimisers, buffers, RNGs) for ``--resume``, written atomically."""
+# what a resumed run may change: how long it runs, how and where it validates, reports and writes; any other
+# key would make the resumed run another run than the one its state began (another scenario, seed, rate, ...)
+RESUMABLE_CHANGES = frozenset({
+    "episodes", "updates", "stop_after", "time_limit_s", "eval_every", "eval_episodes", "eval_seed", "final_eval_episodes",
+    "final_eval_seed", "keep", "threads", "run_dir", "policy_out", "demos",
+})  # fmt: skip
+
+
+def save_state(path: str | Path, args: RunArgs, **state: Any) -> Path:
+    """Full training state (networks, optimisers, buffers, RNGs, and the run's args) for ``--resume``, written atomically."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     rng = {"torch": torch.get_rng_state(), "numpy": np.random.get_state()}
-    return torch_save(path, {"format": STATE_FORMAT, "rng": rng, **state})
+    return torch_save(path, {"format": STATE_FORMAT, "rng": rng, "args": args.model_dump(mode="json"), **state})
 
 
-def load_state(path: str | Path, algorithm: str) -> dict[str, Any]:
-    """A training state written by :func:`save_state` for ``algorithm``; global RNGs restored."""
+def check_same_run(path: str | Path, saved: dict[str, Any] | None, args: RunArgs) -> None:
+    """Refuse to resume a state under args that make it another run (:data:`RESUMABLE_CHANGES` may differ)."""
+    if not saved:  # states of before the args were saved
+        return
+    now = args.model_dump(mode="json")
+    changed = [k for k in sorted(set(saved) | set(now)) if k not in RESUMABLE_CHANGES and saved.get(k) != now.get(k)]
+    if changed:
+        said = "; ".join(f"{k}: {saved.get(k)!r} -> {now.get(k)!r}" for k in changed)
+        raise DataError(f"{path} was saved by a run with other settings ({said}): resume it with the config that began it "
+                        f"(only {', '.join(sorted(RESUMABLE_CHANGES))} may change), or start a fresh run")  # fmt: skip
+
+
+def load_state(path: str | Path, algorithm: str, args: RunArgs) -> dict[str, Any]:
+    """A training state written by :func:`save_state` for ``algorithm`` and, as far as the run goes, these
+    ``args`` (:func:`check_same_run`); global RNGs restored."""
     path = Path(path)
     check_torch_file(path, "training state")
     try:
@@ -447,6 +468,7 @@ def load_state(path: str | Path, algorithm: str) -> dict[str, Any]:
         raise DataError(f"{path} is not a marl_amod training state (a policy file? resume takes runs/<run>/state.pt)")
     if state.get("algorithm", algorithm) != algorithm:
         raise DataError(f"{path} is a {state['algorithm']} training state; this config trains {algorithm}")
+    check_same_run(path, state.get("args"), args)
     if "rng" in state:
         torch.set_rng_state(state["rng"]["torch"])
         np.random.set_state(state["rng"]["numpy"])

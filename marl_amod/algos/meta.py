@@ -796,7 +796,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
 
         imitation, fit = load_all(args, cities), Fit(imitation=args.imitation, shortfall=args.shortfall_weight)
     if resume:
-        st = C.load_state(resume, "meta")
+        st = C.load_state(resume, "meta", args)
         C.restore(resume, st, model=model, opt=opt)
         start_ep, prior_wall, best = st["episode"], st["wall_s"], C.BestActor(st["best_val"], st["best_actor"])
         rng.bit_generator.state = st["city_rng"]
@@ -809,7 +809,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
 
     def save() -> tuple[Path, int]:
         path = C.state_path(args)
-        C.save_state(path, algorithm="meta", model=model.state_dict(), opt=opt.state_dict(), episode=done_ep,
+        C.save_state(path, args, algorithm="meta", model=model.state_dict(), opt=opt.state_dict(), episode=done_ep,
                      best_val=book.best.value, best_actor=book.best.state, wall_s=timer(), city_rng=rng.bit_generator.state)  # fmt: skip
         return path, done_ep
 

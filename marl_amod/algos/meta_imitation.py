@@ -736,7 +736,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     prior_wall = 0.0
     best, warm = meta.warm_start(args, model, cities, resume)  # init_actor: continue an imitation (e.g. with DAgger rounds)
     if resume:
-        st = C.load_state(resume, "meta-bc")
+        st = C.load_state(resume, "meta-bc", args)
         if st.get("tasks", names) != names:  # its updates and DAgger rounds are of those tasks (older states: not recorded)
             raise DataError(f"{resume} trained on the tasks {st['tasks']}; this config names {names}: resume with the run's "
                             "cities, seed, hotspot and skew settings (hotspot_variants, hotspot_multipliers, hotspot_distinct_regions, "
@@ -755,7 +755,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     book = meta.MetaBook(args, model, cities, log, timer, best, progress)
 
     def save() -> tuple[Path, int]:
-        C.save_state(C.state_path(args), algorithm="meta-bc", model=model.state_dict(), opt=opt.state_dict(), episode=step,
+        C.save_state(C.state_path(args), args, algorithm="meta-bc", model=model.state_dict(), opt=opt.state_dict(), episode=step,
                      best_val=book.best.value, best_actor=book.best.state, wall_s=timer(), city_rng=rng.bit_generator.state, tasks=names,
                      hotspot_share=args.hotspot_share, event_share=args.event_share, dagger_whole_trials=args.dagger_whole_trials,
                      dagger_shock_per_task=args.dagger_shock_per_task, adaptation=args.adaptation,

@@ -315,7 +315,7 @@ def fit(
     if args.init_actor and args.keep == "best" and not resume:  # a conservative improvement step: the start
         best.validate(actor, city, args)  # is a candidate, so the shipped actor never validates below it
     if resume:
-        st = C.load_state(resume, algorithm)
+        st = C.load_state(resume, algorithm, args)
         C.restore(resume, st, **parts)
         step, prior_wall, best = st["episode"], st["wall_s"], C.BestActor(st["best_val"], st["best_actor"])
         gen.set_state(st["gen"])
@@ -324,7 +324,7 @@ def fit(
 
     def save() -> tuple[Path, int]:
         path = C.state_path(args)
-        C.save_state(path, algorithm=algorithm, **{k: p.state_dict() for k, p in parts.items()}, gen=gen.get_state(),
+        C.save_state(path, args, algorithm=algorithm, **{k: p.state_dict() for k, p in parts.items()}, gen=gen.get_state(),
                      episode=step, best_val=best.value, best_actor=best.state, wall_s=timer())  # fmt: skip
         return path, step
 

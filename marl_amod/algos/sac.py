@@ -309,7 +309,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
 
     start_ep, prior_wall, n_steps, credit, best = 0, 0.0, 0, 0.0, C.BestActor.of(actor)
     if resume:
-        st = C.load_state(resume, "sac")
+        st = C.load_state(resume, "sac", args)
         if critic is not twin and "q1.value.out.weight" in st["critic"]:
             st = stack_twin_state(st, twin)  # saved before the critics were stacked
         C.restore(resume, st, actor=actor, critic=critic, critic_targ=critic_targ, opt_a=opt_a, opt_c=opt_c, opt_alpha=opt_alpha)
@@ -325,7 +325,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     def save() -> tuple[Path, int]:
         path = C.state_path(args)
         C.save_state(
-            path, algorithm="sac", actor=actor.state_dict(), critic=critic.state_dict(), critic_targ=critic_targ.state_dict(),
+            path, args, algorithm="sac", actor=actor.state_dict(), critic=critic.state_dict(), critic_targ=critic_targ.state_dict(),
             opt_a=opt_a.state_dict(), opt_c=opt_c.state_dict(), opt_alpha=opt_alpha.state_dict(), log_alpha=log_alpha.item(),
             replay=buffer.state_dict(), gen=gen.get_state(), n_steps=n_steps, credit=credit, episode=ep, best_val=best.value,
             best_actor=best.state, wall_s=timer(),
