@@ -610,3 +610,12 @@ def test_the_fqe_page_is_its_benchmarks_rendering_and_index_holds_its_choices():
     assert (folder / "fqe.md").read_text() == md
     choices = [line for line in md.splitlines() if line.startswith("| ") and line.endswith(" |") and line.count("|") == 6 and "k |" in line and not line.startswith("| dataset")]
     assert len(choices) == 5 and all(line in (folder / "index.md").read_text() for line in choices)
+
+
+def test_the_time_limit_stops_an_offline_run_at_the_update_that_runs_out(tmp_path, tiny):
+    """Checked every update (not only at validations), and that update is validated and saved, so the
+    actor it ended with competes; a limit already passed stops after the first update."""
+    summary = ALGOS["bc"].train(args_for("bc", _args(tmp_path, tiny, updates=10_000, eval_every=5_000, time_limit_s=1e-9)))
+    card = summary["card"]
+    assert card["updates"] == 1 and card["best_validation"] is not None
+    assert torch.load(tmp_path / "run" / "state.pt", weights_only=False)["episode"] == 1

@@ -336,14 +336,15 @@ def fit(
                     group["lr"] = group.setdefault("initial_lr", group["lr"]) * (1 - step / args.updates)
             stats = update(data.sample(args.batch_size, gen), step)
             step += 1
-            if step % args.eval_every == 0 or step >= args.updates:
-                stats["eval/profit"] = best.validate(actor, city, args)
+            out_of_time = bool(args.time_limit_s) and timer() > args.time_limit_s  # checked every update, as A2C and SAC do
+            if step % args.eval_every == 0 or step >= args.updates or out_of_time:
+                stats["eval/profit"] = best.validate(actor, city, args)  # the update that ran out of time competes too
                 stats["time/wall_s"] = timer()
                 log.log(step, **stats)
                 save()
                 if progress is not None:
                     progress(step, args.updates, stats)
-                if args.time_limit_s and timer() > args.time_limit_s:
+                if out_of_time:
                     break
     log.close()
     if args.keep == "best":
