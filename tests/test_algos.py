@@ -62,6 +62,28 @@ def test_sac_tiny_run_updates_and_writes_checkpoint(tmp_path, tiny_yaml, mode):
     assert (tmp_path / "policies" / "p.pt").is_file()
 
 
+def test_sac_validates_its_warm_start_first(tmp_path, tiny_yaml, monkeypatch):
+    """As A2C: a fine-tuned SAC run's first validation is of the actor it starts from, so the kept
+    actor is never worse on the validation seeds than its start."""
+    from marl_amod.algos import common as C
+    from marl_amod.algos import sac
+
+    sac.train(sac.Args(**_common(tmp_path, tiny_yaml, episodes=4, batch_size=8, warmup_steps=8)))
+    start = tmp_path / "start.pt"
+    for suffix in (".pt", ".json", ".md"):
+        (tmp_path / "policies" / "p.pt").with_suffix(suffix).rename(start.with_suffix(suffix))
+    validated, real = [], C.BestActor.validate
+
+    def spy(self, actor, city, args):
+        validated.append({k: v.clone() for k, v in actor.state_dict().items()})
+        return real(self, actor, city, args)
+
+    monkeypatch.setattr(C.BestActor, "validate", spy)
+    sac.train(sac.Args(**_common(tmp_path, tiny_yaml, episodes=4, batch_size=8, warmup_steps=8, run_dir=str(tmp_path / "ft")), init_actor=str(start)))
+    first = load_policy(start, load_city(tiny_yaml)).actor.state_dict()
+    assert len(validated) >= 2 and all(torch.equal(validated[0][k], v) for k, v in first.items())
+
+
 def test_a2c_init_actor_fine_tunes_from_the_given_actor(tmp_path, tiny_yaml):
     """A warm start begins at the given actor; with a vanishing learning rate it stays there
     (the start is validated, so it is what the run keeps), while a cold start does not."""
@@ -430,7 +452,7 @@ def test_resuming_another_algorithms_state_is_refused(tmp_path, tiny_yaml):
     from marl_amod.errors import DataError
 
     a2c.train(a2c.Args(**_common(tmp_path, tiny_yaml, episodes=2, episodes_per_update=2, policy_out="")))
-    with pytest.raises(DataError, match="is a a2c training state; this config trains sac"):
+    with pytest.raises(DataError, match="is a a2c training state; this config trains sac"), pytest.warns(UserWarning, match="no update"):
         sac.train(sac.Args(**_common(tmp_path, tiny_yaml, episodes=2)), resume=str(tmp_path / "run" / "state.pt"))
 
 

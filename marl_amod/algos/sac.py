@@ -28,6 +28,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import math
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -307,7 +308,14 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
     opt_a, opt_c, opt_alpha, log_alpha = learner.opt_a, learner.opt_c, learner.opt_alpha, learner.log_alpha
     buffer = Replay(args.buffer_size)
 
+    transitions = args.episodes * (city.horizon - 1)  # one per control step of every episode
+    if args.warmup_steps >= transitions:  # a smoke test may mean it; a real run would ship its untrained start
+        warnings.warn(f"warmup_steps ({args.warmup_steps}) is at least the run's {transitions} transitions ({args.episodes} episodes x "
+                      f"{city.horizon - 1} steps on {city.name}): SAC will make no update; lower warmup_steps or run more episodes",
+                      stacklevel=2)  # fmt: skip
     start_ep, prior_wall, n_steps, credit, best = 0, 0.0, 0, 0.0, C.BestActor.of(actor)
+    if args.init_actor and not resume:  # fine-tuning: the start is validated first, so the kept actor is
+        best.validate(actor, city, args)  # never worse on the validation seeds than the one it began from (as A2C)
     if resume:
         st = C.load_state(resume, "sac", args)
         if critic is not twin and "q1.value.out.weight" in st["critic"]:
