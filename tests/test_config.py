@@ -60,6 +60,9 @@ def test_several_problems_are_one_line_each(tmp_path):
         ("a2c", {"mode": "decentralised", "central_critic": False, "conv": "gcn"}, "conv"),
         ("sac", {"mode": "decentralised", "central_critic": True}, "central_critic"),
         ("sac", {"lr_alpha": 0.01}, "lr_alpha"),
+        ("bc", {"dataset": "d.npz", "num_envs": 4}, "num_envs"),  # offline runs step no env
+        ("iql", {"dataset": "d.npz", "num_envs": 4}, "num_envs"),
+        ("bc", {"dataset": "d.npz", "critic_time": True}, "critic_time"),  # BC has no critic
     ],
 )
 def test_keys_the_chosen_mode_ignores_are_rejected(tmp_path, algo, args, key):

@@ -30,7 +30,7 @@ class Args(O.OfflineArgs):
     and a planner's logged targets leave no margin under it (centralised runs only)"""
 
     def ignored_keys(self) -> dict[str, str]:
-        return {**super().ignored_keys(), "central_critic": "BC has no critic", "gamma": "BC has no return"}
+        return {**super().ignored_keys(), "central_critic": "BC has no critic", "gamma": "BC has no return", "critic_time": "BC has no critic"}
 
 
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:

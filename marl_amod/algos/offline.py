@@ -90,7 +90,8 @@ class OfflineArgs(C.RunArgs):
         return self
 
     def ignored_keys(self) -> dict[str, str]:
-        return {**super().ignored_keys(), "episodes": "offline runs take no env episodes; set updates"}
+        return {**super().ignored_keys(), "episodes": "offline runs take no env episodes; set updates",
+                "num_envs": "offline runs step no env in lockstep (they learn from the dataset; validation plays one episode at a time)"}  # fmt: skip
 
 
 class CriticArgs(OfflineArgs):
