@@ -532,6 +532,12 @@ def train(
             soft_wrap=True,  # one line, however long the paths
         )
         raise typer.Exit(130) from None
+    except KeyboardInterrupt:  # outside the training loop: setting up, or the final evaluation and the card
+        state = Path(args.run_dir) / "state.pt"
+        said = (f"interrupted outside the training loop (the final evaluation?); the last training state is {state}: "
+                f"finish with: marl-amod train --config {config} --resume {state}") if state.is_file() else "interrupted before training began"
+        console.print(said, soft_wrap=True)
+        raise typer.Exit(130) from None
     from marl_amod.policy_catalogue import trained_on
 
     card = summary["card"]
