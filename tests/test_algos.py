@@ -416,6 +416,28 @@ def test_ctrl_c_saves_state_prints_one_line_and_resume_logs_each_episode_once(tm
     assert len(list((tmp_path / "run").glob("events.out.tfevents.*"))) == 1  # the fresh run's curves alone
 
 
+def test_ctrl_c_in_the_final_evaluation_says_how_to_finish(tmp_path, tiny_yaml, monkeypatch):
+    from typer.testing import CliRunner
+
+    from marl_amod.algos import common
+    from marl_amod.cli import app
+
+    cfg = tmp_path / "run.yaml"
+    cfg.write_text(yaml.safe_dump({"algo": "a2c", "args": _common(tmp_path, tiny_yaml, episodes=4, episodes_per_update=2)}))
+
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(common, "finish_run", interrupted)
+    res = CliRunner().invoke(app, ["train", "--config", str(cfg)])
+    state = tmp_path / "run" / "state.pt"
+    assert res.exit_code == 130 and f"finish with: marl-amod train --config {cfg} --resume {state}" in " ".join(res.output.split())
+    monkeypatch.undo()
+    done = CliRunner().invoke(app, ["train", "--config", str(cfg), "--resume", str(state)])
+    assert done.exit_code == 0, done.output
+    assert (tmp_path / "policies" / "p.pt").is_file()
+
+
 def test_resume_from_an_older_state_drops_the_rows_logged_after_it(tmp_path, tiny_yaml):
     """A crash (no Ctrl-C handler) after episode 6 resumes from the state of episode 4: rows 5..6 are not kept twice."""
     import shutil
