@@ -385,6 +385,41 @@ def test_resume_continues_exactly_as_an_uninterrupted_run(tmp_path, tiny_yaml, a
         assert state["replay"]["size"] == state["n_steps"] > 0 and "state" in state["opt_alpha"]
 
 
+@pytest.mark.parametrize("algo", ["a2c", "sac"])
+def test_a_ctrl_c_in_the_middle_of_an_episode_stops_after_its_update_and_resumes_exactly(tmp_path, tiny_yaml, algo, monkeypatch):
+    """A real SIGINT during episode 2's third step: the run finishes that batch and its update, saves that
+    state and stops; resumed, it ends as the uninterrupted run, bit for bit (a state saved mid-episode
+    held that episode's transitions, updates and random draws)."""
+    import signal
+
+    from marl_amod.algos import common, rollout
+    from marl_amod.algos.registry import ALGOS
+
+    entry = ALGOS[algo]
+    extra = {"episodes_per_update": 2} if algo == "a2c" else {"batch_size": 8, "warmup_steps": 8, "auto_entropy": True}
+    kw = {"eval_every": 2, "eval_episodes": 1, "final_eval_episodes": 1, "hidden": 8, "scenario": tiny_yaml, "episodes": 4, **extra}
+    entry.train(entry.args(**kw, run_dir=str(tmp_path / "full"), policy_out=str(tmp_path / "policies" / "full.pt")))
+    real, calls = rollout.Rollout.step, []
+
+    def step(self, weights):
+        calls.append(1)
+        if len(calls) == len_episode + 3:
+            signal.raise_signal(signal.SIGINT)  # the handler marks the stop; the episode goes on
+        return real(self, weights)
+
+    len_episode = load_city(tiny_yaml).horizon - 1
+    monkeypatch.setattr(rollout.Rollout, "step", step)
+    args = entry.args(**kw, run_dir=str(tmp_path / "cut"), policy_out=str(tmp_path / "policies" / "resumed.pt"))
+    with pytest.raises(common.TrainingInterrupted) as stop:
+        entry.train(args)
+    assert stop.value.episode == 2 and len(calls) == 2 * len_episode  # episode 2 ran to its end, nothing after it
+    monkeypatch.undo()
+    entry.train(args, resume=str(stop.value.path))
+    full, resumed = _final_actor(tmp_path, "full.pt"), _final_actor(tmp_path, "resumed.pt")
+    for k in full:
+        torch.testing.assert_close(full[k], resumed[k], rtol=0, atol=0)
+
+
 def test_ctrl_c_saves_state_prints_one_line_and_resume_logs_each_episode_once(tmp_path, tiny_yaml, monkeypatch):
     from typer.testing import CliRunner
 

@@ -4,8 +4,9 @@ The algorithm files (:mod:`marl_amod.algos.a2c`, :mod:`marl_amod.algos.sac`) rea
 everything here is plumbing they would otherwise repeat. The rollout driver is
 :mod:`marl_amod.algos.rollout`; the registry of algorithms is :mod:`marl_amod.algos.registry`.
 
-Interrupts: an algorithm wraps its loop in :func:`interruptible`; Ctrl-C then saves the training
-state of the last finished update (atomically) and raises :class:`TrainingInterrupted`, which
+Interrupts: an algorithm wraps its loop in :func:`interruptible` and calls :func:`stop_if_asked`
+after each update; a first Ctrl-C stops the run there (a second stops it at once), saves the
+training state of that finished update (atomically) and raises :class:`TrainingInterrupted`, which
 the CLI prints as one line saying where the state is and how to resume. A resumed run rewrites
 ``log.csv`` without the rows logged after that state, so no episode appears twice.
 """
@@ -342,7 +343,8 @@ class EpisodeBook:
     progress: Progress | None = None
 
     def close(self, ep: int, step: int, stats: dict[str, float]) -> bool:
-        """After ``step`` more episodes (``ep`` done): validate if due, log; True when time is up."""
+        """After ``step`` more episodes (``ep`` done): validate if due, log; True when time is up.
+        A Ctrl-C pressed during the batch stops the run here, once it is logged (:func:`stop_if_asked`)."""
         args = self.args
         # the batch that runs out of time is validated (and saved) too: the last actor competes, and a run stopped
         # before its first validation does not ship the untrained start
@@ -357,6 +359,7 @@ class EpisodeBook:
         self.log.log(ep, **stats)
         if self.progress is not None:
             self.progress(ep, args.episodes, stats)
+        stop_if_asked()
         return bool(args.time_limit_s) and wall_s > args.time_limit_s
 
     def finish(self, episodes_done: int, config_path: str | None) -> dict[str, Any]:
@@ -511,14 +514,55 @@ class TrainingInterrupted(MarlAmodError):
         super().__init__(f"interrupted: training state of episode {episode} saved to {path}; resume with --resume {path}")
 
 
+_STOP_ASKED = False  # a Ctrl-C arrived during an update; the loop stops after it (stop_if_asked)
+
+
+def stop_if_asked() -> None:
+    """Where an update has finished: stop here if Ctrl-C was pressed during it. Why: a state saved in the
+    middle of an episode holds that episode's transitions, updates and random draws, and the resumed run,
+    which replays the episode from its start, would not be the uninterrupted run."""
+    global _STOP_ASKED
+    if _STOP_ASKED:
+        _STOP_ASKED = False
+        raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def _stop_after_the_update() -> Iterator[None]:
+    """SIGINT marks the stop instead of raising (in the main thread; a second Ctrl-C raises at once)."""
+    import signal
+    import threading
+
+    global _STOP_ASKED
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def ask(signum: int, frame: Any) -> None:
+        global _STOP_ASKED
+        if _STOP_ASKED:
+            raise KeyboardInterrupt
+        _STOP_ASKED = True
+
+    _STOP_ASKED = False
+    previous = signal.signal(signal.SIGINT, ask)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        _STOP_ASKED = False
+
+
 @contextlib.contextmanager
 def interruptible(save: Callable[[], tuple[Path, int]]) -> Iterator[None]:
     """Turn Ctrl-C inside the block into a saved state and :class:`TrainingInterrupted`.
 
-    ``save`` writes the state of the last finished update and returns (path, episode).
+    ``save`` writes the state of the last finished update and returns (path, episode); the loop
+    calls :func:`stop_if_asked` after each update, so that is where a first Ctrl-C stops it.
     """
     try:
-        yield
+        with _stop_after_the_update():
+            yield
     except KeyboardInterrupt:
         path, episode = save()
         atomic_write(path.parent / INTERRUPTED, f"{episode}\n")  # a later fresh run in this folder would erase the state: refused

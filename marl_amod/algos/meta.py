@@ -717,7 +717,7 @@ class MetaBook:
 
     def close(self, count: int, total: int, stats: dict[str, float], due: bool, save: Callable[[], Any]) -> bool:
         """After update ``count`` (of ``total``): validate if ``due`` or out of time, log; True when
-        time is up or the validations have stalled."""
+        time is up or the validations have stalled. A Ctrl-C pressed during the update stops the run here, once it is logged."""
         out_of_time = bool(self.args.time_limit_s) and self.timer() > self.args.time_limit_s  # validate the last model too
         if due or out_of_time:
             stats["eval/scaled_return"] = val = validate(self.model, self.args, self.cities)
@@ -734,6 +734,7 @@ class MetaBook:
         self.log.log(count, **stats)
         if self.progress is not None:
             self.progress(count, total, stats)
+        C.stop_if_asked()
         return out_of_time or self.stalled_at is not None
 
     def card_fields(self) -> dict[str, Any]:

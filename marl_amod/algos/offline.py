@@ -347,6 +347,7 @@ def fit(
                     progress(step, args.updates, stats)
                 if out_of_time:
                     break
+            C.stop_if_asked()  # a Ctrl-C during the update stops the run after it
     log.close()
     if args.keep == "best":
         actor.load_state_dict(best.state)
