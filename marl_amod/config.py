@@ -84,6 +84,12 @@ class CommonArgs(BaseModel):
         return self
 
     @model_validator(mode="after")
+    def _policy_file(self) -> CommonArgs:
+        if self.policy_out and not self.policy_out.endswith(".pt"):  # it was written as .pt while the card named the other
+            raise ValueError(f"policy_out {self.policy_out!r}: a policy file is a .pt (its cards go beside it as .json and .md)")
+        return self
+
+    @model_validator(mode="after")
     def _validation_apart_from_report(self) -> CommonArgs:
         # the kept actor would be chosen on the episodes it is reported on: the run's final evaluation's, or the
         # report streams of `marl-amod evaluate --seed 0` (a config that moves final_eval_seed elsewhere still has them)

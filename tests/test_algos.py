@@ -519,7 +519,7 @@ def test_a_bad_policy_destination_fails_before_training(tmp_path, tiny_yaml, mon
     from marl_amod.errors import OutputError
 
     monkeypatch.setitem(ALGOS, "a2c", Algorithm(a2c.Args, lambda *a, **k: pytest.fail("trained before checking policy_out")))
-    (tmp_path / "taken").mkdir()
-    args = a2c.Args(**_common(tmp_path, tiny_yaml, episodes=2, policy_out=str(tmp_path / "taken")))
+    (tmp_path / "taken.pt").mkdir()  # a folder where the policy file would go
+    args = a2c.Args(**_common(tmp_path, tiny_yaml, episodes=2, policy_out=str(tmp_path / "taken.pt")))
     with pytest.raises(OutputError, match="is a directory"):
         run_training("a2c", args)

@@ -161,3 +161,11 @@ def test_validation_on_the_report_streams_is_refused(tmp_path, algo, needed):
         load_train_config(_write(tmp_path, "moved.yaml", {"algo": algo, "args": moved}))
     with pytest.raises(ConfigError, match="args: eval_seed 7000 is final_eval_seed's: validation must not run on the report streams"):
         load_train_config(_write(tmp_path, "same.yaml", {"algo": algo, "args": {**moved, "eval_seed": 7000}}))
+
+
+def test_a_policy_file_is_named_pt(tmp_path):
+    """It was written as x.pt while its card and the config named x.txt."""
+    path = _write(tmp_path, "run.yaml", {"algo": "a2c", "args": {"policy_out": "policies/mine.txt"}})
+    with pytest.raises(ConfigError, match=r"policy_out 'policies/mine.txt': a policy file is a \.pt"):
+        load_train_config(path)
+    assert load_train_config(_write(tmp_path, "ok.yaml", {"algo": "a2c", "args": {"policy_out": ""}}))[1].policy_out == ""
