@@ -598,6 +598,8 @@ def finetune_curve(
     if fresh_critic and critic_dataset is not None:
         raise ConfigError(f"--fresh-critic starts the critic untrained; --critic-dataset {critic_dataset} would pre-train it: give one of them")
     _use_data_dir(data_dir)
+    check_folder(out, what="--out")  # before both runs, not after them
+    check_folder(run_root, what="--run-root")
     with progress_bar() as bar:
         task = bar.add_task("A2C", total=episodes)
         study = finetune.finetune_curve(

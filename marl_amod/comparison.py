@@ -115,8 +115,10 @@ def run_compare(
     from marl_amod.algos.registry import args_for, run_training
     from marl_amod.checkpoints import read_card
     from marl_amod.evaluation import evaluate
+    from marl_amod.files import check_folder
     from marl_amod.scenario import load_city
 
+    out = check_folder(cfg.output, what=f"{config_path or 'compare'}: output")  # before any training, not after it
     planned = missing_runs(cfg)
     skipped = {run.label for run, _ in planned} if not train else set()
     for run, args in planned:
@@ -128,8 +130,6 @@ def run_compare(
     if planned and train:
         log("to skip training and compare only the policies that exist: --no-train")
     city = load_city(cfg.scenario)
-    out = Path(cfg.output)
-    out.mkdir(parents=True, exist_ok=True)
     rows: list[dict[str, Any]] = []
     for name in cfg.baselines:
         done = tracker(f"evaluating {name}")
@@ -167,7 +167,8 @@ def run_compare(
 
 def _budget(args: Any) -> str:
     """A run's training budget in words, from the fields its Args have."""
-    parts = [f"{getattr(args, key)} {key}" for key in ("episodes", "iterations") if hasattr(args, key)]
+    keys = ("updates",) if hasattr(args, "updates") else ("episodes", "iterations")  # an offline run counts updates, not episodes
+    parts = [f"{getattr(args, key)} {key}" for key in keys if hasattr(args, key)]
     if getattr(args, "time_limit_s", None):
         parts.append(f"at most {args.time_limit_s / 60:g} min")
     return ", ".join(parts) or "its configured budget"
@@ -233,15 +234,25 @@ def learning_curves_figure(rows: list[dict], scenario: str) -> Any:
 
     fig, ax = plt.subplots(figsize=(8, 4))
     baseline_styles = iter(["--", ":", "-.", (0, (5, 1)), (0, (1, 3))] * 4)
+    no_log, offline = [], False
     for r in rows:
         if r["kind"] == "learned":
             xs, ys = read_curve(r["run_dir"], "eval/profit")
             if xs:
-                ax.plot(xs, ys, marker=".", label=r["label"])
+                by_updates = "updates" in r.get("card", {}) and not r["card"].get("episodes_trained")  # BC, IQL, CQL
+                offline |= by_updates
+                ax.plot(xs, ys, marker=".", label=r["label"] + (" (updates)" if by_updates else ""))
+            else:
+                no_log.append(r["label"])
         else:
             profit = r["result"]["metrics"]["profit"]["mean"]
-            ax.axhline(profit, ls=next(baseline_styles), lw=1, color="grey", label=f"{r['label']} (baseline)")
-    ax.set(xlabel="training episodes", ylabel="validation profit per episode", title=f"{scenario}: learning curves")
+            ax.axhline(profit, ls=next(baseline_styles), lw=1, color="grey", label=f"{r['label']} (baseline, report seeds)")
+    xlabel = "training episodes" + (" (offline runs: updates)" if offline else "")
+    if no_log:  # a policy trained elsewhere (or its run folder cleaned): said under the axis, not silently left out
+        import textwrap
+
+        xlabel += "\n" + "\n".join(textwrap.wrap("no training log (run_dir) for: " + ", ".join(no_log), 90))
+    ax.set(xlabel=xlabel, ylabel="validation profit per episode", title=f"{scenario}: learning curves (validation seeds)")
     _legend_beside(ax)
     fig.tight_layout()
     return fig

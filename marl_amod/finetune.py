@@ -77,7 +77,8 @@ def finetune_curve(
         critic_dataset = (card.get("args") or {}).get("dataset")
         if not critic_dataset or not Path(critic_dataset).is_file():
             raise ConfigError(f"{policy} was trained on the dataset {critic_dataset}, which is not there to pre-train the critic on: "
-                              f"make it (`marl-amod datasets`, docs/offline), name another (critic_dataset), or start the critic fresh (None)")  # fmt: skip
+                              f"make it (`marl-amod datasets`, docs/offline), name another (--critic-dataset; critic_dataset= in Python), "
+                              "or start the critic fresh (--fresh-critic; critic_dataset=None)")  # fmt: skip
     if critic_dataset is not None:
         start = pretrain_critic(runs["finetune"], city, critic_dataset, Path(run_root) / "critic_init.pt")
         runs["finetune"] = runs["finetune"].model_copy(update={"init_critic": str(start)})
@@ -206,7 +207,7 @@ def plot(study: dict[str, Any], path: str | Path) -> Path:
     ax.set_ylabel("validation profit (thousand $)")
     ax.set_title(f"Offline -> online on {study['scenario']}")
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="lower right")
+    ax.legend(fontsize=8, loc="best")  # a fixed corner covered the curves' last points
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

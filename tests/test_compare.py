@@ -100,6 +100,9 @@ def test_compare_plots_keep_legends_and_baseline_names_off_the_data(tmp_path: Pa
         assert any("equal-distribution" in t for t in labels) and "gnn" in labels
         assert not _overlaps(legend.get_window_extent(renderer), ax.get_window_extent(renderer))
         assert not ax.texts  # no names written on the plot, where a curve can cross them
+    missing = [*rows, _row("shipped", "learned", 110.0, [9, 9, 9, 9], str(tmp_path / "no_run"))]  # a policy trained elsewhere
+    (ax,) = learning_curves_figure(missing, "x").axes
+    assert "no training log (run_dir) for: shipped" in ax.get_xlabel() and "shipped" not in [t.get_text() for t in ax.get_legend().get_texts()]
 
 
 @pytest.mark.parametrize(
