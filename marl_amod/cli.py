@@ -839,7 +839,7 @@ def transfer_table(
         command += f" --meta-policy {payload['meta_policy']}"
     text = f"<!-- {command} -->\n" + study_markdown(payload)
     (out / f"{study}.md").write_text(text)
-    title = f"{study}: normalised score over {payload['episodes']} episodes"
+    title = f"{study}: normalised score over {payload['episodes']} episode{'s' if payload['episodes'] != 1 else ''}"
     scores = study_scores(payload)
     figure = score_bars(scores, out / f"{study}.png", title) if scores else "no figure (no MPC-Oracle row to score by)"
     console.print(text)

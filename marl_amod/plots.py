@@ -162,7 +162,17 @@ def _anchor_lines(ax: Any, vertical: bool) -> None:
             ax.text(level, 1.0, what, transform=ax.get_xaxis_transform(), ha="center", va="bottom", size=6, color="0.3")
         else:
             ax.axhline(level, color="0.4", lw=0.8, ls="--", zorder=0)
-            ax.text(0.005, level, what, transform=ax.get_yaxis_transform(), va="bottom", size=6, color="0.3")
+            ax.text(0.005, level, what, transform=ax.get_yaxis_transform(), va="bottom", size=6, color="0.3", zorder=5,
+                    bbox={"facecolor": "white", "edgecolor": "none", "alpha": 0.8, "pad": 0.5})  # above the bars, readable
+
+
+def _two_lines(name: str, longest: int = 14) -> str:
+    """A long snake_case name broken at its middle-most underscore (``shenzhen_downtown`` / ``_west``)."""
+    cuts = [i for i, c in enumerate(name) if c == "_"]
+    if len(name) <= longest or not cuts:
+        return name
+    cut = min(cuts, key=lambda i: abs(i - len(name) / 2))
+    return f"{name[:cut]}\n{name[cut:]}"
 
 
 def score_bars(groups: dict[str, Sequence[Score]], path: str | Path, title: str | None = None) -> Path:
@@ -183,7 +193,10 @@ def score_bars_figure(groups: dict[str, Sequence[Score]], title: str | None = No
     methods = list(dict.fromkeys(name for rows in groups.values() for name, _, _ in rows))
     colours = {m: f"C{i % 10}" for i, m in enumerate(methods)}
     width = 0.8 / len(methods)
-    size = (max(5.5, 1.6 + 0.45 * len(methods) * len(groups) + 0.5 * len(groups)), 3.6)
+    ticks = [_two_lines(str(g)) for g in groups]  # long target names on two lines, and room for the longest
+    bars = 1.6 + 0.45 * len(methods) * len(groups) + 0.5 * len(groups)
+    names = 2.8 + 0.095 * len(groups) * max(len(line) for t in ticks for line in t.split("\n"))  # so the names never run together
+    size = (max(5.5, bars, names), 3.6)
     fig = Figure(figsize=size, dpi=120, layout="constrained")
     FigureCanvasAgg(fig)
     ax = fig.subplots()
@@ -198,7 +211,7 @@ def score_bars_figure(groups: dict[str, Sequence[Score]], title: str | None = No
             offset = (0, 2 if value >= 0 else -8)
             ax.annotate(f"{round(value)}", (x, tip), xytext=offset, textcoords="offset points", ha="center", size=6)
     _anchor_lines(ax, vertical=False)
-    ax.set_xticks(range(len(groups)), list(groups))
+    ax.set_xticks(range(len(groups)), ticks)
     ax.set_ylabel(f"normalised score\n({SCORE_SCALE})", fontsize=7)
     ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 0.9), frameon=False)
     if title:

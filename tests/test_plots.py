@@ -87,6 +87,21 @@ def test_score_bars_draw_one_bar_per_method_and_target_in_one_colour_per_method(
         score_bars_figure({"city a": []})
 
 
+
+def test_score_bars_keep_long_target_names_apart():
+    """Three held-out cities with two methods each ran their names together ("nyc_brooklynshenzhen_downtown_west")."""
+    from marl_amod.plots import score_bars_figure
+
+    names = ["san_francisco", "nyc_brooklyn", "shenzhen_downtown_west"]
+    fig = score_bars_figure({n: [("a", 80.0, 1.0), ("b", 100.0, 1.0)] for n in names})
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    ticks = fig.axes[0].get_xticklabels()
+    assert [t.get_text() for t in ticks] == ["san_francisco", "nyc_brooklyn", "shenzhen\n_downtown_west"]
+    boxes = [t.get_window_extent(renderer) for t in ticks]
+    assert all(boxes[i].x1 < boxes[i + 1].x0 for i in range(len(boxes) - 1))  # each name ends before the next begins
+
+
 def _study(scores: dict[str, float]) -> dict:
     rows = {}
     for name, profit in scores.items():
