@@ -162,11 +162,11 @@ def scenarios(data_dir: DataDir = None) -> None:
     for info in catalogue():
         if info.error is not None:
             broken += 1
-            table.add_row(info.name, "[red]broken[/red]", "-", "-", "-", "-", "-", f"[red]{escape(info.error)}[/red]")
+            table.add_row(escape(info.name), "[red]broken[/red]", "-", "-", "-", "-", "-", f"[red]{escape(info.error)}[/red]")
             continue
         needs = ", ".join(f"[yellow]{n}[/yellow]" if n in missing else n for n in info.needs) or "-"
         cells = ["-" if v is None else f"{v:g}" for v in (info.regions, info.fleet, info.horizon, info.tstep)]
-        table.add_row(info.name, info.source, *cells, needs, escape(info.description))
+        table.add_row(escape(info.name), info.source, *cells, needs, escape(info.description))  # a name may hold [brackets]
     console.print(table)
     for need, hint in missing.items():
         console.print(f"[yellow]{need}[/yellow]: {escape(hint)}")
@@ -817,9 +817,10 @@ def transfer_table(
     """Every transfer strategy on a study's cities: the tables of docs/meta (markdown, JSON) and their figure (<study>.png)."""
     from marl_amod.data import read_json
     from marl_amod.plots import score_bars
-    from marl_amod.transfer import META_POLICY, STRATEGIES, run_study, study_markdown, study_scores
+    from marl_amod.transfer import META_POLICY, STRATEGIES, check_study, run_study, study_markdown, study_scores
 
     _use_data_dir(data_dir)
+    check_study(study, tuple(strategy or ()))  # before --out is made: a typo leaves no empty folder behind
     check_folder(out, what="--out")
     saved = out / f"{study}.json"
     if redraw:

@@ -192,6 +192,14 @@ def run_strategy(
 # --------------------------------------------------------------------------------------------
 # The tables
 # --------------------------------------------------------------------------------------------
+def check_study(study: str, strategies: tuple[str, ...] = ()) -> None:
+    """A study and strategies of this module, else a ConfigError listing the known ones."""
+    if study not in STUDIES:
+        raise ConfigError(f"unknown study {study!r}; known: {', '.join(STUDIES)}")
+    if unknown := sorted(set(strategies) - set(STRATEGIES)):
+        raise ConfigError(f"unknown strategy {unknown[0]!r}; known: {', '.join(STRATEGIES)}")
+
+
 def run_study(study: str, *, episodes: int = 10, seed: int = 0, meta_policy: str = META_POLICY, strategies: tuple[str, ...] = STRATEGIES,
               previous: dict[str, Any] | None = None, progress: Any = None) -> dict[str, Any]:  # fmt: skip
     """Every strategy (and equal distribution, the 0 of the score) on every target of ``study``.
@@ -199,11 +207,7 @@ def run_study(study: str, *, episodes: int = 10, seed: int = 0, meta_policy: str
     With ``strategies`` a subset, the other rows come from ``previous`` (an earlier payload of the
     same study, episodes and seed), so retraining one policy reruns one row, not the MPC rows.
     """
-    if study not in STUDIES:
-        raise ConfigError(f"unknown study {study!r}; known: {', '.join(STUDIES)}")
-    unknown = sorted(set(strategies) - set(STRATEGIES))
-    if unknown:
-        raise ConfigError(f"unknown strategy {unknown[0]!r}; known: {', '.join(STRATEGIES)}")
+    check_study(study, strategies)
     if previous is not None and (previous.get("study"), previous.get("episodes"), previous.get("seed")) != (study, episodes, seed):
         raise ConfigError(f"the saved {previous.get('study')} table was run with {previous.get('episodes')} episodes, seed {previous.get('seed')}: "
                           "rows of other episodes are not comparable with it; rerun these rows with its episodes and seed, "

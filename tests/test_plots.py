@@ -116,6 +116,8 @@ def test_cli_transfer_table_redraw_rewrites_markdown_and_figure_from_the_json_al
     payload = _study({"equal-distribution": 100.0, "meta-rl": 160.0, "mpc-oracle": 200.0})
     assert study_scores(payload) == {"nyc_brooklyn_event": [("meta-rl", 60.0, 5.0), ("mpc-oracle", 100.0, 5.0)]}
     runner = CliRunner()
+    typo = runner.invoke(app, ["transfer-table", "--study", "events", "--out", str(tmp_path / "new")])
+    assert isinstance(typo.exception, ConfigError) and not (tmp_path / "new").exists()  # refused before the folder is made
     missing = runner.invoke(app, ["transfer-table", "--study", "event", "--out", str(tmp_path), "--redraw"])
     assert isinstance(missing.exception, DataError) and "does not exist" in str(missing.exception)
     (tmp_path / "event.json").write_text(json.dumps(payload))
