@@ -18,6 +18,7 @@ holds its region's features and the time values, so the state is rebuilt exactly
 
 from __future__ import annotations
 
+import re
 from collections.abc import Callable
 from typing import Any
 
@@ -25,8 +26,9 @@ import numpy as np
 
 from marl_amod.datasets import OfflineDataset, action_share
 from marl_amod.env.observations import split_local, state_from_features
-from marl_amod.errors import ConfigError
+from marl_amod.errors import ConfigError, DataError
 from marl_amod.metrics import SCORE_ANCHORS
+from marl_amod.validation import as_count
 
 
 def centralised_arrays(data: OfflineDataset) -> dict[str, np.ndarray]:
@@ -82,6 +84,14 @@ def to_minari(data: OfflineDataset, dataset_id: str, *, card: dict[str, Any] | N
     from gymnasium import spaces
     from minari.data_collector import EpisodeBuffer
 
+    # checked before anything is written: a failure after create_dataset_from_buffers left a dataset that blocks the retry
+    if not isinstance(dataset_id, str) or not re.fullmatch(r"[\w./-]+-v\d+", dataset_id):
+        raise ConfigError(f"dataset_id {dataset_id!r}: Minari ids end in a version, e.g. 'marl_amod/nyc_brooklyn/prop-v0'")
+    if card is not None and not isinstance(card, dict):
+        raise ConfigError(f"card must be the dataset card as a dict (marl_amod.datasets.read_card(path)), got {type(card).__name__}")
+    refs = (card or {}).get("reference_scores", {})
+    if refs and not set(SCORE_ANCHORS) <= set(refs):
+        raise DataError(f"the card's reference_scores hold {sorted(refs)}; the score range needs {', '.join(SCORE_ANCHORS)}")
     a = centralised_arrays(data)
     buffers = []
     for k, rows in enumerate(episodes(data)):
@@ -96,7 +106,6 @@ def to_minari(data: OfflineDataset, dataset_id: str, *, card: dict[str, Any] | N
         description=f"marl_amod {meta.get('scenario')} logged by {meta.get('policy')}: centralised view (env.state(), joint action "
                     "on the simplex, team reward); the per-agent view is in the .npz (marl_amod.datasets)",
     )  # fmt: skip
-    refs = (card or {}).get("reference_scores", {})
     if refs:  # Minari stores ref_min/max_score only beside an eval env (we have no gymnasium id): written apart
         dataset.storage.update_metadata(
             dict(zip(("ref_min_score", "ref_max_score"), (refs[name]["mean"] for name in SCORE_ANCHORS), strict=True))
@@ -110,6 +119,7 @@ def state_policy(predict: Callable[[np.ndarray], Any], n_features: int = 13) -> 
     dataset's F (``data.n_features``: 13 at look-ahead 6, one more with ``arrivals_now``), and the
     env's observations must hold as many (``evaluate(..., lookahead=T, arrivals_now=...)``): else a
     ConfigError, since on some cities another F also splits them, into a state of wrong numbers."""
+    as_count(n_features, "n_features", lower=3)  # F = 1 + 2T (+ 1) with T >= 1
     lookahead, arrivals_now = divmod(int(n_features) - 1, 2)  # F = 1 + 2T (+ 1)
     options = f"lookahead={lookahead}" + (", arrivals_now=True" if arrivals_now else "")
 
@@ -126,7 +136,11 @@ def state_policy(predict: Callable[[np.ndarray], Any], n_features: int = 13) -> 
                 f"observations of length {local.shape[-1]} do not hold n_features={n_features} features a region: "
                 f"evaluate the policy on the env it was learnt on ({options})"
             )
-        joint = np.asarray(predict(state_from_features(own, context[0])), dtype=np.float32).reshape(len(agents))
+        joint = np.asarray(predict(state_from_features(own, context[0])), dtype=np.float32)
+        if joint.size != len(agents):  # a predictor learnt on another city
+            raise ConfigError(f"the predictor answered {joint.size} weights for this city's {len(agents)} regions: "
+                              "evaluate it on the city its dataset was logged on")  # fmt: skip
+        joint = joint.reshape(len(agents))
         return {a: joint[i : i + 1] for i, a in enumerate(agents)}
 
     act.name = "state-policy"  # type: ignore[attr-defined]  # evaluate's record (and the results tables) name it so; name= overrides

@@ -110,3 +110,31 @@ def test_a_state_policy_on_observations_of_another_look_ahead_is_refused(n_featu
     policy = state_policy(lambda state: np.ones(city.n_regions), n_features=n_features)
     with pytest.raises(ConfigError, match=f"n_features={n_features}.*{hint}"):
         policy(obs)
+
+
+def test_a_state_policy_of_another_city_or_no_features_is_refused():
+    import marl_amod
+    from marl_amod.export import state_policy
+
+    city = load_city("synthetic", rows=2, cols=3)
+    obs, _ = marl_amod.parallel_env(city).reset(seed=0)
+    with pytest.raises(ConfigError, match="answered 16 weights for this city's 6 regions"):  # learnt on the 16-region city
+        state_policy(lambda state: np.ones(16))(obs)
+    with pytest.raises(ConfigError, match="n_features must be an integer >= 3"):
+        state_policy(lambda state: np.ones(6), n_features=0)
+
+
+def test_a_bad_minari_id_or_card_is_refused_before_anything_is_written(data, tmp_path, monkeypatch):
+    pytest.importorskip("minari")
+    from marl_amod.errors import DataError
+    from marl_amod.export import to_minari
+
+    monkeypatch.setenv("MINARI_DATASETS_PATH", str(tmp_path))
+    with pytest.raises(ConfigError, match="end in a version"):
+        to_minari(data, "marl_amod/tiny/prop")
+    with pytest.raises(ConfigError, match="card must be the dataset card as a dict"):
+        to_minari(data, "marl_amod/tiny/prop-v0", card="card.json")
+    with pytest.raises(DataError, match="needs equal-distribution, mpc-oracle"):
+        to_minari(data, "marl_amod/tiny/prop-v0", card={"reference_scores": {"equal-distribution": {"mean": 1.0}}})
+    assert not any(tmp_path.iterdir())  # nothing left to block the retry
+    assert to_minari(data, "marl_amod/tiny/prop-v0").total_episodes == 3
