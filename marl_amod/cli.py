@@ -693,6 +693,7 @@ def wait_map(
 
     _use_data_dir(data_dir)
     figure_destination(output, what="--output")  # before the run, not after it
+    check_destination(output.with_suffix(".json"), what="--output's JSON")  # the numbers beside the figure, likewise
     city = load_city(scenario)
     policies = _make_policies(policy, city, {})
     results = []
@@ -702,7 +703,7 @@ def wait_map(
             results.append(run_eval(pol, city, episodes, seed, max_wait=max_wait,
                                     progress=lambda _k, task=task: bar.advance(task)))
     console.print(metrics_table(results, f"{city.name}: {episodes} episodes, seed {seed}, max wait {max_wait} steps"))
-    title = f"{city.name}: {episodes} episodes (seed {seed}), requests wait up to {max_wait} steps ({max_wait * city.tstep:g} min)"
+    title = f"{city.name}: {episodes} episode{'s' if episodes != 1 else ''} (seed {seed}), requests wait up to {max_wait} steps ({max_wait * city.tstep:g} min)"
     path = region_map(results, city, output, title=title)
     write_json(output.with_suffix(".json"), {"scenario": city.name, "max_wait": max_wait, "results": results})
     console.print(f"wrote {path} and {output.with_suffix('.json')}")

@@ -146,7 +146,10 @@ def region_map_figure(
             ax.set_title(f"{res['policy']}\n{caption}" if r == 0 else caption, fontsize=8)
         fig.colorbar(coll, ax=list(axes[r]), fraction=0.025, pad=0.02, label=label)
     if title:
-        fig.suptitle(title, fontsize=9)
+        import textwrap
+
+        inches = fig.get_figwidth()  # a one-panel map is narrow: wrap the title to it instead of cutting it at both edges
+        fig.suptitle("\n".join(textwrap.wrap(title, max(30, int(inches * 14)))), fontsize=9)
     return fig
 
 

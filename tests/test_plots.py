@@ -11,7 +11,7 @@ from matplotlib.path import Path as MplPath
 from typer.testing import CliRunner
 
 from marl_amod.cli import app
-from marl_amod.errors import ConfigError, DataError
+from marl_amod.errors import ConfigError, DataError, OutputError
 from marl_amod.evaluation import evaluate
 from marl_amod.plots import region_cells, region_map, region_map_figure
 from marl_amod.scenario import grid_city
@@ -69,6 +69,9 @@ def test_cli_wait_map_writes_the_figure_and_the_results(tmp_path):
     data = json.loads(out.with_suffix(".json").read_text())
     assert data["max_wait"] == 3 and [r["policy"] for r in data["results"]] == ["no-rebalancing", "equal-distribution"]
     assert max(data["results"][1]["per_region"]["wait_time"]) > 0  # requests waited
+    (tmp_path / "taken.json").mkdir()  # where the numbers beside the figure would go: refused before the episodes
+    taken = CliRunner().invoke(app, ["plot", "wait-map", "--episodes", "1", "--output", str(tmp_path / "taken.png")])
+    assert isinstance(taken.exception, OutputError) and "taken.json" in str(taken.exception) and not (tmp_path / "taken.png").exists()
 
 
 def test_score_bars_draw_one_bar_per_method_and_target_in_one_colour_per_method():
