@@ -148,7 +148,9 @@ def scenarios(data_dir: DataDir = None) -> None:
     _use_data_dir(data_dir)
     missing: dict[str, str] = {}
     try:
-        data_root()
+        root = data_root()
+        if not any((root / sub).is_dir() for sub in ("macro", "lux")):  # the folder exists but is not the data folder
+            missing["data"] = f"the data directory {root} holds neither macro/ nor lux/: point --data-dir (or MARL_AMOD_DATA) at the folder that does"
     except DataError as exc:
         missing["data"] = str(exc)
     if find_spec("sumo") is None:

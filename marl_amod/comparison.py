@@ -122,7 +122,8 @@ def run_compare(
     planned = missing_runs(cfg)
     skipped = {run.label for run, _ in planned} if not train else set()
     for run, args in planned:
-        why = "retrain: true" if run.retrain else f"{args.policy_out} not found"
+        why = "retrain: true" if run.retrain else f"{args.policy_out} not found" + (
+            f" (from {Path.cwd()}: a config's policy_out and run_dir are relative to the working folder)" if not Path(args.policy_out).is_absolute() else "")
         if train:
             log(f"will train {run.label!r} ({run.algo}, {args.mode}, {_budget(args)}): {why}")
         else:

@@ -80,6 +80,12 @@ def test_scenarios_lists_the_default_city():
     assert "synthetic" in result.output and "16" in result.output
 
 
+def test_scenarios_says_when_the_data_folder_is_not_the_data_folder(tmp_path):
+    result = runner.invoke(app, ["scenarios", "--data-dir", str(tmp_path)])  # it exists, but holds no macro/ or lux/
+    assert result.exit_code == 0, result.output
+    assert "holds neither macro/ nor lux/" in " ".join(result.output.split())
+
+
 def test_scenarios_list_reads_yaml_only_and_survives_a_broken_file(monkeypatch, tmp_path):
     """Listing builds no city, says the missing-data hint once, and a broken YAML spoils only its row."""
     from marl_amod.scenario import registry
