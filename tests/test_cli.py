@@ -80,7 +80,10 @@ def test_scenarios_lists_the_default_city():
     assert "synthetic" in result.output and "16" in result.output
 
 
-def test_scenarios_says_when_the_data_folder_is_not_the_data_folder(tmp_path):
+def test_scenarios_says_when_the_data_folder_is_not_the_data_folder(monkeypatch, tmp_path):
+    from marl_amod.data import ENV_VAR
+
+    monkeypatch.setenv(ENV_VAR, str(tmp_path))  # restored afterwards: --data-dir sets it for the run
     result = runner.invoke(app, ["scenarios", "--data-dir", str(tmp_path)])  # it exists, but holds no macro/ or lux/
     assert result.exit_code == 0, result.output
     assert "holds neither macro/ nor lux/" in " ".join(result.output.split())
