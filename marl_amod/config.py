@@ -76,6 +76,17 @@ class CommonArgs(BaseModel):
         """Keys this run does not read, with the reason; giving one is an error, not a silent no-op."""
         return {}
 
+    @model_validator(mode="before")
+    @classmethod
+    def _no_switch_for_a_number(cls, values: Any) -> Any:
+        """pydantic's lax mode reads YAML's true/false as 1/0 in a number field: ``hidden: true`` is a slip, not 1 unit."""
+        if isinstance(values, Mapping):
+            for key, value in values.items():
+                field = cls.model_fields.get(key)
+                if field is not None and field.annotation in (int, float) and isinstance(value, bool):
+                    raise ValueError(f"{key} must be a number, got {value!r}")
+        return values
+
     @model_validator(mode="after")
     def _reject_ignored(self) -> CommonArgs:
         bad = {k: why for k, why in self.ignored_keys().items() if k in self.model_fields_set}

@@ -169,3 +169,11 @@ def test_a_policy_file_is_named_pt(tmp_path):
     with pytest.raises(ConfigError, match=r"policy_out 'policies/mine.txt': a policy file is a \.pt"):
         load_train_config(path)
     assert load_train_config(_write(tmp_path, "ok.yaml", {"algo": "a2c", "args": {"policy_out": ""}}))[1].policy_out == ""
+
+
+@pytest.mark.parametrize(("algo", "key", "value"), [("a2c", "hidden", True), ("sac", "lr_actor", False), ("bc", "updates", True)])
+def test_a_switch_where_a_number_belongs_is_refused(tmp_path, algo, key, value):
+    """pydantic's lax mode read `hidden: true` as 1 unit."""
+    path = _write(tmp_path, "run.yaml", {"algo": algo, "args": {key: value, **({"dataset": "d.npz"} if algo == "bc" else {})}})
+    with pytest.raises(ConfigError, match=rf"args: {key} must be a number, got {value}"):
+        load_train_config(path)
