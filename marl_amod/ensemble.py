@@ -154,7 +154,7 @@ def write_ensemble(out: str | Path, members: list[str | Path], adaptation: Adapt
                  + ("together: true\n" if together else ""))  # fmt: skip
     read_members(out)  # what loading will check, checked now
     card = out.with_suffix(".md")
-    kept = card.read_text().partition(NOTES)[2] if card.is_file() and NOTES in card.read_text() else ""
+    kept = card.read_text().partition(NOTES)[2] if card.is_file() else ""  # "" without the marker too
     atomic_write(card, ensemble_markdown(out, [str(m) for m in members], cards, adaptation, together) + (f"\n{NOTES}{kept}" if kept else ""))
     return out
 

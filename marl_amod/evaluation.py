@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from marl_amod.baselines.base import Policy
+from marl_amod.ensemble import ENSEMBLE_SUFFIXES
 from marl_amod.errors import ConfigError
 from marl_amod.metrics import episode_metrics, region_metrics, result_record
 from marl_amod.policies import PolicyLike, make_policy
@@ -83,7 +84,7 @@ def run_settings(policy: PolicyLike, system: FleetSystem, max_wait: int, policy_
         "max_wait": int(max_wait), "objective": system.coordinator.objective, "solver": system.coordinator.solver,
         "policy_options": {k: v if isinstance(v, bool | int | float | str | type(None)) else repr(v) for k, v in policy_options.items()},
     }  # fmt: skip
-    if isinstance(policy, str | Path) and Path(policy).suffix in (".pt", ".yaml", ".yml") and Path(policy).is_file():
+    if isinstance(policy, str | Path) and Path(policy).suffix in (".pt", *ENSEMBLE_SUFFIXES) and Path(policy).is_file():
         settings["checkpoint"] = str(policy)
     return settings
 

@@ -33,6 +33,14 @@ def check_destination(path: str | Path, *, what: str = "output") -> Path:
     return path
 
 
+def check_folder(path: str | Path, *, what: str = "output folder") -> Path:
+    """``path`` as a folder that exists now (created with its parents), else an :class:`OutputError`
+    naming it and the reason (a file in the way, no permission): before the work that fills it."""
+    path = Path(path).expanduser()
+    _make_folder(path, f"{what} {path}")
+    return path
+
+
 def _make_folder(folder: Path, label: str) -> None:
     """Create ``folder`` (and its parents) or raise an :class:`OutputError` starting with ``label``."""
     for ancestor in (folder, *folder.parents):
@@ -62,14 +70,6 @@ def _permissions(path: Path) -> int:
         return path.stat().st_mode & 0o7777
     except OSError:
         return 0o666 & ~_umask()
-
-
-def check_folder(path: str | Path, *, what: str = "output folder") -> Path:
-    """``path`` as a folder that exists now (created with its parents), else an :class:`OutputError`
-    naming it and the reason (a file in the way, no permission): before the work that fills it."""
-    path = Path(path).expanduser()
-    _make_folder(path, f"{what} {path}")
-    return path
 
 
 @contextlib.contextmanager

@@ -174,8 +174,7 @@ def load_critic_state(critic: torch.nn.Module, path: str) -> None:
     try:
         critic.load_state_dict(state)
     except RuntimeError as exc:
-        detail = " ".join(line.strip() for line in str(exc).splitlines()[1:3]) or str(exc)  # line 0 only names the class
-        raise DataError(f"init_critic {path} does not fit this run's critic (hidden, conv, readout, critic_time): {detail}") from None
+        raise DataError(f"init_critic {path} does not fit this run's critic (hidden, conv, readout, critic_time): {C.load_error(exc)}") from None
 
 
 def train(args: Args, *, resume: str | None = None, progress: C.Progress | None = None, config_path: str | None = None) -> dict[str, Any]:

@@ -478,6 +478,13 @@ def load_state(path: str | Path, algorithm: str, args: RunArgs) -> dict[str, Any
     return state
 
 
+def load_error(exc: Exception) -> str:
+    """What a failed ``load_state_dict`` says, on one line: its first mismatches, without torch's header line
+    ("Error(s) in loading state_dict for X:", which names only the class)."""
+    lines = [line.strip() for line in str(exc).strip().splitlines()]
+    return " ".join(lines[1:3]) or (lines[0] if lines else type(exc).__name__)
+
+
 def restore(path: str | Path, state: dict[str, Any], **parts: Any) -> None:
     """Load each network or optimiser of ``parts`` from ``state[name]``. A state saved by a run of another
     architecture (conv, width, actor kind) is a DataError naming the file, not torch's key listing."""
@@ -485,9 +492,8 @@ def restore(path: str | Path, state: dict[str, Any], **parts: Any) -> None:
         try:
             part.load_state_dict(state[name])
         except (RuntimeError, ValueError, KeyError) as exc:  # missing or unexpected keys, shapes, parameter groups
-            detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise DataError(f"{path} was saved by a run whose {name} differs from this config's (another conv, width or actor?): "
-                            f"{detail}; resume with the config that made it") from None  # fmt: skip
+                            f"{load_error(exc)}; resume with the config that made it") from None  # fmt: skip
 
 
 INTERRUPTED = "INTERRUPTED"  # in a run folder: the episode a Ctrl-C saved the state at, until a run resumes it
