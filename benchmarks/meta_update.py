@@ -9,17 +9,19 @@ draws, alternating, so the machine's load hits all alike (the ratios are what to
 * ``per city``: :func:`~marl_amod.algos.meta_imitation.cities_losses` with ``padded=False``:
   :func:`~marl_amod.algos.meta_imitation.imitation_losses` once per city, averaged (the path
   before the padded batch; ``pad_cities: false``);
-* ``padded``: ``padded=True``, one padded batch (the default, ``pad_cities: true``);
+* ``padded``: ``padded=True``, one padded batch (``pad_cities: true``, ``pack_cities: false``: the shipped recipes);
+* ``packed``: ``packed=True``, the cities side by side in one batch, no padding (``pack_cities: true``, the default);
 * ``padded, heads on the concatenation``: the same, with the model's heads run on the readout's
   full output (:func:`~marl_amod.models.recurrent.concatenated_heads`, the fleet summary copied to
   every region) instead of split (the model's own ``_heads``: the summary's columns once per graph);
 * ``padded, bf16``: the padded form under bf16 autocast (a meta config's ``precision: bf16``): pays on a
   CPU with AMX or AVX512-BF16 (this one: ``torch.backends.cpu.get_cpu_capability()`` is printed);
 * ``padded, bf16, memory cast per reader``: the same with the GRU memory handed to the layers after the GRU
-  in float32, so each product casts it again (the model before :func:`~marl_amod.models.recurrent._for_products`).
+  in float32, so each product casts it again (the model before :func:`~marl_amod.models.recurrent._for_products`);
+* ``packed, bf16``: the packed form under bf16 autocast.
 
 It also prints the largest difference of the float32 losses over the timed updates (float rounding), the
-largest relative difference of the bf16 loss to them, and the largest difference between the two bf16 forms (0:
+largest relative difference of the bf16 loss to them, and the largest difference between the two padded bf16 forms (0:
 the products see the same values).
 
     python benchmarks/meta_update.py [--config configs/meta/bc_dagger_l1.yaml] [--updates 20] [--hidden 64 128] [--num-envs 16 4] [--threads 2]
@@ -59,15 +61,17 @@ def per_reader(memory: torch.Tensor) -> torch.Tensor:
 
 
 class Form(NamedTuple):
-    padded: bool
+    batch: str  # "apart" (one city after another), "padded" or "packed"
     heads: Callable
     precision: C.Precision
     memory_read: Callable = CAST_ONCE
 
 
-FORMS = {"per city": Form(False, SPLIT_HEADS, "fp32"), "padded": Form(True, SPLIT_HEADS, "fp32"),
-         "padded, heads on the concatenation": Form(True, recurrent.concatenated_heads, "fp32"), "padded, bf16": Form(True, SPLIT_HEADS, "bf16"),
-         "padded, bf16, memory cast per reader": Form(True, SPLIT_HEADS, "bf16", per_reader)}
+FORMS = {"per city": Form("apart", SPLIT_HEADS, "fp32"), "padded": Form("padded", SPLIT_HEADS, "fp32"),
+         "packed": Form("packed", SPLIT_HEADS, "fp32"),
+         "padded, heads on the concatenation": Form("padded", recurrent.concatenated_heads, "fp32"),
+         "padded, bf16": Form("padded", SPLIT_HEADS, "bf16"), "padded, bf16, memory cast per reader": Form("padded", SPLIT_HEADS, "bf16", per_reader),
+         "packed, bf16": Form("packed", SPLIT_HEADS, "bf16")}
 
 
 def timed_update(form: str, model: meta.RecurrentGNN, opt: torch.optim.Optimizer, draws: list, args: mi.Args) -> tuple[float, float]:
@@ -76,7 +80,7 @@ def timed_update(form: str, model: meta.RecurrentGNN, opt: torch.optim.Optimizer
     recurrent._heads, recurrent._for_products = chosen.heads, chosen.memory_read
     start = time.perf_counter()
     with C.autocast(chosen.precision)():
-        ce, vl = mi.cities_losses(model, draws, args.gamma, chosen.padded, args.fit)
+        ce, vl = mi.cities_losses(model, draws, args.gamma, chosen.batch != "apart", args.fit, packed=chosen.batch == "packed")
     loss = ce + args.value_coef * vl
     opt.zero_grad()
     loss.backward()
@@ -101,11 +105,10 @@ def main() -> None:
     data = mi.load_all(args, cities)
     print(f"{opts.config}: {args.cities_per_update} cities x {args.num_envs} trials x {args.trial_episodes} episodes per update, "
           f"regions {sorted(c.n_regions for c in cities.values())}, {torch.get_num_threads()} torch thread(s), CPU capability {torch.backends.cpu.get_cpu_capability()}")  # fmt: skip
-    print("| hidden | trials per city | per city (s/update) | padded (s/update) | padded, heads on the concatenation (s/update) "
-          "| padded, bf16 (s/update) | padded, bf16, memory cast per reader (s/update) | padded vs per city | split heads vs concatenation "
-          "| bf16 vs float32 | memory cast once vs per reader | max loss difference | bf16's max relative loss difference "
-          "| max difference of the bf16 forms |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| hidden | trials per city | " + " | ".join(f"{form} (s/update)" for form in FORMS) + " | padded vs per city | packed vs padded "
+          "| split heads vs concatenation | bf16 vs float32 | memory cast once vs per reader | packed vs padded, bf16 | max loss difference "
+          "| bf16's max relative loss difference | max difference of the padded bf16 forms |")  # fmt: skip
+    print("|---" * (len(FORMS) + 11) + "|")
     for hidden, num_envs in itertools.product(opts.hidden or [args.hidden], opts.num_envs or [args.num_envs]):
         run = args.model_copy(update={"hidden": hidden, "num_envs": num_envs})
         torch.manual_seed(0)
@@ -127,10 +130,11 @@ def main() -> None:
                 diff = max(diff, max(losses) - min(losses))
                 bf16_diff = max(bf16_diff, abs(timed["padded, bf16"][1] / timed["padded"][1] - 1))
                 cast_diff = max(cast_diff, abs(timed["padded, bf16"][1] - timed["padded, bf16, memory cast per reader"][1]))
-        per_city, padded, concatenated, bf16, per_reader_bf16 = (np.median(times[form]) for form in FORMS)
-        print(f"| {hidden} | {num_envs} | {per_city:.3f} | {padded:.3f} | {concatenated:.3f} | {bf16:.3f} | {per_reader_bf16:.3f} "
-              f"| {per_city / padded:.2f}x | {concatenated / padded:.2f}x | {padded / bf16:.2f}x | {per_reader_bf16 / bf16:.3f}x "
-              f"| {diff:.1e} | {bf16_diff:.1e} | {cast_diff:.1e} |", flush=True)  # fmt: skip
+        t = {form: float(np.median(times[form])) for form in FORMS}
+        print(f"| {hidden} | {num_envs} | " + " | ".join(f"{t[form]:.3f}" for form in FORMS)
+              + f" | {t['per city'] / t['padded']:.2f}x | {t['padded'] / t['packed']:.2f}x | {t['padded, heads on the concatenation'] / t['padded']:.2f}x "
+              f"| {t['padded'] / t['padded, bf16']:.2f}x | {t['padded, bf16, memory cast per reader'] / t['padded, bf16']:.3f}x "
+              f"| {t['padded, bf16'] / t['packed, bf16']:.2f}x | {diff:.1e} | {bf16_diff:.1e} | {cast_diff:.1e} |", flush=True)  # fmt: skip
     recurrent._heads, recurrent._for_products = SPLIT_HEADS, CAST_ONCE
 
 

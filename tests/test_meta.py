@@ -207,13 +207,44 @@ def test_recurrent_gnn_on_padded_cities_is_each_city_on_its_own(stay_prior, read
         torch.testing.assert_close(alpha[c, :, :n], one), torch.testing.assert_close(v[c], w), torch.testing.assert_close(memory[c, :, :n], m)
 
 
+@pytest.mark.parametrize("stay_prior, readout, centred", [(True, "mean-max", False), (False, "max", False), (True, "none", True)])
+def test_recurrent_gnn_on_packed_cities_is_each_city_on_its_own(stay_prior, readout, centred):
+    """Cities of 6, 16 and 6 regions side by side (B, 28) with one team reward each (B, 3): each city's
+    concentrations, value and memory are those of the city alone (no message, pool, prior or mean
+    crosses a city's edge), and packing the padded batch gives the padded model's outputs."""
+    from marl_amod.models.dense import DenseGraph, PackedGraphs, PaddedGraphs
+
+    torch.manual_seed(0)
+    model = RecurrentGNN(n_features=5, hidden=8, stay_prior=stay_prior, readout=readout, centred=centred)
+    cities = (grid_city(rows=2, cols=3), grid_city(rows=4, cols=4), grid_city(rows=3, cols=2))
+    graphs = [DenseGraph(torch.as_tensor(np.array(c.edge_index)), c.n_regions) for c in cities]
+    packed = PackedGraphs(graphs)
+    assert packed.n == 28 and packed.starts == [0, 6, 22] and packed.regions.tolist() == [6.0] * 6 + [16.0] * 16 + [6.0] * 6
+    x, a, rr, r, mem = torch.rand(3, 28, 5), torch.rand(3, 28), torch.rand(3, 28), torch.rand(3, 3), torch.rand(3, 28, 8)
+    alpha, v, memory = model(x, a, rr, r, mem, packed)
+    assert alpha.shape == (3, 28) and v.shape == (3, 3) and memory.shape == (3, 28, 8)
+    for c, (g, s) in enumerate(zip(graphs, packed.starts, strict=True)):
+        part = slice(s, s + g.n)
+        one, w, m = model(x[:, part], a[:, part], rr[:, part], r[:, c], mem[:, part], g)
+        torch.testing.assert_close(alpha[:, part], one), torch.testing.assert_close(v[:, c], w), torch.testing.assert_close(memory[:, part], m)
+    # from and to the padded layout (C, B, N_max): the padded model on the same trials agrees
+    pad_x, pad_mem = torch.rand(3, 3, 16, 5), torch.rand(3, 3, 16, 8)
+    for c, (g, s) in enumerate(zip(graphs, packed.starts, strict=True)):
+        pad_x[c, :, : g.n], pad_mem[c, :, : g.n] = x[:, s : s + g.n], mem[:, s : s + g.n]
+    torch.testing.assert_close(packed.pack(pad_x, features=True), x), torch.testing.assert_close(packed.pack(pad_mem, features=True), mem)
+    pad_a = packed.unpack(a)
+    assert pad_a.shape == (3, 3, 16) and (pad_a[0, :, 6:] == 0).all() and torch.equal(packed.pack(pad_a, features=False), a)
+    p_alpha, p_v, _ = model(pad_x, pad_a, packed.unpack(rr), r.T, pad_mem, PaddedGraphs(graphs))
+    torch.testing.assert_close(p_alpha, packed.unpack(alpha)), torch.testing.assert_close(p_v, v.T)
+
+
 @pytest.mark.parametrize("readout", ["none", "mean", "mean-max"])
 def test_the_split_heads_are_the_heads_on_the_readouts_output(monkeypatch, readout):
     """The recurrent GNN runs its heads' first layers split between the regions' columns and the
     fleet summary's (once per graph): outputs and gradients are those of the heads applied to the
-    readout's full (..., N, 2H + kH) output, on one city and on padded cities."""
+    readout's full (..., N, 2H + kH) output, on one city, on padded cities and on packed ones."""
     from marl_amod.models import recurrent
-    from marl_amod.models.dense import DenseGraph, PaddedGraphs
+    from marl_amod.models.dense import DenseGraph, PackedGraphs, PaddedGraphs
 
     torch.manual_seed(0)
     model = RecurrentGNN(n_features=5, hidden=8, stay_prior=True, readout=readout)
@@ -221,7 +252,9 @@ def test_the_split_heads_are_the_heads_on_the_readouts_output(monkeypatch, reado
         torch.nn.init.normal_(p, std=0.5)
     graphs = [DenseGraph(torch.as_tensor(np.array(c.edge_index)), c.n_regions) for c in (grid_city(rows=2, cols=3), grid_city(rows=4, cols=4))]
     x, a, rr, r, mem = torch.rand(2, 3, 16, 5), torch.rand(2, 3, 16), torch.rand(2, 3, 16), torch.rand(2, 3), torch.rand(2, 3, 16, 8)
-    for graph, args in ((graphs[1], (x[1], a[1], rr[1], r[1], mem[1])), (PaddedGraphs(graphs), (x, a, rr, r, mem))):
+    packed = PackedGraphs(graphs)
+    packed_args = (packed.pack(x, True), packed.pack(a, False), packed.pack(rr, False), r.T, packed.pack(mem, True))
+    for graph, args in ((graphs[1], (x[1], a[1], rr[1], r[1], mem[1])), (PaddedGraphs(graphs), (x, a, rr, r, mem)), (packed, packed_args)):
         runs = []
         for heads in (recurrent._heads, recurrent.concatenated_heads):
             monkeypatch.setattr(recurrent, "_heads", heads)
@@ -297,8 +330,8 @@ def test_a_common_level_past_the_clamp_stalls_the_actor_unless_it_is_centred():
 def test_the_demand_prior_gives_an_emptied_busy_region_weight():
     """With ``demand_prior`` g and a zero actor output the mean is (1 - f - g) idle share + g demand
     share + f / N: a region with no idle vehicles but the requests gets g of the fleet, where the
-    stay prior alone gives it the floor; the padded path agrees; bad settings are refused."""
-    from marl_amod.models.dense import DenseGraph, PaddedGraphs
+    stay prior alone gives it the floor; the padded and packed paths agree; bad settings are refused."""
+    from marl_amod.models.dense import DenseGraph, PackedGraphs, PaddedGraphs
     from marl_amod.models.recurrent import STAY_FLOOR
 
     lookahead, n = 2, 4
@@ -320,6 +353,9 @@ def test_the_demand_prior_gives_an_emptied_busy_region_weight():
     xp[0, 0, :n] = x
     ap, _, _ = model(xp, torch.zeros(2, 1, 6), torch.zeros(2, 1, 6), torch.zeros(2, 1), torch.zeros(2, 1, 6, 8), padded)
     torch.testing.assert_close(ap[0, 0, :n], alpha), torch.testing.assert_close(ap[0, 0, n:], torch.zeros(2))
+    packed = PackedGraphs(padded.graphs)  # and side by side: the second city's requests do not enter the first's share
+    apk, _, _ = model(packed.pack(xp, True), torch.zeros(1, 10), torch.zeros(1, 10), torch.zeros(1, 2), torch.zeros(1, 10, 8), packed)
+    torch.testing.assert_close(apk[0, :n], alpha), torch.testing.assert_close(packed.unpack(apk), ap)
     for bad in ({"stay_prior": False}, {"demand_prior": 0.95}, {"demand_columns": ()}):
         kwargs = {"stay_prior": True, "demand_prior": 0.3, "demand_columns": cols} | bad
         with pytest.raises(ValueError, match="demand_prior"):

@@ -358,6 +358,26 @@ def test_a_dagger_schedule_whose_first_round_never_comes_is_refused(first, updat
     assert args_for("meta-bc", {**values, "dagger_rounds": 0}).dagger_rounds == 0  # no rounds asked: nothing to refuse
 
 
+def test_the_cities_batch_form_is_chosen_by_one_reading_and_the_shipped_recipes_keep_theirs():
+    """Packing is the default; ``pad_cities: false`` (one city after another) is refused beside it instead of
+    ignored; and the meta-bc configs in ``configs/meta`` keep the batching they trained with (the root
+    ``bc.yaml`` pins it), so the shipped members retrain to the bit: only a config that asks for packing packs."""
+    import glob
+
+    from marl_amod.config import load_config
+    from marl_amod.data import read_yaml
+
+    assert args_for("meta-bc", {}).pack_cities and args_for("meta-bc", {"pad_cities": True}).pack_cities
+    with pytest.raises(ConfigError, match="pack_cities: false"):
+        args_for("meta-bc", {"pad_cities": False})
+    assert not args_for("meta-bc", {"pad_cities": False, "pack_cities": False}).pack_cities
+    algos = {k: v.args for k, v in ALGOS.items()}
+    recipes = {f: args for f in sorted(glob.glob("configs/meta/*.yaml")) for algo, args in [load_config(f, algos)] if algo == "meta-bc"}
+    asked = {f for f in recipes if "pack_cities" in (read_yaml(f).get("args") or {})}
+    assert len(recipes) > 50 and {f for f, args in recipes.items() if args.pack_cities} == asked - {"configs/meta/bc.yaml"}
+    assert not recipes["configs/meta/bc_dagger_l1_whole_rep4.yaml"].pack_cities and not recipes["configs/meta/bc_dagger_l1_whole_rep5.yaml"].pack_cities
+
+
 def test_hotspot_share_sets_how_often_variants_are_drawn():
     """``hotspot_share`` gives the variants that share of the draws (uniform within cities and
     within variants); without it every task is drawn as often, with the draws of the runs before
@@ -542,10 +562,12 @@ def _structured_demos(tasks: list[str], tmp_path) -> tuple[list, list[mi.CityDem
     [("none", mi.Fit()), ("mean-max", mi.Fit()), ("mean-max", mi.Fit(own_prev_action=True)), ("mean-max", mi.Fit(imitation="l1", shortfall=2.0)),
      ("mean-max", mi.Fit(imitation="l1", end_weight=3.0))],
 )
-def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp_path, readout, fit):
+@pytest.mark.parametrize("packed", [False, True])
+def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp_path, readout, fit, packed):
     """One update's cities of different sizes (6 and 9 regions; one drawn twice, one with a shorter
-    trial) in one padded batch give the mean of the per-city losses and the same gradients: the
-    padding reaches no message, pool, stay prior, value or cross-entropy."""
+    trial) in one padded batch, or side by side (``packed``), give the mean of the per-city losses and
+    the same gradients: the padding reaches no message, pool, stay prior, value or cross-entropy, and
+    nor does one packed city reach another."""
     cities, demos = _structured_demos(tasks, tmp_path)
     graphs = [meta.city_graph(c) for c in cities]
     short = mi.CityDemos(*(v[:, :4] for v in vars(demos[1]).values()))  # a city with 4 decisions per episode
@@ -559,7 +581,7 @@ def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp
 
     one_by_one = [mi.imitation_losses(model, d, e, g, gamma=0.97, fit=fit) for d, e, g in draws]
     want = loss_and_grads(torch.stack([c for c, _ in one_by_one]).mean(), torch.stack([v for _, v in one_by_one]).mean())
-    got = loss_and_grads(*mi.cities_losses(model, draws, gamma=0.97, fit=fit))
+    got = loss_and_grads(*mi.cities_losses(model, draws, gamma=0.97, fit=fit, packed=packed))
     assert demos[0].x.shape[2] != demos[1].x.shape[2] and want[0] > 0 and want[1] > 0
     for a, b in zip(got, want, strict=True):
         torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-4)

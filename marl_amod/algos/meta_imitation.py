@@ -61,7 +61,7 @@ from marl_amod.algos import offline as O
 from marl_amod.algos.meta import CityScale, task_features
 from marl_amod.baselines.mpc import MPCForecast
 from marl_amod.errors import DataError
-from marl_amod.models.dense import DenseGraph, PaddedGraphs
+from marl_amod.models.dense import DenseGraph, PackedGraphs, PaddedGraphs
 from marl_amod.models.recurrent import RecurrentGNN
 from marl_amod.scenario import City
 from marl_amod.scenario.types import step_rows
@@ -276,8 +276,9 @@ def load_demos(folder: str | Path, city: City, lookahead: int, structure: bool =
 @dataclass
 class Trials:
     """Teacher-forced trials as tensors with axes ``lead``: (B,) trials of one city, or (C, B)
-    trials of C cities padded to one region count (zeros in the padded regions). Episode and step
-    lead (K, T, ...), contiguous: each decision's inputs are one contiguous block."""
+    trials of C cities padded to one region count (zeros in the padded regions; :func:`packed_trials`
+    puts them side by side for the model). Episode and step lead (K, T, ...), contiguous: each
+    decision's inputs are one contiguous block."""
 
     x: torch.Tensor  # (K, T, *lead, N, F) features before each decision of each of the K episodes
     share: torch.Tensor  # (K, T, *lead, N) MPC-F's distribution: the label
@@ -333,13 +334,14 @@ def imitation_losses(
 
 def cities_losses(
     model: RecurrentGNN, draws: list[tuple[CityDemos, np.ndarray, DenseGraph]], gamma: float, padded: bool = True,
-    fit: Fit = Fit(),
+    fit: Fit = Fit(), packed: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The mean over the drawn cities of :func:`imitation_losses`. ``padded``: the cities of each
-    trial length in one batch (:class:`~marl_amod.models.dense.PaddedGraphs`), one forward pass
-    per step for all of them, the same losses to float rounding (tested); else one city after
-    another (what pays where tensors outgrow the cache: ``benchmarks/meta_update.py``)."""
-    if not padded:
+    """The mean over the drawn cities of :func:`imitation_losses`. ``packed``: the cities of each
+    trial length side by side in one batch (:class:`~marl_amod.models.dense.PackedGraphs`), one
+    forward pass per step for all of them; else ``padded``: the same padded to the largest city
+    (:class:`~marl_amod.models.dense.PaddedGraphs`); else one city after another. The same losses to
+    float rounding (tested); ``benchmarks/meta_update.py`` times each."""
+    if not (padded or packed):
         losses = [imitation_losses(model, demos, episodes, graph, gamma, fit) for demos, episodes, graph in draws]
         return torch.stack([c for c, _ in losses]).mean(), torch.stack([v for _, v in losses]).mean()
     groups: dict[int, list[int]] = {}
@@ -348,38 +350,54 @@ def cities_losses(
     actor, vl = torch.zeros(()), torch.zeros(())
     for members in groups.values():
         batch = Trials.padded([Trials.of_city(draws[i][0], draws[i][1]) for i in members])
-        g_actor, g_vl = trial_losses(model, batch, PaddedGraphs([draws[i][2] for i in members]), gamma, fit)
+        graphs = [draws[i][2] for i in members]
+        g_actor, g_vl = trial_losses(model, batch, PackedGraphs(graphs) if packed else PaddedGraphs(graphs), gamma, fit)
         actor, vl = actor + g_actor * len(members), vl + g_vl * len(members)  # every city has B trials of T steps: equal weights
     return actor / len(draws), vl / len(draws)
 
 
 def teacher_forced(
-    model: RecurrentGNN, trials: Trials, graph: DenseGraph | PaddedGraphs, own_prev_action: bool = False
+    model: RecurrentGNN, trials: Trials, graph: DenseGraph | PaddedGraphs | PackedGraphs, own_prev_action: bool = False
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(Dirichlet means (K T, *lead, N), values (K T, *lead)) of ``model`` run over teacher-forced
     trials: the memory carried across the K episodes, the previous action and rewards those of the
-    trials (restarting at zero with each episode). What the losses and the diagnostics read.
+    trials (restarting at zero with each episode). What the losses and the diagnostics read. With
+    :class:`~marl_amod.models.dense.PackedGraphs` the padded trials (C, B, N_max) run packed and
+    come back padded (zeros in the padding).
 
     ``own_prev_action``: the previous action the memory reads is the model's own mean at the step
     before (detached, as deployed) instead of what was played there. In a demonstration that is
     MPC-F's move, which predicts its next one: a channel the deployed policy never has (it reads its
     own moves), the copycat problem of imitation from histories."""
+    packed = graph if isinstance(graph, PackedGraphs) else None
+    if packed is not None:
+        trials = packed_trials(trials, packed)
     k_eps, t_steps, *lead, n, _ = trials.x.shape
     memory = model.initial_memory(n, *lead)
     means, values = [], []
     for k in range(k_eps):
-        prev_a, prev_rr, prev_r = torch.zeros(*lead, n), torch.zeros(*lead, n), torch.zeros(lead)
+        prev_a, prev_rr, prev_r = torch.zeros(*lead, n), torch.zeros(*lead, n), torch.zeros(trials.reward.shape[2:])
         for t in range(t_steps):
             alpha, v, memory = model(trials.x[k, t], prev_a, prev_rr, prev_r, memory, graph)
-            means.append(alpha / alpha.sum(-1, keepdim=True))
+            total = packed.spread(packed.city_sum(alpha)) if packed is not None else alpha.sum(-1, keepdim=True)
+            means.append(alpha / total)
             values.append(v)
             played = means[-1].detach() if own_prev_action else trials.action[k, t]
             prev_a, prev_rr, prev_r = played * trials.regions, trials.region_reward[k, t], trials.reward[k, t]
+    if packed is not None:  # (K T, B, N) and (K T, B, C) back to the padded (K T, C, B, N_max) and (K T, C, B)
+        return packed.unpack(torch.stack(means)), torch.stack(values).movedim(-1, -2)
     return torch.stack(means), torch.stack(values)
 
 
+def packed_trials(trials: Trials, packed: PackedGraphs) -> Trials:
+    """Padded trials (K, T, C, B, N_max, ...) as the model's inputs side by side: (K, T, B, N, ...), rewards (K, T, B, C)."""
+    return Trials(packed.pack(trials.x, features=True), packed.pack(trials.share, features=False),
+                  packed.pack(trials.region_reward, features=False), trials.reward.movedim(2, 3),
+                  packed.pack(trials.action, features=False), packed.regions)  # fmt: skip
+
+
 def trial_losses(
-    model: RecurrentGNN, trials: Trials, graph: DenseGraph | PaddedGraphs, gamma: float, fit: Fit = Fit()
+    model: RecurrentGNN, trials: Trials, graph: DenseGraph | PaddedGraphs | PackedGraphs, gamma: float, fit: Fit = Fit()
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """(actor loss, critic loss) of teacher-forced trials: the actor fits the Dirichlet mean to
     MPC-F's shares (``fit.imitation``), the critic the discounted return to the trial's end; both
@@ -543,9 +561,17 @@ class Args(meta.Args):
     alone at hidden 128, 1.08x at 64, the loss within 4e-6 relative (``benchmarks/meta_update.py``,
     2026-12-05); 1.3x with two runs side by side. On a CPU without those units it is slower: measure first"""
     pad_cities: bool = True
-    """an update's cities padded into one batch (the same losses to float rounding): 1.12-1.16x
-    faster at hidden 64 x 16 trials per city, 1.4-1.8x at 4 trials (``benchmarks/meta_update.py``);
-    False: one city after another, as fast at hidden 128 x 16 trials (0.97x padded)"""
+    """(with ``pack_cities: false``) an update's cities padded into one batch (the same losses to float
+    rounding): 1.12-1.16x faster at hidden 64 x 16 trials per city, 1.4-1.8x at 4 trials
+    (``benchmarks/meta_update.py``); False: one city after another, as fast at hidden 128 x 16 trials (0.97x padded)"""
+    pack_cities: bool = True
+    """an update's cities side by side in one batch, one graph that is their disjoint union
+    (:class:`~marl_amod.models.dense.PackedGraphs`), instead of padded to the largest: the same losses
+    to float rounding, and no product spent on padding rows (the training cities have 12-23 regions,
+    so padding to the largest of four costs about a quarter more rows): at hidden 128 1.08x faster
+    in float32 and 1.15x in bf16, where the update is those products; at hidden 64, where it is
+    not, 1.01-1.03x (``benchmarks/meta_update.py``, 2026-12-05). The shipped recipes
+    (``configs/meta/bc.yaml`` and all that extend it) set it false, so they retrain to the bit"""
 
     def run_length(self) -> int:
         return min(self.updates, self.stop_after or self.updates)
@@ -555,6 +581,9 @@ class Args(meta.Args):
 
     @model_validator(mode="after")
     def _consistent(self) -> Args:
+        if self.pack_cities and not self.pad_cities and "pad_cities" in self.model_fields_set:
+            raise ValueError("pad_cities: false (one city after another) with pack_cities: true (the default, the cities side by "
+                             "side): set pack_cities: false for one city after another")  # fmt: skip
         if twice := sorted({c for c in self.cities if self.cities.count(c) > 1}):  # an update draws from the distinct tasks
             raise ValueError(f"cities names {twice} twice: a city is one task however often it is listed (its "
                              "variants would be drawn as cities under hotspot_share)")  # fmt: skip
@@ -775,7 +804,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                 demos, graph = data[name]
                 draws.append((demos, draw_trials(demos, args, rng, dagger_from[name]), graph))
             with amp():
-                ce, vl = cities_losses(model, draws, args.gamma, args.pad_cities, args.fit)
+                ce, vl = cities_losses(model, draws, args.gamma, args.pad_cities, args.fit, args.pack_cities)
             for group in opt.param_groups:
                 group["lr"] = lr_at(args, step)
             opt.zero_grad()

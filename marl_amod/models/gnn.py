@@ -28,7 +28,7 @@ import torch.nn.functional as F
 from torch import nn
 from torch_geometric.nn import GCNConv, SAGEConv
 
-from marl_amod.models.dense import ConvKind, DenseGraph
+from marl_amod.models.dense import ConvKind, DenseGraph, PackedGraphs
 from marl_amod.models.distributions import CONCENTRATION_EPS
 
 Graph = torch.Tensor | DenseGraph  # (2, E) edge_index for torch-geometric, or the dense small-graph form
@@ -91,9 +91,12 @@ class FleetReadout(nn.Module):
         pooled = self.summary(h, mask)  # (..., 1, kH)
         return torch.cat([h, pooled.expand(*h.shape[:-1], pooled.shape[-1])], dim=-1)
 
-    def summary(self, h: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-        """(..., N, C) -> (..., 1, kH): the pools alone, once per graph (what ``forward`` appends to every node)."""
+    def summary(self, h: torch.Tensor, mask: torch.Tensor | None = None, packed: PackedGraphs | None = None) -> torch.Tensor:
+        """(..., N, C) -> (..., 1, kH): the pools alone, once per graph (what ``forward`` appends to every node);
+        ``packed`` (cities side by side, :class:`~marl_amod.models.dense.PackedGraphs`): (..., C, kH), once per city."""
         e = self.embed(h)  # (..., N, H)
+        if packed is not None:
+            return torch.cat([packed.city_pool(e, p) for p in self.pools], dim=-1)
         return torch.cat([self._pool(e, p, mask) for p in self.pools], dim=-1)
 
     @staticmethod
