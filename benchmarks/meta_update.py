@@ -6,11 +6,11 @@ demonstrations, ``runs/meta_demos`` by default, with the structure and place col
 the loss, its backward pass, the clipping and the Adam step, three ways in one process on the same
 draws, alternating, so the machine's load hits all alike (the ratios are what to read):
 
-* ``per city``: :func:`~marl_amod.algos.meta_imitation.cities_losses` with ``padded=False``:
+* ``per city``: :func:`~marl_amod.algos.meta_imitation.cities_losses` with ``batch="apart"``:
   :func:`~marl_amod.algos.meta_imitation.imitation_losses` once per city, averaged (the path
   before the padded batch; ``pad_cities: false``);
-* ``padded``: ``padded=True``, one padded batch (``pad_cities: true``, ``pack_cities: false``: the shipped recipes);
-* ``packed``: ``packed=True``, the cities side by side in one batch, no padding (``pack_cities: true``, the default);
+* ``padded``: ``batch="padded"``, one padded batch (``pad_cities: true``, ``pack_cities: false``: the shipped recipes);
+* ``packed``: ``batch="packed"``, the cities side by side in one batch, no padding (``pack_cities: true``, the default);
 * ``padded, heads on the concatenation``: the same, with the model's heads run on the readout's
   full output (:func:`~marl_amod.models.recurrent.concatenated_heads`, the fleet summary copied to
   every region) instead of split (the model's own ``_heads``: the summary's columns once per graph);
@@ -61,7 +61,7 @@ def per_reader(memory: torch.Tensor) -> torch.Tensor:
 
 
 class Form(NamedTuple):
-    batch: str  # "apart" (one city after another), "padded" or "packed"
+    batch: mi.CitiesBatch
     heads: Callable
     precision: C.Precision
     memory_read: Callable = CAST_ONCE
@@ -80,7 +80,7 @@ def timed_update(form: str, model: meta.RecurrentGNN, opt: torch.optim.Optimizer
     recurrent._heads, recurrent._for_products = chosen.heads, chosen.memory_read
     start = time.perf_counter()
     with C.autocast(chosen.precision)():
-        ce, vl = mi.cities_losses(model, draws, args.gamma, chosen.batch != "apart", args.fit, packed=chosen.batch == "packed")
+        ce, vl = mi.cities_losses(model, draws, args.gamma, chosen.batch, args.fit)
     loss = ce + args.value_coef * vl
     opt.zero_grad()
     loss.backward()

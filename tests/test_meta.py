@@ -220,20 +220,20 @@ def test_recurrent_gnn_on_packed_cities_is_each_city_on_its_own(stay_prior, read
     graphs = [DenseGraph(torch.as_tensor(np.array(c.edge_index)), c.n_regions) for c in cities]
     packed = PackedGraphs(graphs)
     assert packed.n == 28 and packed.starts == [0, 6, 22] and packed.regions.tolist() == [6.0] * 6 + [16.0] * 16 + [6.0] * 6
-    x, a, rr, r, mem = torch.rand(3, 28, 5), torch.rand(3, 28), torch.rand(3, 28), torch.rand(3, 3), torch.rand(3, 28, 8)
+    x, a, rr, r, mem = torch.rand(4, 28, 5), torch.rand(4, 28), torch.rand(4, 28), torch.rand(4, 3), torch.rand(4, 28, 8)  # 4 trials, 3 cities
     alpha, v, memory = model(x, a, rr, r, mem, packed)
-    assert alpha.shape == (3, 28) and v.shape == (3, 3) and memory.shape == (3, 28, 8)
+    assert alpha.shape == (4, 28) and v.shape == (4, 3) and memory.shape == (4, 28, 8)
     for c, (g, s) in enumerate(zip(graphs, packed.starts, strict=True)):
         part = slice(s, s + g.n)
         one, w, m = model(x[:, part], a[:, part], rr[:, part], r[:, c], mem[:, part], g)
         torch.testing.assert_close(alpha[:, part], one), torch.testing.assert_close(v[:, c], w), torch.testing.assert_close(memory[:, part], m)
     # from and to the padded layout (C, B, N_max): the padded model on the same trials agrees
-    pad_x, pad_mem = torch.rand(3, 3, 16, 5), torch.rand(3, 3, 16, 8)
+    pad_x, pad_mem = torch.rand(3, 4, 16, 5), torch.rand(3, 4, 16, 8)
     for c, (g, s) in enumerate(zip(graphs, packed.starts, strict=True)):
         pad_x[c, :, : g.n], pad_mem[c, :, : g.n] = x[:, s : s + g.n], mem[:, s : s + g.n]
     torch.testing.assert_close(packed.pack(pad_x, features=True), x), torch.testing.assert_close(packed.pack(pad_mem, features=True), mem)
     pad_a = packed.unpack(a)
-    assert pad_a.shape == (3, 3, 16) and (pad_a[0, :, 6:] == 0).all() and torch.equal(packed.pack(pad_a, features=False), a)
+    assert pad_a.shape == (3, 4, 16) and (pad_a[0, :, 6:] == 0).all() and torch.equal(packed.pack(pad_a, features=False), a)
     p_alpha, p_v, _ = model(pad_x, pad_a, packed.unpack(rr), r.T, pad_mem, PaddedGraphs(graphs))
     torch.testing.assert_close(p_alpha, packed.unpack(alpha)), torch.testing.assert_close(p_v, v.T)
 

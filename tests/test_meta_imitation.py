@@ -367,10 +367,11 @@ def test_the_cities_batch_form_is_chosen_by_one_reading_and_the_shipped_recipes_
     from marl_amod.config import load_config
     from marl_amod.data import read_yaml
 
-    assert args_for("meta-bc", {}).pack_cities and args_for("meta-bc", {"pad_cities": True}).pack_cities
-    with pytest.raises(ConfigError, match="pack_cities: false"):
+    assert args_for("meta-bc", {}).cities_batch == "packed" == args_for("meta-bc", {"pad_cities": True}).cities_batch
+    with pytest.raises(ConfigError, match="pad_cities: true to pack, or pack_cities: false"):
         args_for("meta-bc", {"pad_cities": False})
-    assert not args_for("meta-bc", {"pad_cities": False, "pack_cities": False}).pack_cities
+    assert args_for("meta-bc", {"pad_cities": False, "pack_cities": False}).cities_batch == "apart"
+    assert args_for("meta-bc", {"pack_cities": False}).cities_batch == "padded"
     algos = {k: v.args for k, v in ALGOS.items()}
     recipes = {f: args for f in sorted(glob.glob("configs/meta/*.yaml")) for algo, args in [load_config(f, algos)] if algo == "meta-bc"}
     asked = {f for f in recipes if "pack_cities" in (read_yaml(f).get("args") or {})}
@@ -562,8 +563,8 @@ def _structured_demos(tasks: list[str], tmp_path) -> tuple[list, list[mi.CityDem
     [("none", mi.Fit()), ("mean-max", mi.Fit()), ("mean-max", mi.Fit(own_prev_action=True)), ("mean-max", mi.Fit(imitation="l1", shortfall=2.0)),
      ("mean-max", mi.Fit(imitation="l1", end_weight=3.0))],
 )
-@pytest.mark.parametrize("packed", [False, True])
-def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp_path, readout, fit, packed):
+@pytest.mark.parametrize("batch", ["padded", "packed"])
+def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp_path, readout, fit, batch):
     """One update's cities of different sizes (6 and 9 regions; one drawn twice, one with a shorter
     trial) in one padded batch, or side by side (``packed``), give the mean of the per-city losses and
     the same gradients: the padding reaches no message, pool, stay prior, value or cross-entropy, and
@@ -581,7 +582,7 @@ def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp
 
     one_by_one = [mi.imitation_losses(model, d, e, g, gamma=0.97, fit=fit) for d, e, g in draws]
     want = loss_and_grads(torch.stack([c for c, _ in one_by_one]).mean(), torch.stack([v for _, v in one_by_one]).mean())
-    got = loss_and_grads(*mi.cities_losses(model, draws, gamma=0.97, fit=fit, packed=packed))
+    got = loss_and_grads(*mi.cities_losses(model, draws, gamma=0.97, batch=batch, fit=fit))
     assert demos[0].x.shape[2] != demos[1].x.shape[2] and want[0] > 0 and want[1] > 0
     for a, b in zip(got, want, strict=True):
         torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-4)
@@ -589,11 +590,12 @@ def test_padded_cities_losses_equal_the_per_city_losses_and_gradients(tasks, tmp
         mi.Trials.padded([mi.Trials.of_city(demos[0], draws[0][1]), mi.Trials.of_city(short, draws[3][1])])
 
 
-def test_bf16_autocast_keeps_the_memory_and_what_the_losses_read_in_float32(tasks, tmp_path):
+@pytest.mark.parametrize("batch", ["padded", "packed"])
+def test_bf16_autocast_keeps_the_memory_and_what_the_losses_read_in_float32(tasks, tmp_path, batch):
     """``precision: bf16`` runs the teacher-forced pass under bf16 autocast: only the products are bf16.
     The memory carried across the trial's steps, the Dirichlet means and the values come out float32,
     and the losses and gradients stay those of float32 to bf16's rounding (a policy trained so plays
-    as one trained in float32); a short run trains and saves float32 weights."""
+    as one trained in float32), the cities padded or side by side; a short run trains and saves float32 weights."""
     cities, demos = _structured_demos(tasks, tmp_path)
     rng = np.random.default_rng(0)
     draws = [(d, rng.integers(3, size=(2, 4)), meta.city_graph(c)) for d, c in zip(demos, cities, strict=True)]
@@ -603,7 +605,7 @@ def test_bf16_autocast_keeps_the_memory_and_what_the_losses_read_in_float32(task
 
     def loss_and_grads(bf16: bool) -> list[torch.Tensor]:
         with C.autocast("bf16" if bf16 else "fp32")():
-            ce, vl = mi.cities_losses(model, draws, gamma=0.97, fit=fit)
+            ce, vl = mi.cities_losses(model, draws, gamma=0.97, batch=batch, fit=fit)
             means, values = mi.teacher_forced(model, mi.Trials.of_city(demos[0], draws[0][1]), draws[0][2])
         assert ce.dtype == vl.dtype == means.dtype == values.dtype == torch.float32
         return [ce, vl, torch.cat([g.flatten() for g in torch.autograd.grad(ce + 0.5 * vl, list(model.parameters()))])]
@@ -613,7 +615,7 @@ def test_bf16_autocast_keeps_the_memory_and_what_the_losses_read_in_float32(task
     torch.testing.assert_close(ce16, ce, rtol=1e-2, atol=0)
     torch.testing.assert_close(vl16, vl, rtol=2e-2, atol=0)
     assert F.cosine_similarity(grad16, grad, dim=0) > 0.99 and not torch.equal(grad16, grad)  # bf16 did run, and near float32
-    out = ALGOS["meta-bc"].train(tiny_args(tasks, tmp_path, "bf", precision="bf16"))
+    out = ALGOS["meta-bc"].train(tiny_args(tasks, tmp_path, "bf", precision="bf16", pack_cities=batch == "packed"))
     assert out["card"]["updates"] > 0
     assert all(v.dtype == torch.float32 for v in torch.load(out["policy"], weights_only=False)["state_dict"].values())
 

@@ -61,7 +61,7 @@ from marl_amod.algos import offline as O
 from marl_amod.algos.meta import CityScale, task_features
 from marl_amod.baselines.mpc import MPCForecast
 from marl_amod.errors import DataError
-from marl_amod.models.dense import DenseGraph, PackedGraphs, PaddedGraphs
+from marl_amod.models.dense import Cities, DenseGraph, PackedGraphs, PaddedGraphs
 from marl_amod.models.recurrent import RecurrentGNN
 from marl_amod.scenario import City
 from marl_amod.scenario.types import step_rows
@@ -283,9 +283,9 @@ class Trials:
     x: torch.Tensor  # (K, T, *lead, N, F) features before each decision of each of the K episodes
     share: torch.Tensor  # (K, T, *lead, N) MPC-F's distribution: the label
     region_reward: torch.Tensor  # (K, T, *lead, N)
-    reward: torch.Tensor  # (K, T, *lead)
+    reward: torch.Tensor  # (K, T, *lead) the team's; side by side (K, T, B, C), one per city
     action: torch.Tensor  # (K, T, *lead, N) what was played: the next step's previous action
-    regions: int | torch.Tensor  # N, or (C, 1, 1) each city's own: previous actions are shares x N
+    regions: int | torch.Tensor  # N, or each city's own, (C, 1, 1) padded or (N,) side by side: previous actions are shares x N
 
     @classmethod
     def of_city(cls, demos: CityDemos, episodes: np.ndarray) -> Trials:
@@ -332,16 +332,19 @@ def imitation_losses(
     return trial_losses(model, Trials.of_city(demos, episodes), graph, gamma, fit)
 
 
+CitiesBatch = Literal["packed", "padded", "apart"]
+
+
 def cities_losses(
-    model: RecurrentGNN, draws: list[tuple[CityDemos, np.ndarray, DenseGraph]], gamma: float, padded: bool = True,
-    fit: Fit = Fit(), packed: bool = False,
+    model: RecurrentGNN, draws: list[tuple[CityDemos, np.ndarray, DenseGraph]], gamma: float, batch: CitiesBatch = "packed",
+    fit: Fit = Fit(),
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The mean over the drawn cities of :func:`imitation_losses`. ``packed``: the cities of each
-    trial length side by side in one batch (:class:`~marl_amod.models.dense.PackedGraphs`), one
-    forward pass per step for all of them; else ``padded``: the same padded to the largest city
-    (:class:`~marl_amod.models.dense.PaddedGraphs`); else one city after another. The same losses to
-    float rounding (tested); ``benchmarks/meta_update.py`` times each."""
-    if not (padded or packed):
+    """The mean over the drawn cities of :func:`imitation_losses`, the cities of each trial length
+    ``batch``ed: ``"packed"`` side by side in one batch (:class:`~marl_amod.models.dense.PackedGraphs`),
+    one forward pass per step for all of them; ``"padded"`` the same padded to the largest city
+    (:class:`~marl_amod.models.dense.PaddedGraphs`); ``"apart"`` one city after another. The same
+    losses to float rounding (tested); ``benchmarks/meta_update.py`` times each."""
+    if batch == "apart":
         losses = [imitation_losses(model, demos, episodes, graph, gamma, fit) for demos, episodes, graph in draws]
         return torch.stack([c for c, _ in losses]).mean(), torch.stack([v for _, v in losses]).mean()
     groups: dict[int, list[int]] = {}
@@ -349,9 +352,9 @@ def cities_losses(
         groups.setdefault(int(demos.x.shape[1]), []).append(i)
     actor, vl = torch.zeros(()), torch.zeros(())
     for members in groups.values():
-        batch = Trials.padded([Trials.of_city(draws[i][0], draws[i][1]) for i in members])
+        trials = Trials.padded([Trials.of_city(draws[i][0], draws[i][1]) for i in members])
         graphs = [draws[i][2] for i in members]
-        g_actor, g_vl = trial_losses(model, batch, PackedGraphs(graphs) if packed else PaddedGraphs(graphs), gamma, fit)
+        g_actor, g_vl = trial_losses(model, trials, PackedGraphs(graphs) if batch == "packed" else PaddedGraphs(graphs), gamma, fit)
         actor, vl = actor + g_actor * len(members), vl + g_vl * len(members)  # every city has B trials of T steps: equal weights
     return actor / len(draws), vl / len(draws)
 
@@ -373,14 +376,13 @@ def teacher_forced(
     if packed is not None:
         trials = packed_trials(trials, packed)
     k_eps, t_steps, *lead, n, _ = trials.x.shape
-    memory = model.initial_memory(n, *lead)
+    memory, cities = model.initial_memory(n, *lead), Cities(graph, n)
     means, values = [], []
     for k in range(k_eps):
         prev_a, prev_rr, prev_r = torch.zeros(*lead, n), torch.zeros(*lead, n), torch.zeros(trials.reward.shape[2:])
         for t in range(t_steps):
             alpha, v, memory = model(trials.x[k, t], prev_a, prev_rr, prev_r, memory, graph)
-            total = packed.spread(packed.city_sum(alpha)) if packed is not None else alpha.sum(-1, keepdim=True)
-            means.append(alpha / total)
+            means.append(cities.share(alpha))  # the Dirichlet mean, each city's own
             values.append(v)
             played = means[-1].detach() if own_prev_action else trials.action[k, t]
             prev_a, prev_rr, prev_r = played * trials.regions, trials.region_reward[k, t], trials.reward[k, t]
@@ -570,8 +572,13 @@ class Args(meta.Args):
     to float rounding, and no product spent on padding rows (the training cities have 12-23 regions,
     so padding to the largest of four costs about a quarter more rows): at hidden 128 1.08x faster
     in float32 and 1.15x in bf16, where the update is those products; at hidden 64, where it is
-    not, 1.01-1.03x (``benchmarks/meta_update.py``, 2026-12-05). The shipped recipes
-    (``configs/meta/bc.yaml`` and all that extend it) set it false, so they retrain to the bit"""
+    not, 1.01-1.03x (``benchmarks/meta_update.py``, 2026-12-05). ``configs/meta/bc.yaml`` sets it
+    false, so the recipes extending it keep their batching and retrain to the bit unless they set it"""
+
+    @property
+    def cities_batch(self) -> CitiesBatch:
+        """How an update's cities share a batch (:func:`cities_losses`), from ``pack_cities`` and ``pad_cities``."""
+        return "packed" if self.pack_cities else "padded" if self.pad_cities else "apart"
 
     def run_length(self) -> int:
         return min(self.updates, self.stop_after or self.updates)
@@ -581,9 +588,9 @@ class Args(meta.Args):
 
     @model_validator(mode="after")
     def _consistent(self) -> Args:
-        if self.pack_cities and not self.pad_cities and "pad_cities" in self.model_fields_set:
-            raise ValueError("pad_cities: false (one city after another) with pack_cities: true (the default, the cities side by "
-                             "side): set pack_cities: false for one city after another")  # fmt: skip
+        if self.pack_cities and not self.pad_cities:
+            raise ValueError("pad_cities: false (one city after another) with pack_cities: true (the cities side by side): "
+                             "set pad_cities: true to pack, or pack_cities: false for one city after another")  # fmt: skip
         if twice := sorted({c for c in self.cities if self.cities.count(c) > 1}):  # an update draws from the distinct tasks
             raise ValueError(f"cities names {twice} twice: a city is one task however often it is listed (its "
                              "variants would be drawn as cities under hotspot_share)")  # fmt: skip
@@ -804,7 +811,7 @@ def train(args: Args, *, resume: str | None = None, progress: C.Progress | None 
                 demos, graph = data[name]
                 draws.append((demos, draw_trials(demos, args, rng, dagger_from[name]), graph))
             with amp():
-                ce, vl = cities_losses(model, draws, args.gamma, args.pad_cities, args.fit, args.pack_cities)
+                ce, vl = cities_losses(model, draws, args.gamma, args.cities_batch, args.fit)
             for group in opt.param_groups:
                 group["lr"] = lr_at(args, step)
             opt.zero_grad()

@@ -24,7 +24,8 @@ Two forms put C cities of different sizes in one batch, for meta-training's upda
   their disjoint union (a block-diagonal operator), so no row is padding; its per-city sums and
   pools tell the model where each city's regions lie.
 
-:class:`~marl_amod.models.recurrent.RecurrentGNN` reads either.
+:class:`Cities` gives a model the per-city reductions (means, shares, pools) of any of the three
+forms, one city included; :class:`~marl_amod.models.recurrent.RecurrentGNN` reads them.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ if TYPE_CHECKING:
     from marl_amod.scenario import City
 
 ConvKind = Literal["gcn", "sage"]
+Pool = Literal["mean", "max"]
 
 
 def graph_operator(kind: ConvKind, edge_index: torch.Tensor, n: int, dtype: torch.dtype = torch.float32) -> torch.Tensor:
@@ -150,7 +152,7 @@ class PackedGraphs(_Operators):
     regions spends about a fifth of every per-region product on padding, and at 128 hidden units
     the update's time is those products; packed, every row is a region. The operator is
     block-diagonal, so messages never cross cities; the model's pools, shares and means run per
-    city through :meth:`city_sum`, :meth:`city_pool` and :meth:`spread`. :meth:`pack` and
+    city through :meth:`city_sum`, :meth:`city_pool` and :meth:`spread` (:class:`Cities`). :meth:`pack` and
     :meth:`unpack` convert from and to the padded layout (C, B, N_max, ...) the losses read.
     """
 
@@ -174,10 +176,10 @@ class PackedGraphs(_Operators):
         """(..., N) -> (..., C): each city's sum over its regions."""
         return torch.stack([v.narrow(-1, s, n).sum(-1) for s, n in zip(self.starts, self.sizes, strict=True)], dim=-1)
 
-    def city_pool(self, e: torch.Tensor, kind: str) -> torch.Tensor:
+    def city_pool(self, e: torch.Tensor, kind: Pool) -> torch.Tensor:
         """(..., N, H) -> (..., C, H): each city's mean or max over its regions."""
-        pool = (lambda part: part.mean(-2)) if kind == "mean" else (lambda part: part.amax(-2))
-        return torch.stack([pool(e.narrow(-2, s, n)) for s, n in zip(self.starts, self.sizes, strict=True)], dim=-2)
+        reduce = {"mean": torch.mean, "max": torch.amax}[kind]
+        return torch.stack([reduce(e.narrow(-2, s, n), -2) for s, n in zip(self.starts, self.sizes, strict=True)], dim=-2)
 
     def spread(self, v: torch.Tensor, dim: int = -1) -> torch.Tensor:
         """(..., C, ...) -> (..., N, ...): each city's entry copied to its regions (along ``dim``)."""
@@ -193,3 +195,54 @@ class PackedGraphs(_Operators):
         """Packed (..., B, N) -> padded (..., C, B, N_max), zeros in the padding."""
         out = v.new_zeros(*v.shape[:-1], len(self.sizes) * self.n_max).index_copy(-1, self._padded_at, v)
         return out.unflatten(-1, (len(self.sizes), self.n_max)).movedim(-2, -3)
+
+
+class Cities:
+    """Where each city's regions lie in a batch of N regions, and the per-city reductions a model
+    takes over them: one city (a plain graph or :class:`DenseGraph`: all N regions), cities padded to
+    one size (:class:`PaddedGraphs`: its mask), or side by side (:class:`PackedGraphs`: its segments).
+    A per-city quantity is (...) for one city and padded cities (their lead axes hold the city) and
+    (..., C) packed; ``regions`` broadcasts against (..., N): each region's city's region count."""
+
+    def __init__(self, graph: object, n: int) -> None:
+        self.n = n
+        self.mask = graph.mask if isinstance(graph, PaddedGraphs) else None  # (C, 1, N): the real regions
+        self.packed = graph if isinstance(graph, PackedGraphs) else None
+        self.regions: int | torch.Tensor = n
+        if self.packed is not None:
+            self.regions = self.packed.regions  # (N,)
+        elif self.mask is not None:
+            self.regions = self.mask.sum(-1, keepdim=True)  # (C, 1, 1)
+
+    def mean(self, v: torch.Tensor) -> torch.Tensor:
+        """(..., N) -> each city's mean over its real regions."""
+        if self.packed is not None:
+            return self.packed.city_sum(v) / self.packed.city_regions
+        if self.mask is None:
+            return v.mean(-1)
+        return v.masked_fill(~self.mask, 0.0).sum(-1) / self.regions.squeeze(-1)
+
+    def per_region(self, v: torch.Tensor) -> torch.Tensor:
+        """A per-city quantity as (..., N): each region gets its city's."""
+        return self.packed.spread(v) if self.packed is not None else v.unsqueeze(-1).expand(*v.shape, self.n)
+
+    def share(self, v: torch.Tensor) -> torch.Tensor:
+        """(..., N) counts -> their distribution over each city's real regions; negatives count 0, all zero stays zero."""
+        v = v.clamp_min(0) if self.mask is None else v.clamp_min(0).masked_fill(~self.mask, 0.0)
+        total = self.packed.spread(self.packed.city_sum(v)) if self.packed is not None else v.sum(-1, keepdim=True)
+        return v / total.clamp_min(1e-9)
+
+    def pool(self, e: torch.Tensor, kind: Pool) -> torch.Tensor:
+        """(..., N, H) -> each city's mean or max over its real regions: (..., 1, H), or (..., C, H) packed."""
+        if self.packed is not None:
+            return self.packed.city_pool(e, kind)
+        if self.mask is None:
+            return e.mean(-2, keepdim=True) if kind == "mean" else e.amax(-2, keepdim=True)
+        m = self.mask.unsqueeze(-1)  # (C, 1, N, 1)
+        if kind == "mean":
+            return (e * m).sum(-2, keepdim=True) / m.sum(-2, keepdim=True)
+        return e.masked_fill(~m, float("-inf")).amax(-2, keepdim=True)
+
+    def to_regions(self, summary: torch.Tensor) -> torch.Tensor:
+        """A :meth:`pool`'s output (..., 1 or C, P) in a form that adds to (..., N, P): each region its city's."""
+        return self.packed.spread(summary, dim=-2) if self.packed is not None else summary

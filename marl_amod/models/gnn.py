@@ -28,7 +28,7 @@ import torch.nn.functional as F
 from torch import nn
 from torch_geometric.nn import GCNConv, SAGEConv
 
-from marl_amod.models.dense import ConvKind, DenseGraph, PackedGraphs
+from marl_amod.models.dense import Cities, ConvKind, DenseGraph
 from marl_amod.models.distributions import CONCENTRATION_EPS
 
 Graph = torch.Tensor | DenseGraph  # (2, E) edge_index for torch-geometric, or the dense small-graph form
@@ -86,27 +86,17 @@ class FleetReadout(nn.Module):
         self.embed = nn.Sequential(nn.Linear(channels, hidden), nn.ReLU())
         self.out_dim = channels + len(self.pools) * hidden
 
-    def forward(self, h: torch.Tensor, mask: torch.Tensor | None = None) -> torch.Tensor:
-        """``mask`` (..., N) bool (cities padded to one size): the pools read the real regions only."""
-        pooled = self.summary(h, mask)  # (..., 1, kH)
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        pooled = self.summary(h)  # (..., 1, kH)
         return torch.cat([h, pooled.expand(*h.shape[:-1], pooled.shape[-1])], dim=-1)
 
-    def summary(self, h: torch.Tensor, mask: torch.Tensor | None = None, packed: PackedGraphs | None = None) -> torch.Tensor:
+    def summary(self, h: torch.Tensor, cities: Cities | None = None) -> torch.Tensor:
         """(..., N, C) -> (..., 1, kH): the pools alone, once per graph (what ``forward`` appends to every node);
-        ``packed`` (cities side by side, :class:`~marl_amod.models.dense.PackedGraphs`): (..., C, kH), once per city."""
+        ``cities`` (several cities in one batch, :class:`~marl_amod.models.dense.Cities`): each city's pools over
+        its real regions ((..., C, kH) for cities side by side)."""
         e = self.embed(h)  # (..., N, H)
-        if packed is not None:
-            return torch.cat([packed.city_pool(e, p) for p in self.pools], dim=-1)
-        return torch.cat([self._pool(e, p, mask) for p in self.pools], dim=-1)
-
-    @staticmethod
-    def _pool(e: torch.Tensor, kind: str, mask: torch.Tensor | None) -> torch.Tensor:
-        if mask is None:
-            return e.mean(-2, keepdim=True) if kind == "mean" else e.amax(-2, keepdim=True)
-        m = mask.unsqueeze(-1)  # (..., N, 1)
-        if kind == "mean":
-            return (e * m).sum(-2, keepdim=True) / m.sum(-2, keepdim=True)
-        return e.masked_fill(~m, float("-inf")).amax(-2, keepdim=True)
+        cities = cities if cities is not None else Cities(None, h.shape[-2])
+        return torch.cat([cities.pool(e, p) for p in self.pools], dim=-1)
 
 
 class RegionIdentity(nn.Module):

@@ -16,7 +16,7 @@ The graph is ``edge_index`` (2, E) or a :class:`~marl_amod.models.dense.DenseGra
 per layer over the whole batch, what meta-training uses). Cities of different sizes go in one batch
 two ways. Side by side, (B, N_1 + ... + N_C, F) with a :class:`~marl_amod.models.dense.PackedGraphs`
 (their disjoint union; one team reward and one value per city): every row is a region, and the
-per-city sums (:class:`Cities`) keep the cities apart; the default of meta-training (1.15x an
+per-city sums (:class:`~marl_amod.models.dense.Cities`) keep the cities apart; the default of meta-training (1.15x an
 update faster than padding at 128 hidden units in bf16). Or padded, (C, B, N_max, F) with a :class:`~marl_amod.models.dense.PaddedGraphs`:
 the padded regions' memories run on whatever the padding holds but are never read (no messages,
 masked pools and stay prior, left out of the value's mean); their concentration comes back 0.
@@ -36,7 +36,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from marl_amod.models.dense import DenseGraph, PackedGraphs, PaddedGraphs
+from marl_amod.models.dense import Cities, DenseGraph, PackedGraphs, PaddedGraphs
 from marl_amod.models.gnn import ConvKind, Graph, Readout, batch_edge_index, concentration, make_conv, mlp_head, readout_layer
 
 N_FEEDBACK = 3  # previous action share, previous region reward, previous team reward
@@ -127,8 +127,8 @@ class RecurrentGNN(nn.Module):
             edges = batch_edge_index(graph, math.prod(lead), n) if lead else graph
             mixed = self.conv(read.reshape(-1, self.hidden), edges).reshape(*lead, n, self.hidden)
         z = torch.cat([read, F.relu(mixed)], dim=-1)  # (..., N, 2H): own memory, neighbours' memories
-        fleet = self.readout.summary(z, cities.mask, cities.packed) if self.readout is not None else None  # (..., 1 or C, kH)
-        actor, per_region = (out.squeeze(-1).float() for out in _heads(z, fleet, (self.actor, self.critic), cities.packed))  # (..., N)
+        fleet = self.readout.summary(z, cities) if self.readout is not None else None  # (..., 1 or C, kH)
+        actor, per_region = (out.squeeze(-1).float() for out in _heads(z, fleet, (self.actor, self.critic), cities))  # (..., N)
         if self.stay_prior:
             idle = x[..., 0]  # (..., N) idle vehicles per region, in per-city units
             stay = (1 - STAY_FLOOR - self.demand_prior) * cities.share(idle) + STAY_FLOOR / cities.regions
@@ -145,45 +145,12 @@ class RecurrentGNN(nn.Module):
         return alpha, cities.mean(per_region), memory  # the value: a mean over regions (rewards are per-city scaled, so N-free)
 
 
-class Cities:
-    """Where each city's regions lie in a batch of N regions, for the model's per-city sums: one city
-    (a plain graph), cities padded to one size (:class:`PaddedGraphs`: its mask) or side by side
-    (:class:`PackedGraphs`). ``regions`` broadcasts against (..., N): each region's city's region count."""
-
-    def __init__(self, graph: Graph | PaddedGraphs | PackedGraphs, n: int) -> None:
-        self.n = n
-        self.mask = graph.mask if isinstance(graph, PaddedGraphs) else None  # (C, 1, N): the real regions
-        self.packed = graph if isinstance(graph, PackedGraphs) else None
-        self.regions: int | torch.Tensor = n
-        if self.packed is not None:
-            self.regions = self.packed.regions  # (N,)
-        elif self.mask is not None:
-            self.regions = self.mask.sum(-1, keepdim=True)  # (C, 1, 1)
-
-    def mean(self, v: torch.Tensor) -> torch.Tensor:
-        """(..., N) -> each city's mean over its real regions: (...), or (..., C) packed."""
-        if self.packed is not None:
-            return self.packed.city_sum(v) / self.packed.city_regions
-        if self.mask is None:
-            return v.mean(-1)
-        return v.masked_fill(~self.mask, 0.0).sum(-1) / self.regions.squeeze(-1)
-
-    def per_region(self, v: torch.Tensor) -> torch.Tensor:
-        """A per-city quantity, (...) or (..., C) packed, as (..., N): each region gets its city's."""
-        return self.packed.spread(v) if self.packed is not None else v.unsqueeze(-1).expand(*v.shape, self.n)
-
-    def share(self, v: torch.Tensor) -> torch.Tensor:
-        """(..., N) counts -> their distribution over each city's real regions; negatives count 0, all zero stays zero."""
-        v = v.clamp_min(0) if self.mask is None else v.clamp_min(0).masked_fill(~self.mask, 0.0)
-        total = self.packed.spread(self.packed.city_sum(v)) if self.packed is not None else v.sum(-1, keepdim=True)
-        return v / total.clamp_min(1e-9)
-
-
 def _heads(
-    z: torch.Tensor, fleet: torch.Tensor | None, heads: tuple[nn.Sequential, ...], packed: PackedGraphs | None = None
+    z: torch.Tensor, fleet: torch.Tensor | None, heads: tuple[nn.Sequential, ...], cities: Cities | None = None
 ) -> list[torch.Tensor]:
     """Each :func:`~marl_amod.models.gnn.mlp_head` of ``heads`` on every region's (z, fleet summary),
-    z (..., N, C), fleet (..., 1, P) or None (packed: (..., C, P), one per city), without building that (..., N, C + P) concatenation:
+    z (..., N, C), fleet (..., 1, P) or None (cities side by side: (..., C, P), one per city; ``cities``
+    says where each city's regions lie), without building that (..., N, C + P) concatenation:
     the first layers' weights split into the columns that read z and those that read the summary,
     which run once per graph instead of once per region, and all heads' first layers run as one
     matmul. The same function as the heads on :meth:`FleetReadout.forward`'s output, to float
@@ -195,7 +162,7 @@ def _heads(
     pre = F.linear(z, weight[:, :c], bias)
     if fleet is not None:
         summary = F.linear(fleet, weight[:, c:])  # (..., 1 or C, outs)
-        pre = pre + (packed.spread(summary, dim=-2) if packed is not None else summary)  # each region its city's
+        pre = pre + (cities.to_regions(summary) if cities is not None else summary)  # each region its city's
     hidden = F.relu(pre).split([f.out_features for f in firsts], dim=-1)
     return [head[2:](h) for head, h in zip(heads, hidden, strict=True)]  # the rest of each head: Linear, ReLU, Linear
 
@@ -220,11 +187,11 @@ else:  # torch 2.2-2.3
 
 
 def concatenated_heads(
-    z: torch.Tensor, fleet: torch.Tensor | None, heads: tuple[nn.Sequential, ...], packed: PackedGraphs | None = None
+    z: torch.Tensor, fleet: torch.Tensor | None, heads: tuple[nn.Sequential, ...], cities: Cities | None = None
 ) -> list[torch.Tensor]:
     """The plain form of :func:`_heads`: the summary copied to every region, each head on the
     concatenation. The reference the tests and ``benchmarks/meta_update.py`` compare it with."""
-    if fleet is not None and packed is not None:
-        fleet = packed.spread(fleet, dim=-2)
+    if fleet is not None and cities is not None:
+        fleet = cities.to_regions(fleet)
     full = z if fleet is None else torch.cat([z, fleet.expand(*z.shape[:-1], fleet.shape[-1])], dim=-1)
     return [head(full) for head in heads]
