@@ -572,7 +572,8 @@ class Args(meta.Args):
     to float rounding, and no product spent on padding rows (the training cities have 12-23 regions,
     so padding to the largest of four costs about a quarter more rows): at hidden 128 1.08x faster
     in float32 and 1.15x in bf16, where the update is those products; at hidden 64, where it is
-    not, 1.01-1.03x (``benchmarks/meta_update.py``, 2026-12-05). ``configs/meta/bc.yaml`` sets it
+    not, 1.01-1.03x (``benchmarks/meta_update.py``, 2026-12-05; a real pair of wide runs side by side
+    ran no faster than a padded pair had: docs/meta/log.md, "The cities side by side"). ``configs/meta/bc.yaml`` sets it
     false, so the recipes extending it keep their batching and retrain to the bit unless they set it"""
 
     @property
