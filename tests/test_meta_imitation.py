@@ -359,7 +359,7 @@ def test_a_dagger_schedule_whose_first_round_never_comes_is_refused(first, updat
 
 
 def test_the_cities_batch_form_is_chosen_by_one_reading_and_the_shipped_recipes_keep_theirs():
-    """Packing is the default; ``pad_cities: false`` (one city after another) is refused beside it instead of
+    """Padding is the default and packing opt-in; ``pad_cities: false`` (one city after another) is refused beside packing instead of
     ignored; and the meta-bc configs in ``configs/meta`` keep the batching they trained with (the root
     ``bc.yaml`` pins it), so the shipped members retrain to the bit: only a config that asks for packing packs."""
     import glob
@@ -367,11 +367,10 @@ def test_the_cities_batch_form_is_chosen_by_one_reading_and_the_shipped_recipes_
     from marl_amod.config import load_config
     from marl_amod.data import read_yaml
 
-    assert args_for("meta-bc", {}).cities_batch == "packed" == args_for("meta-bc", {"pad_cities": True}).cities_batch
+    assert args_for("meta-bc", {}).cities_batch == "padded" and args_for("meta-bc", {"pad_cities": False}).cities_batch == "apart"
+    assert args_for("meta-bc", {"pack_cities": True}).cities_batch == "packed"
     with pytest.raises(ConfigError, match="pad_cities: true to pack, or pack_cities: false"):
-        args_for("meta-bc", {"pad_cities": False})
-    assert args_for("meta-bc", {"pad_cities": False, "pack_cities": False}).cities_batch == "apart"
-    assert args_for("meta-bc", {"pack_cities": False}).cities_batch == "padded"
+        args_for("meta-bc", {"pad_cities": False, "pack_cities": True})
     algos = {k: v.args for k, v in ALGOS.items()}
     recipes = {f: args for f in sorted(glob.glob("configs/meta/*.yaml")) for algo, args in [load_config(f, algos)] if algo == "meta-bc"}
     asked = {f for f in recipes if "pack_cities" in (read_yaml(f).get("args") or {})}

@@ -336,7 +336,7 @@ CitiesBatch = Literal["packed", "padded", "apart"]
 
 
 def cities_losses(
-    model: RecurrentGNN, draws: list[tuple[CityDemos, np.ndarray, DenseGraph]], gamma: float, batch: CitiesBatch = "packed",
+    model: RecurrentGNN, draws: list[tuple[CityDemos, np.ndarray, DenseGraph]], gamma: float, batch: CitiesBatch = "padded",
     fit: Fit = Fit(),
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The mean over the drawn cities of :func:`imitation_losses`, the cities of each trial length
@@ -566,15 +566,16 @@ class Args(meta.Args):
     """(with ``pack_cities: false``) an update's cities padded into one batch (the same losses to float
     rounding): 1.12-1.16x faster at hidden 64 x 16 trials per city, 1.4-1.8x at 4 trials
     (``benchmarks/meta_update.py``); False: one city after another, as fast at hidden 128 x 16 trials (0.97x padded)"""
-    pack_cities: bool = True
+    pack_cities: bool = False
     """an update's cities side by side in one batch, one graph that is their disjoint union
     (:class:`~marl_amod.models.dense.PackedGraphs`), instead of padded to the largest: the same losses
     to float rounding, and no product spent on padding rows (the training cities have 12-23 regions,
     so padding to the largest of four costs about a quarter more rows): at hidden 128 1.08x faster
     in float32 and 1.15x in bf16, where the update is those products; at hidden 64, where it is
     not, 1.01-1.03x (``benchmarks/meta_update.py``, 2026-12-05; a real pair of wide runs side by side
-    ran no faster than a padded pair had: docs/meta/log.md, "The cities side by side"). ``configs/meta/bc.yaml`` sets it
-    false, so the recipes extending it keep their batching and retrain to the bit unless they set it"""
+    ran no faster than a padded pair had: docs/meta/log.md, "The cities side by side"; and with small
+    batches, where per-op cost dominates, 0.82x: 32 units, 2 trials a city). Off by default for that;
+    ``configs/meta/bc.yaml`` sets it false too, so the recipes extending it retrain to the bit unless they set it"""
 
     @property
     def cities_batch(self) -> CitiesBatch:

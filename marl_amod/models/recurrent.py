@@ -16,7 +16,7 @@ The graph is ``edge_index`` (2, E) or a :class:`~marl_amod.models.dense.DenseGra
 per layer over the whole batch, what meta-training uses). Cities of different sizes go in one batch
 two ways. Side by side, (B, N_1 + ... + N_C, F) with a :class:`~marl_amod.models.dense.PackedGraphs`
 (their disjoint union; one team reward and one value per city): every row is a region, and the
-per-city sums (:class:`~marl_amod.models.dense.Cities`) keep the cities apart; the default of meta-training (1.15x an
+per-city sums (:class:`~marl_amod.models.dense.Cities`) keep the cities apart; meta-training's opt-in ``pack_cities`` (1.15x an
 update faster than padding at 128 hidden units in bf16). Or padded, (C, B, N_max, F) with a :class:`~marl_amod.models.dense.PaddedGraphs`:
 the padded regions' memories run on whatever the padding holds but are never read (no messages,
 masked pools and stay prior, left out of the value's mean); their concentration comes back 0.
