@@ -130,7 +130,7 @@ def write_ensemble(out: str | Path, members: list[str | Path], adaptation: Adapt
     and its card ``out.md``; each member is read first, so a file that is not a policy fails here
     (and ``adaptation`` or ``together`` is refused unless every member is a meta-policy)."""
     from marl_amod.checkpoints import read_card
-    from marl_amod.files import atomic_write
+    from marl_amod.files import atomic_write, check_destination
 
     out = Path(out)
     if out.suffix not in ENSEMBLE_SUFFIXES:
@@ -149,6 +149,7 @@ def write_ensemble(out: str | Path, members: list[str | Path], adaptation: Adapt
     for asked, what in ((adaptation is not None, "adaptation is how meta-policies act while they adapt"), (together, "together is how meta-policies adapt")):
         if asked and others:
             raise ConfigError(f"ensemble {out}: {what}; {', '.join(others)} are not meta-policies")
+    check_destination(out, what="ensemble")  # its folder made here (a missing one failed in the atomic write, naming its temporary file)
     relative = [Path(os.path.relpath(Path(m).resolve(), out.resolve().parent)).as_posix() for m in members]
     atomic_write(out, "members:\n" + "".join(f"  - {r}\n" for r in relative) + (f"adaptation: {adaptation}\n" if adaptation else "")
                  + ("together: true\n" if together else ""))  # fmt: skip

@@ -11,7 +11,7 @@ import torch
 from marl_amod.algos import meta
 from marl_amod.baselines import EqualDistribution, Proportional
 from marl_amod.ensemble import NOTES, PolicyEnsemble, write_ensemble
-from marl_amod.errors import ConfigError
+from marl_amod.errors import ConfigError, OutputError
 from marl_amod.evaluation import evaluate
 from marl_amod.policies import make_policy
 from marl_amod.scenario import grid_city, load_city
@@ -129,6 +129,13 @@ def test_the_ensemble_command_writes_a_file_that_loads_and_a_card_of_its_members
         refused = CliRunner().invoke(app, ["ensemble", *given, "--out", str(tmp_path / "y.yaml")])
         assert isinstance(refused.exception, ConfigError) and message in str(refused.exception)
         assert not (tmp_path / "y.yaml").exists()  # refused before anything is written
+    fresh = tmp_path / "new" / "deeper" / "pair.yaml"  # a folder that does not exist yet is made, as for every output
+    made = CliRunner().invoke(app, ["ensemble", str(members[0]), str(members[1]), "--out", str(fresh)])
+    assert made.exit_code == 0, made.output
+    assert [m.name for m in make_policy(str(fresh), load_city("synthetic")).members] == ["m0", "m1"]
+    (tmp_path / "blocked").write_text("a file where the folder would go")
+    blocked = CliRunner().invoke(app, ["ensemble", str(members[0]), str(members[1]), "--out", str(tmp_path / "blocked" / "pair.yaml")])
+    assert isinstance(blocked.exception, OutputError) and "is a file, not a folder" in str(blocked.exception)
 
 
 def test_an_ensemble_of_actor_policies_acts_on_the_envs_observations_as_its_members_mean(tmp_path):
